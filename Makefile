@@ -1,0 +1,38 @@
+# Two commands do everything on a fresh machine: `make demo` and `make test`.
+# Both run the idempotent bootstrap first (seconds when nothing changed).
+SHELL := /bin/bash
+.ONESHELL:
+.SHELLFLAGS := -eu -o pipefail -c
+export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
+ENV := . ./env.sh
+
+.PHONY: bootstrap build test lint demo bench clean
+
+bootstrap:
+	scripts/bootstrap.sh
+
+# The workspace build a ROS user runs, here with the repository as the workspace's only source.
+build: bootstrap
+	$(ENV)
+	colcon --log-base log build --symlink-install --base-paths . hybrid_kinematics_interfaces
+
+lint: bootstrap
+	$(ENV)
+	ruff check .
+	ruff format --check .
+
+test: bootstrap
+	$(ENV)
+	ruff check .
+	python -m pytest -q
+
+demo: bootstrap
+	$(ENV)
+	scripts/demo.sh
+
+bench: bootstrap
+	$(ENV)
+	python bench/run_all.py
+
+clean:
+	rm -rf build install log env.sh out

@@ -1,0 +1,179 @@
+"""Forward kinematics and geometric Jacobians of a :class:`Chain`, batched, in numpy and torch.
+
+Each joint step is one matrix product with the constant block ``[G0 | G1 | G2]`` followed by a weighted
+sum (see ``chain.py``), so a batch needs one BLAS call per joint and block, and no per-sample Python loop.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from hybrid_kinematics_ros.kinematics.chain import Chain
+from hybrid_kinematics_ros.kinematics.errors import KinematicsError
+
+
+def check_joints(chain: Chain, q: np.ndarray) -> np.ndarray:
+    """``q`` as a float64 ``(B, n)`` array; raises on a wrong joint count or non-finite values."""
+    q = np.asarray(q, dtype=float)
+    if q.ndim == 1:
+        q = q[None, :]
+    if q.ndim != 2 or q.shape[1] != chain.dof:
+        raise KinematicsError(f"expected joints of shape (B, {chain.dof}) for {chain.dof} joints, got {q.shape}")
+    if not np.all(np.isfinite(q)):
+        raise KinematicsError("joint values contain NaN or infinity")
+    return q
+
+
+CHUNK = 2048  # samples per block: keeps the working set in cache, which makes numpy ~2x faster here
+
+
+def _transposed_generators(chain: Chain) -> np.ndarray:
+    """``(n, 12, 4)``: row ``(c, j)``, column ``m`` holds ``G_c[m, j]``, for left-multiplying transposed frames."""
+    return np.ascontiguousarray(chain.generators.transpose(0, 1, 3, 2).reshape(chain.dof, 12, 4))
+
+
+def _frames_block(chain: Chain, gt: np.ndarray, a: np.ndarray, b: np.ndarray, out: np.ndarray, every: bool) -> None:
+    """Write frames of one block into ``out`` (``(nb, n + 1, 4, 4)`` if ``every`` else ``(nb, 4, 4)``).
+
+    Frames are carried transposed and without their constant last row, as ``X[j, i, b] = T_b[i, j]``
+    (``(4, 3, nb)``), so every joint is one gemm ``(12, 4) @ (4, 3 nb)`` plus contiguous vector updates.
+    """
+    nb = a.shape[0]
+    g = chain.generators[0]
+    x = (g[0][:3, :, None] + a[:, 0] * g[1][:3, :, None] + b[:, 0] * g[2][:3, :, None]).transpose(1, 0, 2)
+    if every:
+        out[:, 0, :3] = x.transpose(2, 1, 0)
+    for k in range(1, chain.dof):
+        y = (gt[k] @ x.reshape(4, 3 * nb)).reshape(3, 4, 3, nb)
+        x = y[0] + a[:, k] * y[1] + b[:, k] * y[2]
+        if every:
+            out[:, k, :3] = x.transpose(2, 1, 0)
+    tip = (chain.post.T @ x.reshape(4, 3 * nb)).reshape(4, 3, nb).transpose(2, 1, 0)
+    if every:
+        out[:, -1, :3] = tip
+    else:
+        out[:, :3] = tip
+
+
+def _batched(chain: Chain, q: np.ndarray, every: bool) -> np.ndarray:
+    q = check_joints(chain, q)
+    a, b = chain.coefficients(q)
+    shape = (q.shape[0], chain.dof + 1, 4, 4) if every else (q.shape[0], 4, 4)
+    out = np.empty(shape)
+    out[..., 3, :] = (0.0, 0.0, 0.0, 1.0)
+    gt = _transposed_generators(chain)
+    for s in range(0, q.shape[0], CHUNK):
+        _frames_block(chain, gt, a[s : s + CHUNK], b[s : s + CHUNK], out[s : s + CHUNK], every)
+    return out
+
+
+def joint_frames(chain: Chain, q: np.ndarray) -> np.ndarray:
+    """Frames of every joint after its motion plus the tip: ``(B, n + 1, 4, 4)`` in the base frame."""
+    return _batched(chain, q, every=True)
+
+
+def fk(chain: Chain, q: np.ndarray) -> np.ndarray:
+    """Tip poses ``(B, 4, 4)`` for joints ``(B, n)`` (a 1-D ``q`` is a batch of one)."""
+    return _batched(chain, q, every=False)
+
+
+def fk_single(chain: Chain, q: np.ndarray) -> np.ndarray:
+    """Tip pose ``(4, 4)`` of one configuration ``(n,)``: the low-overhead path for services and IK."""
+    a, b = chain.coefficients(np.asarray(q, dtype=float))
+    g = chain.generators
+    local = g[:, 0] + a[:, None, None] * g[:, 1] + b[:, None, None] * g[:, 2]
+    t = local[0]
+    for k in range(1, len(local)):
+        t = t @ local[k]
+    return t @ chain.post
+
+
+def jacobian_from_frames(chain: Chain, frames: np.ndarray) -> np.ndarray:
+    """Geometric Jacobian ``(B, 6, n)``, rows ``[v; ω]`` of the tip origin in the base frame."""
+    z = np.einsum("bkij,kj->bki", frames[:, :-1, :3, :3], chain.axes)
+    lever = frames[:, -1:, :3, 3] - frames[:, :-1, :3, 3]
+    rev = chain.revolute[None, :, None]
+    linear = np.where(rev, np.cross(z, lever), z)
+    angular = np.where(rev, z, 0.0)
+    return np.concatenate([linear, angular], axis=2).transpose(0, 2, 1)
+
+
+def jacobian(chain: Chain, q: np.ndarray) -> np.ndarray:
+    """Geometric Jacobian ``(B, 6, n)`` at joints ``(B, n)``."""
+    return jacobian_from_frames(chain, joint_frames(chain, q))
+
+
+def fk_and_jacobian(chain: Chain, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    frames = joint_frames(chain, q)
+    return frames[:, -1], jacobian_from_frames(chain, frames)
+
+
+# ---------------------------------------------------------------------------------------------- torch
+
+
+class TorchChain(torch.nn.Module):
+    """The chain's constants as torch buffers: differentiable FK, scriptable, any float dtype.
+
+    Uses the same transposed-frame layout as the numpy path (see ``_frames_block``).
+    """
+
+    def __init__(self, chain: Chain, dtype: torch.dtype = torch.float64) -> None:
+        super().__init__()
+        self.register_buffer("g0", torch.tensor(chain.generators[0][:, :3], dtype=dtype))  # (3 c, 3 i, 4 j)
+        self.register_buffer("gt", torch.tensor(_transposed_generators(chain), dtype=dtype))
+        self.register_buffer("post_t", torch.tensor(chain.post.T.copy(), dtype=dtype))
+        self.register_buffer("axes", torch.tensor(chain.axes, dtype=dtype))
+        self.register_buffer("revolute", torch.tensor(chain.revolute))
+        self.dof = chain.dof
+
+    def _coefficients(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        a = torch.where(self.revolute, torch.sin(q), q).T.contiguous()
+        b = torch.where(self.revolute, 1.0 - torch.cos(q), torch.zeros_like(q)).T.contiguous()
+        return a, b
+
+    def _frames(self, q: torch.Tensor, every: bool) -> list[torch.Tensor]:
+        """Transposed frames ``(4, 3, B)`` of each joint (if ``every``) and of the tip (always last)."""
+        a, b = self._coefficients(q)
+        nb = q.shape[0]
+        g0 = self.g0
+        x = (g0[0, :, :, None] + a[0] * g0[1, :, :, None] + b[0] * g0[2, :, :, None]).permute(1, 0, 2)
+        frames = [x] if every else []
+        for k in range(1, self.dof):
+            y = (self.gt[k] @ x.reshape(4, 3 * nb)).reshape(3, 4, 3, nb)
+            x = y[0] + a[k] * y[1] + b[k] * y[2]
+            if every:
+                frames.append(x)
+        frames.append((self.post_t @ x.reshape(4, 3 * nb)).reshape(4, 3, nb))
+        return frames
+
+    @staticmethod
+    def _homogeneous(x: torch.Tensor) -> torch.Tensor:
+        """``(..., B, 4, 4)`` from transposed frames ``(..., 4, 3, B)``."""
+        top = x.movedim(-1, -3).transpose(-1, -2)
+        bottom = torch.zeros_like(top[..., :1, :])
+        bottom[..., 0, 3] = 1.0
+        return torch.cat([top, bottom], dim=-2)
+
+    def forward(self, q: torch.Tensor) -> torch.Tensor:
+        """Tip poses ``(B, 4, 4)``."""
+        return self._homogeneous(self._frames(q, every=False)[-1])
+
+    def joint_frames(self, q: torch.Tensor) -> torch.Tensor:
+        """``(B, n + 1, 4, 4)``, as the numpy :func:`joint_frames`."""
+        return self._homogeneous(torch.stack(self._frames(q, every=True), dim=0)).transpose(0, 1)
+
+    def jacobian(self, q: torch.Tensor) -> torch.Tensor:
+        """Geometric Jacobian ``(B, 6, n)``, the same convention as the numpy :func:`jacobian`."""
+        frames = self.joint_frames(q)
+        z = torch.einsum("bkij,kj->bki", frames[:, :-1, :3, :3], self.axes)
+        lever = frames[:, -1:, :3, 3] - frames[:, :-1, :3, 3]
+        rev = self.revolute[None, :, None]
+        linear = torch.where(rev, torch.cross(z, lever, dim=2), z)
+        angular = torch.where(rev, z, torch.zeros_like(z))
+        return torch.cat([linear, angular], dim=2).transpose(1, 2)
+
+
+def fk_torch(chain: Chain, q: torch.Tensor) -> torch.Tensor:
+    """Differentiable tip poses ``(B, 4, 4)`` in ``q``'s dtype. Build a :class:`TorchChain` once on hot paths."""
+    return TorchChain(chain, dtype=q.dtype).to(q.device)(q)

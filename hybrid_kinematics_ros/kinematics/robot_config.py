@@ -1,0 +1,97 @@
+"""Robot config YAML: which URDF, which links, the working joint range, tool and payload.
+
+Simulation settings (the ``truth`` and ``tracker`` sections) are kept as plain dicts here and read by
+``simulation``, so that the kinematics core does not depend on the virtual cell.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from scipy.spatial.transform import Rotation
+
+from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
+from hybrid_kinematics_ros.kinematics.errors import KinematicsError
+
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
+
+
+def transform_from_xyz_rpy(spec: dict[str, Any] | None, where: str) -> np.ndarray:
+    """4x4 from ``{xyz: [..], rpy: [..]}`` (URDF convention: fixed-axis roll, pitch, yaw)."""
+    t = np.eye(4)
+    if not spec:
+        return t
+    try:
+        t[:3, 3] = np.asarray(spec.get("xyz", [0, 0, 0]), dtype=float).reshape(3)
+        rpy = np.asarray(spec.get("rpy", [0, 0, 0]), dtype=float).reshape(3)
+        t[:3, :3] = Rotation.from_euler("xyz", rpy).as_matrix()
+    except (ValueError, TypeError, AttributeError) as exc:
+        raise KinematicsError(f"{where}: expected {{xyz: [x, y, z], rpy: [r, p, y]}}, got {spec!r}") from exc
+    return t
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    name: str
+    path: Path
+    urdf_path: Path
+    base_link: str
+    tip_link: str
+    chain: Chain
+    payload_mass: float = 0.0
+    payload_com: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    truth: dict[str, Any] = field(default_factory=dict)
+    tracker: dict[str, Any] = field(default_factory=dict)
+
+
+def resolve_robot(spec: str | Path) -> Path:
+    """A config path, or the name of an embedded robot (``ur10``, ``rx160``)."""
+    path = Path(spec)
+    if path.is_file():
+        return path
+    embedded = CONFIG_DIR / f"{spec}.yaml"
+    if embedded.is_file():
+        return embedded
+    raise KinematicsError(f"robot config {spec} does not exist (embedded robots: ur10, rx160)")
+
+
+def load_robot_config(spec: str | Path) -> RobotConfig:
+    path = resolve_robot(spec)
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise KinematicsError(f"{path}: not valid YAML: {exc}") from exc
+    if not isinstance(raw, dict):
+        raise KinematicsError(f"{path}: expected a mapping at the top level")
+    for key in ("urdf", "base_link", "tip_link"):
+        if key not in raw:
+            raise KinematicsError(f"{path}: missing field '{key}'")
+    urdf_path = (path.parent / raw["urdf"]).resolve()
+    chain = chain_from_urdf(urdf_path, raw["base_link"], raw["tip_link"])
+    chain = chain.with_tool(transform_from_xyz_rpy(raw.get("tool"), f"{path}: field 'tool'"))
+    limits = raw.get("joint_limits")
+    if limits:
+        lower = np.asarray(limits.get("lower", chain.lower), dtype=float)
+        upper = np.asarray(limits.get("upper", chain.upper), dtype=float)
+        if lower.shape != (chain.dof,) or upper.shape != (chain.dof,) or np.any(lower > upper):
+            raise KinematicsError(
+                f"{path}: field 'joint_limits' needs lower and upper lists of {chain.dof} values with lower <= upper"
+            )
+        chain = chain.with_limits(np.maximum(lower, chain.lower), np.minimum(upper, chain.upper))
+    payload = raw.get("payload") or {}
+    return RobotConfig(
+        name=str(raw.get("name", path.stem)),
+        path=path,
+        urdf_path=urdf_path,
+        base_link=raw["base_link"],
+        tip_link=raw["tip_link"],
+        chain=chain,
+        payload_mass=float(payload.get("mass", 0.0)),
+        payload_com=np.asarray(payload.get("com", [0.0, 0.0, 0.0]), dtype=float),
+        truth=dict(raw.get("truth") or {}),
+        tracker=dict(raw.get("tracker") or {}),
+    )

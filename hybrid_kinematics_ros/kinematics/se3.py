@@ -1,0 +1,88 @@
+"""SE(3) maths in one convention: 4x4 homogeneous matrices, (position, quaternion xyzw), batch first, SI units.
+
+Rotations go through scipy's ``Rotation``; only the tiny operations on hot paths are written out here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from hybrid_kinematics_ros.kinematics.errors import KinematicsError
+
+
+def matrix_from_pose(position: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
+    """``(B, 4, 4)`` from positions ``(B, 3)`` and unit quaternions ``(B, 4)`` in xyzw order."""
+    position = np.atleast_2d(np.asarray(position, dtype=float))
+    quat = np.atleast_2d(np.asarray(quat_xyzw, dtype=float))
+    norms = np.linalg.norm(quat, axis=1)
+    if not np.all(np.abs(norms - 1.0) < 1e-6):
+        bad = int(np.argmax(np.abs(norms - 1.0)))
+        raise KinematicsError(f"quaternion {bad} has norm {norms[bad]:.6g}; orientations must be unit quaternions")
+    out = np.zeros((len(position), 4, 4))
+    out[:, :3, :3] = Rotation.from_quat(quat).as_matrix()
+    out[:, :3, 3] = position
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def pose_from_matrix(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions ``(B, 3)`` and quaternions ``(B, 4)`` xyzw (scalar part non-negative) of ``(B, 4, 4)``."""
+    t = np.asarray(t, dtype=float).reshape(-1, 4, 4)
+    quat = Rotation.from_matrix(t[:, :3, :3]).as_quat()
+    quat *= np.where(quat[:, 3:4] < 0, -1.0, 1.0)
+    return t[:, :3, 3].copy(), quat
+
+
+def from_rotvec(position: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
+    """``(B, 4, 4)`` from positions and axis-angle vectors (the exponential map of SO(3) with a translation)."""
+    position = np.atleast_2d(np.asarray(position, dtype=float))
+    out = np.zeros((len(position), 4, 4))
+    out[:, :3, :3] = Rotation.from_rotvec(np.atleast_2d(rotvec)).as_matrix()
+    out[:, :3, 3] = position
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def rotvec(rotation: np.ndarray) -> np.ndarray:
+    """Axis-angle vectors ``(B, 3)`` of rotation matrices ``(B, 3, 3)`` (the logarithm of SO(3))."""
+    return Rotation.from_matrix(np.asarray(rotation).reshape(-1, 3, 3)).as_rotvec()
+
+
+def inverse(t: np.ndarray) -> np.ndarray:
+    """Inverse of rigid transforms ``(..., 4, 4)`` without a general matrix inverse."""
+    t = np.asarray(t, dtype=float)
+    out = np.zeros_like(t)
+    rt = np.swapaxes(t[..., :3, :3], -1, -2)
+    out[..., :3, :3] = rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", rt, t[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def pose_difference(t_true: np.ndarray, t_model: np.ndarray) -> np.ndarray:
+    """Paper eq. 1, ``T_diff = T_true · T_model^-1``, so that ``T_diff · T_model = T_true``."""
+    return np.asarray(t_true) @ inverse(t_model)
+
+
+def rotation_angle(rotation: np.ndarray) -> np.ndarray:
+    """Angle (rad) of rotation matrices ``(..., 3, 3)``, accurate near zero (atan2, not arccos)."""
+    r = np.asarray(rotation)
+    skew = np.stack([r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], axis=-1)
+    trace = r[..., 0, 0] + r[..., 1, 1] + r[..., 2, 2]
+    return np.arctan2(0.5 * np.linalg.norm(skew, axis=-1), 0.5 * (trace - 1.0))
+
+
+def pose_errors(t_a: np.ndarray, t_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position error in mm and orientation error in degrees between two batches of poses."""
+    t_a, t_b = np.asarray(t_a), np.asarray(t_b)
+    pos_mm = 1e3 * np.linalg.norm(t_a[..., :3, 3] - t_b[..., :3, 3], axis=-1)
+    rel = np.swapaxes(t_b[..., :3, :3], -1, -2) @ t_a[..., :3, :3]
+    return pos_mm, np.degrees(rotation_angle(rel))
+
+
+def ik_cost(t_a: np.ndarray, t_b: np.ndarray) -> np.ndarray:
+    """Paper eq. 2: the sum of squared element differences of the two matrices, translation in mm."""
+    scale = np.ones((4, 4))
+    scale[:3, 3] = 1e3
+    return np.sum(((np.asarray(t_a) - np.asarray(t_b)) * scale) ** 2, axis=(-2, -1))

@@ -1,0 +1,77 @@
+"""SE(3) helpers: property-based round trips and checks against scipy."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from scipy.spatial.transform import Rotation
+
+from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics.errors import KinematicsError
+
+finite = st.floats(-10, 10, allow_nan=False)
+positions = arrays(np.float64, (5, 3), elements=finite)
+quats = arrays(np.float64, (5, 4), elements=st.floats(-1, 1, allow_nan=False)).filter(
+    lambda q: np.all(np.linalg.norm(q, axis=1) > 0.1)
+)
+
+
+def normalised(q):
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+@settings(max_examples=200, deadline=None)
+@given(positions, quats)
+def test_pose_matrix_round_trip(p, q):
+    q = normalised(q)
+    t = se3.matrix_from_pose(p, q)
+    p2, q2 = se3.pose_from_matrix(t)
+    np.testing.assert_allclose(p2, p, atol=1e-12)
+    # a quaternion and its negative are the same rotation
+    np.testing.assert_allclose(np.abs(np.sum(q2 * q, axis=1)), 1.0, atol=1e-12)
+    np.testing.assert_allclose(se3.matrix_from_pose(p2, q2), t, atol=1e-12)
+
+
+@settings(max_examples=200, deadline=None)
+@given(positions, quats, positions, quats)
+def test_pose_difference_composes_back(p1, q1, p2, q2):
+    t_true = se3.matrix_from_pose(p1, normalised(q1))
+    t_model = se3.matrix_from_pose(p2, normalised(q2))
+    diff = se3.pose_difference(t_true, t_model)
+    np.testing.assert_allclose(diff @ t_model, t_true, atol=1e-11)
+    np.testing.assert_allclose(se3.inverse(t_true) @ t_true, np.broadcast_to(np.eye(4), t_true.shape), atol=1e-12)
+
+
+@settings(max_examples=200, deadline=None)
+@given(arrays(np.float64, (5, 3), elements=st.floats(-3.0, 3.0, allow_nan=False)), positions)
+def test_rotvec_exp_log_round_trip(w, p):
+    w = w * np.minimum(1.0, 3.1 / np.maximum(np.linalg.norm(w, axis=1, keepdims=True), 1e-300))
+    t = se3.from_rotvec(p, w)
+    np.testing.assert_allclose(se3.rotvec(t[:, :3, :3]), w, atol=1e-9)
+    np.testing.assert_allclose(se3.rotation_angle(t[:, :3, :3]), np.linalg.norm(w, axis=1), atol=1e-9)
+
+
+def test_pose_errors_units_and_small_angles():
+    t = se3.from_rotvec([0.1, 0.2, 0.3], [0.0, 0.0, 0.0])
+    moved = se3.from_rotvec([0.1, 0.2, 0.301], [0.0, 1e-9, 0.0])
+    pos_mm, rot_deg = se3.pose_errors(moved, t)
+    assert pos_mm[0] == pytest.approx(1.0)
+    assert rot_deg[0] == pytest.approx(np.degrees(1e-9), rel=1e-6)  # arccos would give 0 here
+
+
+def test_ik_cost_is_paper_eq2_in_mm():
+    a = se3.from_rotvec([0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    b = se3.from_rotvec([0.001, 0.0, 0.0], [0.0, 0.0, 0.0])
+    assert se3.ik_cost(a, b)[0] == pytest.approx(1.0)
+    r = Rotation.from_rotvec([0.0, 0.0, 0.01]).as_matrix()
+    c = a.copy()
+    c[0, :3, :3] = r
+    assert se3.ik_cost(a, c)[0] == pytest.approx(np.sum((np.eye(3) - r) ** 2))
+
+
+def test_non_unit_quaternion_is_refused():
+    with pytest.raises(KinematicsError, match="unit quaternions"):
+        se3.matrix_from_pose([0, 0, 0], [0, 0, 0, 2.0])
