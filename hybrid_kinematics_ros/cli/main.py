@@ -1,2 +1,42 @@
-def main() -> int:
-    return 0
+"""``hybrid-kinematics``: the offline workflow (simulate, align, train, evaluate, fk, ik) as subcommands.
+
+Every subsystem error ends the command with one line naming the bad file, field or value, and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from hybrid_kinematics_ros.cli import simulate
+from hybrid_kinematics_ros.io.errors import DataError
+from hybrid_kinematics_ros.kinematics.errors import KinematicsError
+from hybrid_kinematics_ros.simulation.errors import SimulationError
+
+COMMANDS = [simulate]
+USER_ERRORS: tuple[type[Exception], ...] = (DataError, KinematicsError, SimulationError)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="hybrid-kinematics", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    for module in COMMANDS:
+        module.add_parser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.run(args) or 0)
+    except USER_ERRORS as exc:
+        print(f"hybrid-kinematics {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"hybrid-kinematics {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

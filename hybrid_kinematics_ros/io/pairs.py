@@ -1,0 +1,244 @@
+"""The calibration-pairs contract: a rosbag2 bag (MCAP storage) with two topics of equal stamps.
+
+- ``/calibration/joint_states`` (``sensor_msgs/msg/JointState``): one message per sample, with joint names;
+- ``/calibration/tracker_pose`` (``geometry_msgs/msg/PoseStamped``): the measured pose, with the same
+  ``header.stamp``; ``frame_id`` is the base link when in the base frame, else the tracker's frame.
+
+This module is the only reader and writer of pairs. Alignment is on ``header.stamp``, never on bag time.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from hybrid_kinematics_ros.io.errors import DataError
+from hybrid_kinematics_ros.kinematics.se3 import matrix_from_pose, pose_from_matrix
+
+JOINTS_TOPIC = "/calibration/joint_states"
+POSE_TOPIC = "/calibration/tracker_pose"
+RAW_JOINTS_TOPIC = "/joint_states"
+RAW_POSE_TOPIC = "/tracker/pose"
+JOINT_STATE = "sensor_msgs/msg/JointState"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+QUAT_TOLERANCE = 1e-6  # |‖q‖ − 1| above this is a non-unit quaternion
+
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+_T = TYPESTORE.types
+
+
+@dataclass
+class Pairs:
+    """Calibration pairs: joints ``q (N, n)`` rad, measured poses ``T (N, 4, 4)`` m, stamps ``(N,)`` ns."""
+
+    q: np.ndarray
+    T: np.ndarray
+    stamps: np.ndarray
+    joint_names: tuple[str, ...]
+    frame_id: str
+    dropped: Counter = field(default_factory=Counter)
+
+    def __len__(self) -> int:
+        return len(self.q)
+
+    def subset(self, index: np.ndarray) -> Pairs:
+        return Pairs(self.q[index], self.T[index], self.stamps[index], self.joint_names, self.frame_id, Counter())
+
+    @staticmethod
+    def concatenate(parts: Sequence[Pairs]) -> Pairs:
+        first = parts[0]
+        for p in parts[1:]:
+            if p.joint_names != first.joint_names or p.frame_id != first.frame_id:
+                raise DataError(
+                    f"bags disagree: joints {p.joint_names} in frame '{p.frame_id}' against "
+                    f"{first.joint_names} in frame '{first.frame_id}'"
+                )
+        dropped = sum((p.dropped for p in parts), Counter())
+        return Pairs(
+            np.concatenate([p.q for p in parts]),
+            np.concatenate([p.T for p in parts]),
+            np.concatenate([p.stamps for p in parts]),
+            first.joint_names,
+            first.frame_id,
+            dropped,
+        )
+
+
+def _stamp(ns: int):
+    return _T["builtin_interfaces/msg/Time"](sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
+
+
+def joint_state_msg(ns: int, names: Sequence[str], position: np.ndarray):
+    empty = np.zeros(0)
+    header = _T["std_msgs/msg/Header"](stamp=_stamp(ns), frame_id="")
+    return _T[JOINT_STATE](header=header, name=list(names), position=position, velocity=empty, effort=empty)
+
+
+def pose_stamped_msg(ns: int, frame_id: str, position: np.ndarray, quat_xyzw: np.ndarray):
+    point = _T["geometry_msgs/msg/Point"](x=float(position[0]), y=float(position[1]), z=float(position[2]))
+    quat = _T["geometry_msgs/msg/Quaternion"](
+        x=float(quat_xyzw[0]), y=float(quat_xyzw[1]), z=float(quat_xyzw[2]), w=float(quat_xyzw[3])
+    )
+    header = _T["std_msgs/msg/Header"](stamp=_stamp(ns), frame_id=frame_id)
+    return _T[POSE_STAMPED](header=header, pose=_T["geometry_msgs/msg/Pose"](position=point, orientation=quat))
+
+
+class PairsWriter:
+    """Streams pairs into a new bag; use as a context manager so a crash still closes the file."""
+
+    def __init__(self, path: str | Path, joint_names: Sequence[str], frame_id: str) -> None:
+        self.path = Path(path)
+        if self.path.exists():
+            raise DataError(f"{self.path} exists already, not overwriting")
+        if not self.path.parent.is_dir():
+            raise DataError(f"cannot write {self.path}: folder {self.path.parent} does not exist")
+        self.joint_names = list(joint_names)
+        self.frame_id = frame_id
+        self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+        self.count = 0
+
+    def __enter__(self) -> PairsWriter:
+        self._writer.open()
+        self._joints = self._writer.add_connection(JOINTS_TOPIC, JOINT_STATE, typestore=TYPESTORE)
+        self._poses = self._writer.add_connection(POSE_TOPIC, POSE_STAMPED, typestore=TYPESTORE)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._writer.close()
+
+    def write(self, q: np.ndarray, T: np.ndarray, stamps: Iterable[int]) -> None:
+        positions, quats = pose_from_matrix(T)
+        for qi, p, quat, ns in zip(q, positions, quats, stamps, strict=True):
+            ns = int(ns)
+            js = joint_state_msg(ns, self.joint_names, np.asarray(qi, dtype=float))
+            ps = pose_stamped_msg(ns, self.frame_id, p, quat)
+            self._writer.write(self._joints, ns, TYPESTORE.serialize_cdr(js, JOINT_STATE))
+            self._writer.write(self._poses, ns, TYPESTORE.serialize_cdr(ps, POSE_STAMPED))
+        self.count += len(q)
+
+
+def write_pairs(path: str | Path, pairs: Pairs) -> None:
+    with PairsWriter(path, pairs.joint_names, pairs.frame_id) as writer:
+        writer.write(pairs.q, pairs.T, pairs.stamps)
+
+
+def _ns(header) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def open_bag(path: str | Path) -> Reader:
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"bag {path} does not exist")
+    try:
+        reader = Reader(path)
+        reader.open()
+    except Exception as exc:  # rosbags raises its own ReaderError and OS errors
+        raise DataError(f"cannot open bag {path}: {exc}") from exc
+    return reader
+
+
+def bag_topics(path: str | Path) -> dict[str, str]:
+    reader = open_bag(path)
+    try:
+        return {c.topic: c.msgtype for c in reader.connections}
+    finally:
+        reader.close()
+
+
+def read_pairs(path: str | Path, joint_names: Sequence[str] | None = None) -> Pairs:
+    """Read and check a pairs bag. Unusable samples are dropped and counted by reason in ``Pairs.dropped``.
+
+    Args:
+        path: the bag directory (or its .mcap file).
+        joint_names: the model's joints; messages are reordered to them. ``None``: the bag's first order.
+
+    Raises:
+        DataError: missing topics, wrong types, unknown or missing joint names, or no usable pair left.
+    """
+    path = Path(path)
+    reader = open_bag(path)
+    try:
+        conns = {c.topic: c for c in reader.connections}
+        for topic, msgtype in ((JOINTS_TOPIC, JOINT_STATE), (POSE_TOPIC, POSE_STAMPED)):
+            if topic not in conns:
+                raw = (
+                    " (a raw recording: align it first with `hybrid-kinematics align`)"
+                    if (RAW_JOINTS_TOPIC in conns)
+                    else ""
+                )
+                raise DataError(f"bag {path} has no topic {topic}{raw}; topics: {', '.join(sorted(conns)) or 'none'}")
+            if conns[topic].msgtype != msgtype:
+                raise DataError(f"bag {path}: topic {topic} has type {conns[topic].msgtype}, expected {msgtype}")
+        joints: dict[int, np.ndarray] = {}
+        poses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        frames: set[str] = set()
+        dropped: Counter = Counter()
+        names = tuple(joint_names) if joint_names is not None else None
+        order = None
+        for conn, _, raw in reader.messages(connections=[conns[JOINTS_TOPIC], conns[POSE_TOPIC]]):
+            msg = TYPESTORE.deserialize_cdr(raw, conn.msgtype)
+            ns = _ns(msg.header)
+            if conn.topic == JOINTS_TOPIC:
+                msg_names = tuple(msg.name)
+                if names is None:
+                    names = msg_names
+                if msg_names != names:
+                    if set(msg_names) != set(names) or len(msg_names) != len(names):
+                        unknown = sorted(set(msg_names) - set(names))
+                        missing = sorted(set(names) - set(msg_names))
+                        raise DataError(
+                            f"bag {path}: joint state at stamp {ns} has joints {list(msg_names)}; "
+                            f"unknown {unknown}, missing {missing} (the model has {list(names)})"
+                        )
+                    order = [msg_names.index(n) for n in names]
+                else:
+                    order = None
+                position = np.asarray(msg.position, dtype=float)
+                if len(position) != len(msg_names):
+                    dropped["joint_state_length_mismatch"] += 1
+                    continue
+                if order is not None:
+                    position = position[order]
+                if ns in joints:
+                    dropped["duplicate_stamp"] += 1
+                    continue
+                joints[ns] = position
+            else:
+                frames.add(msg.header.frame_id)
+                p = msg.pose.position
+                o = msg.pose.orientation
+                poses[ns] = (np.array([p.x, p.y, p.z]), np.array([o.x, o.y, o.z, o.w]))
+    finally:
+        reader.close()
+
+    if len(frames) > 1:
+        raise DataError(f"bag {path}: tracker poses come in several frames {sorted(frames)}; expected one")
+    common = sorted(set(joints) & set(poses))
+    if len(joints) - len(common):
+        dropped["joint_state_without_pose"] += len(joints) - len(common)
+    if len(poses) - len(common):
+        dropped["pose_without_joint_state"] += len(poses) - len(common)
+    if not common:
+        raise DataError(f"bag {path}: no joint state has a tracker pose with the same header.stamp")
+    q = np.array([joints[s] for s in common])
+    pos = np.array([poses[s][0] for s in common])
+    quat = np.array([poses[s][1] for s in common])
+    stamps = np.array(common, dtype=np.int64)
+
+    finite = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(pos), axis=1) & np.all(np.isfinite(quat), axis=1)
+    dropped["nan_or_inf"] += int(np.sum(~finite))
+    norms = np.linalg.norm(np.where(np.isfinite(quat), quat, 0.0), axis=1)
+    unit = np.abs(norms - 1.0) <= QUAT_TOLERANCE
+    dropped["non_unit_quaternion"] += int(np.sum(finite & ~unit))
+    keep = finite & unit
+    if not np.any(keep):
+        raise DataError(f"bag {path}: no usable pair left after dropping {dict(+dropped)}")
+    quat = quat[keep] / norms[keep, None]
+    return Pairs(q[keep], matrix_from_pose(pos[keep], quat), stamps[keep], names, frames.pop(), +dropped)
