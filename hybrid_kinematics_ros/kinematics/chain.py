@@ -53,9 +53,21 @@ class Chain:
     segment_com: np.ndarray
     urdf_sha256: str = ""
     urdf_text: str = field(default="", repr=False)
+    tool: np.ndarray = field(default_factory=lambda: np.eye(4))  # the part of ``post`` added by a robot config
 
     def __post_init__(self) -> None:
-        for name in ("pre", "axes", "post", "revolute", "continuous", "lower", "upper", "segment_mass", "segment_com"):
+        for name in (
+            "pre",
+            "axes",
+            "post",
+            "tool",
+            "revolute",
+            "continuous",
+            "lower",
+            "upper",
+            "segment_mass",
+            "segment_com",
+        ):
             arr = np.array(getattr(self, name))
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)
@@ -71,7 +83,8 @@ class Chain:
 
     def with_tool(self, tool: np.ndarray) -> Chain:
         """The same chain with a fixed tool transform appended after the tip."""
-        return replace(self, post=self.post @ np.asarray(tool, dtype=float))
+        tool = np.asarray(tool, dtype=float)
+        return replace(self, post=self.post @ tool, tool=self.tool @ tool)
 
     def with_limits(self, lower: np.ndarray, upper: np.ndarray) -> Chain:
         return replace(self, lower=np.asarray(lower, dtype=float), upper=np.asarray(upper, dtype=float))

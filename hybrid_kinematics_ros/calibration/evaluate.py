@@ -1,0 +1,72 @@
+"""Accuracy statistics of the analytic and hybrid models against measured poses, and the paper's plots."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+from hybrid_kinematics_ros.io.pairs import Pairs
+from hybrid_kinematics_ros.kinematics import se3
+
+
+def error_stats(pos_mm: np.ndarray, rot_deg: np.ndarray) -> dict[str, float]:
+    if len(pos_mm) == 0:
+        return {"count": 0}
+    out: dict[str, float] = {"count": len(pos_mm)}
+    for name, values in (("position_mm", pos_mm), ("orientation_deg", rot_deg)):
+        out[f"{name}_mean"] = float(np.mean(values))
+        out[f"{name}_median"] = float(np.median(values))
+        out[f"{name}_p95"] = float(np.percentile(values, 95))
+        out[f"{name}_p99"] = float(np.percentile(values, 99))
+        out[f"{name}_max"] = float(np.max(values))
+    return out
+
+
+def pose_errors_of(model: HybridModel, pairs: Pairs) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    analytic = model.fk(pairs.q, analytic=True)
+    hybrid = model.fk(pairs.q)
+    return {"analytic": se3.pose_errors(pairs.T, analytic), "hybrid": se3.pose_errors(pairs.T, hybrid)}
+
+
+def evaluate(model: HybridModel, pairs: Pairs) -> dict[str, Any]:
+    """Statistics for both models, on all pairs and split by the calibrated joint range."""
+    errors = pose_errors_of(model, pairs)
+    inside = model.in_calibrated_range(pairs.q)
+    report: dict[str, Any] = {"pairs": len(pairs), "inside_calibrated_range": int(inside.sum())}
+    for name, (pos, rot) in errors.items():
+        report[name] = error_stats(pos, rot)
+        report[f"{name}_inside_range"] = error_stats(pos[inside], rot[inside])
+        report[f"{name}_outside_range"] = error_stats(pos[~inside], rot[~inside])
+    if not model.has_orientation and model.nets:
+        report["note"] = "no orientation net: orientation is the analytic model's, uncorrected"
+    return report
+
+
+def plot_distributions(model: HybridModel, pairs: Pairs, out_dir: Path) -> list[Path]:
+    """The paper's Figs. 4 and 8: error distributions of the analytic against the hybrid model (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    errors = pose_errors_of(model, pairs)
+    paths = []
+    for index, (label, unit) in enumerate((("position", "mm"), ("orientation", "deg"))):
+        fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+        for ax, name, color in zip(axes, ("analytic", "hybrid"), ("tab:orange", "tab:blue"), strict=True):
+            values = errors[name][index]
+            ax.hist(values, bins=60, color=color, alpha=0.85)
+            ax.set_title(f"{name}: mean {values.mean():.4g} {unit}")
+            ax.set_xlabel(f"{label} error ({unit})")
+            ax.set_ylabel("samples")
+        fig.suptitle(f"{label} error distribution, {len(pairs)} pairs")
+        fig.tight_layout()
+        path = out_dir / f"{label}_error_distribution.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        paths.append(path)
+    return paths

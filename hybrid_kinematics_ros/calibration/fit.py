@@ -1,0 +1,99 @@
+"""From pairs bags to a model directory: split, targets, the two nets, test metrics and the manifest."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybrid_kinematics_ros.calibration import train
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
+from hybrid_kinematics_ros.calibration.evaluate import evaluate
+from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+from hybrid_kinematics_ros.io.model_dir import save_model_dir
+from hybrid_kinematics_ros.io.pairs import Pairs, read_pairs
+from hybrid_kinematics_ros.kinematics.chain import Chain
+
+
+def load_pairs(bags: Sequence[str | Path], chain: Chain) -> Pairs:
+    pairs = Pairs.concatenate([read_pairs(b, chain.joint_names) for b in bags])
+    if pairs.frame_id != chain.base_link:
+        raise CalibrationError(
+            f"the pairs are in frame '{pairs.frame_id}', not the base link '{chain.base_link}'; "
+            "reference them into the base frame first"
+        )
+    return pairs
+
+
+def split(pairs: Pairs, seed: int, fractions: tuple[float, float] = (0.1, 0.1)) -> tuple[Pairs, Pairs, Pairs]:
+    """Reproducible train/validation/test split (validation and test fractions given)."""
+    n = len(pairs)
+    if n < 10:
+        raise CalibrationError(f"only {n} pairs: at least 10 are needed to train, validate and test")
+    perm = np.random.default_rng(seed).permutation(n)
+    n_val = max(1, int(n * fractions[0]))
+    n_test = max(1, int(n * fractions[1]))
+    return pairs.subset(perm[n_val + n_test :]), pairs.subset(perm[:n_val]), pairs.subset(perm[n_val : n_val + n_test])
+
+
+def fit(
+    chain: Chain,
+    train_pairs: Pairs,
+    val_pairs: Pairs,
+    test_pairs: Pairs,
+    out: Path,
+    preset: train.Preset,
+    max_minutes: float,
+    seed: int = 0,
+    arch: dict[str, str] | None = None,
+    data_summary: dict[str, Any] | None = None,
+    progress: Callable[[dict], None] | None = None,
+    parallel: bool = True,
+) -> tuple[HybridModel, dict[str, Any]]:
+    """Train both nets within ``max_minutes`` (wall clock, run side by side) and write the model directory."""
+    lower, upper = train_pairs.q.min(axis=0), train_pairs.q.max(axis=0)
+    norm_lower, norm_upper = (chain.lower, chain.upper) if preset.full_range else (lower, upper)
+    norm_lower = np.where(np.isfinite(norm_lower), norm_lower, lower)
+    norm_upper = np.where(np.isfinite(norm_upper), norm_upper, upper)
+    y_train = train.residual_targets(chain, train_pairs.q, train_pairs.T)
+    y_val = train.residual_targets(chain, val_pairs.q, val_pairs.T)
+    arch = arch or {}
+    jobs = {}
+    for seed_offset, kind in enumerate(train.KINDS):
+        p = replace(preset, arch=arch.get(kind) or preset.arch)
+        jobs[kind] = train.NetJob(
+            kind, p, train_pairs.q, y_train[kind], val_pairs.q, y_val[kind], norm_lower, norm_upper,
+            train.joint1_axis(chain), 60.0 * max_minutes, seed + seed_offset,
+        )  # fmt: skip
+    start = time.perf_counter()
+    nets, histories = train.train_pair(jobs, progress=progress, parallel=parallel)
+    seconds = time.perf_counter() - start
+    model = HybridModel(chain, nets, {"trained_range": {"lower": lower.tolist(), "upper": upper.tolist()}})
+    metrics = evaluate(model, test_pairs)
+    manifest = {
+        "base_link": chain.base_link,
+        "tip_link": chain.tip_link,
+        "joint_names": list(chain.joint_names),
+        "tool": chain.tool.tolist(),
+        "joint_limits": {"lower": chain.lower.tolist(), "upper": chain.upper.tolist()},
+        "trained_range": {"lower": lower.tolist(), "upper": upper.tolist()},
+        "nets": {kind: {"arch": job.preset.arch, "epochs": len(histories[kind]), **_best(histories[kind])}
+                 for kind, job in jobs.items()},
+        "preset": asdict(preset),
+        "seed": seed,
+        "training_seconds": round(seconds, 1),
+        "data": {**(data_summary or {}), "train": len(train_pairs), "val": len(val_pairs), "test": len(test_pairs),
+                 "frame_id": train_pairs.frame_id},
+        "metrics": {"test": metrics},
+    }  # fmt: skip
+    save_model_dir(out, manifest, chain.urdf_text, nets)
+    return HybridModel.load(out), manifest
+
+
+def _best(history: list[dict]) -> dict[str, float]:
+    last = history[-1]
+    return {k: v for k, v in last.items() if k.startswith("best_val_")}

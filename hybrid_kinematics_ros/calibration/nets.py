@@ -1,0 +1,144 @@
+"""Residual networks: joints in radians in, a residual 3-vector in SI units out.
+
+Everything a caller needs is inside the module, so a saved TorchScript file is self-contained:
+min-max normalisation of the joints, optional ``sin``/``cos`` features, the network, de-standardisation
+of the output, and (optionally) turning the residual from a frame that rotates with joint 1 back into
+the base frame. Gravity does not change when the robot turns about a vertical joint 1, so in that frame
+the residual hardly depends on ``q1`` and is easier to learn.
+
+Architectures are named: the paper's ``D1``, ``D4``, ``D4w``, ``D4W`` (ReLU MLPs) and ``Rw``, ``Rd``
+(ResNets of dense and identity blocks after Chen et al.), and ``mlp:WxD[:act]`` for plain MLPs.
+"""
+
+from __future__ import annotations
+
+import itertools
+import re
+
+import numpy as np
+import torch
+from torch import nn
+
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
+
+PAPER_DENSE = {
+    "D1": [5000],
+    "D4": [3500, 2500, 1500, 750],
+    "D4w": [5000, 3000, 1000, 500],
+    "D4W": [6000, 3000, 1500, 1000],
+}
+PAPER_RESNET = {"Rw": [700, 500, 200], "Rd": [500, 200, 100, 70, 30]}
+ACTIVATIONS = {"relu": nn.ReLU, "silu": nn.SiLU, "tanh": nn.Tanh, "gelu": nn.GELU}
+ARCHITECTURES = (*PAPER_DENSE, *PAPER_RESNET, "mlp:WxD[:relu|silu|tanh|gelu]")
+
+
+def _mlp(sizes: list[int], out: int, act: type[nn.Module]) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for a, b in itertools.pairwise(sizes):
+        layers += [nn.Linear(a, b), act()]
+    layers.append(nn.Linear(sizes[-1], out))
+    return nn.Sequential(*layers)
+
+
+class _ResBlock(nn.Module):
+    """Three dense layers with batch norm; a projection shortcut for a dense block, identity otherwise."""
+
+    def __init__(self, width_in: int, width: int) -> None:
+        super().__init__()
+        self.main = nn.Sequential(
+            nn.Linear(width_in, width), nn.BatchNorm1d(width), nn.ReLU(),
+            nn.Linear(width, width), nn.BatchNorm1d(width), nn.ReLU(),
+            nn.Linear(width, width), nn.BatchNorm1d(width),
+        )  # fmt: skip
+        self.shortcut = (
+            nn.Sequential(nn.Linear(width_in, width), nn.BatchNorm1d(width)) if width_in != width else nn.Identity()
+        )
+        self.act = nn.ReLU()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.act(self.main(x) + self.shortcut(x))
+
+
+def _resnet(n_in: int, widths: list[int], out: int) -> nn.Sequential:
+    blocks: list[nn.Module] = []
+    width_in = n_in
+    for w in widths:
+        # a component: one dense block (projection shortcut) then two identity blocks
+        blocks += [_ResBlock(width_in, w), _ResBlock(w, w), _ResBlock(w, w)]
+        width_in = w
+    blocks.append(nn.Linear(width_in, out))
+    return nn.Sequential(*blocks)
+
+
+def build_body(arch: str, n_in: int, out: int = 3) -> nn.Module:
+    if arch in PAPER_DENSE:
+        return _mlp([n_in, *PAPER_DENSE[arch]], out, nn.ReLU)
+    if arch in PAPER_RESNET:
+        return _resnet(n_in, PAPER_RESNET[arch], out)
+    match = re.fullmatch(r"mlp:(\d+)x(\d+)(?::(\w+))?", arch)
+    if match:
+        width, depth, act = int(match[1]), int(match[2]), match[3] or "silu"
+        if act not in ACTIVATIONS or width < 1 or depth < 1:
+            raise CalibrationError(f"architecture '{arch}': activation must be one of {sorted(ACTIVATIONS)}")
+        return _mlp([n_in] + [width] * depth, out, ACTIVATIONS[act])
+    raise CalibrationError(f"unknown architecture '{arch}'; choose one of {', '.join(ARCHITECTURES)}")
+
+
+class ResidualNet(nn.Module):
+    """Joints ``(B, n)`` rad (any float dtype) to a residual ``(B, 3)`` float64 in m or rad."""
+
+    def __init__(
+        self,
+        arch: str,
+        lower: np.ndarray,
+        upper: np.ndarray,
+        target_mean: np.ndarray,
+        target_scale: np.ndarray,
+        sincos: bool = True,
+        joint1_axis: np.ndarray | None = None,
+    ) -> None:
+        super().__init__()
+        n = len(lower)
+        span = np.maximum(np.asarray(upper) - np.asarray(lower), 1e-9)
+        self.register_buffer("center", torch.tensor(0.5 * (np.asarray(upper) + np.asarray(lower)), dtype=torch.float32))
+        self.register_buffer("half_span", torch.tensor(0.5 * span, dtype=torch.float32))
+        self.register_buffer("target_mean", torch.tensor(target_mean, dtype=torch.float64))
+        self.register_buffer("target_scale", torch.tensor(target_scale, dtype=torch.float64))
+        axis = np.zeros(3) if joint1_axis is None else np.asarray(joint1_axis, dtype=float)
+        self.register_buffer("axis", torch.tensor(axis, dtype=torch.float64))
+        self.sincos = sincos
+        self.turn = joint1_axis is not None
+        self.body = build_body(arch, 3 * n if sincos else n)
+
+    def features(self, q: torch.Tensor) -> torch.Tensor:
+        q32 = q.to(torch.float32)
+        x = (q32 - self.center) / self.half_span
+        if self.sincos:
+            x = torch.cat([x, torch.sin(q32), torch.cos(q32)], dim=1)
+        return x
+
+    def standardised(self, q: torch.Tensor) -> torch.Tensor:
+        """The raw network output: the residual in the turning frame, standardised. Training fits this."""
+        return self.body(self.features(q))
+
+    def to_base(self, r: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+        """Turn residuals from the joint-1 frame into the base frame (Rodrigues about the joint-1 axis)."""
+        if not self.turn:
+            return r
+        q1 = q[:, 0:1].to(torch.float64)
+        k = self.axis.expand_as(r)
+        kxr = torch.cross(k, r, dim=1)
+        return r * torch.cos(q1) + kxr * torch.sin(q1) + k * (k * r).sum(1, keepdim=True) * (1.0 - torch.cos(q1))
+
+    def forward(self, q: torch.Tensor) -> torch.Tensor:
+        r = self.standardised(q).to(torch.float64) * self.target_scale + self.target_mean
+        return self.to_base(r, q)
+
+
+def to_joint1_frame(r: np.ndarray, q1: np.ndarray, axis: np.ndarray | None) -> np.ndarray:
+    """Base-frame residuals ``(B, 3)`` into the joint-1 frame: the inverse of ``ResidualNet.to_base``."""
+    if axis is None:
+        return r
+    k = np.broadcast_to(axis, r.shape)
+    c, s = np.cos(-q1)[:, None], np.sin(-q1)[:, None]
+    return r * c + np.cross(k, r) * s + k * np.sum(k * r, axis=1, keepdims=True) * (1.0 - c)

@@ -1,0 +1,219 @@
+"""Training of the two residual nets: presets, targets, the training loop and parallel workers.
+
+Targets follow the paper's Fig. 2: the position net learns ``Δp = p_true − p_model`` (added to the analytic
+position) and the orientation net the axis-angle vector of ``R_true · R_modelᵀ`` (the rotation of eq. 1's
+``T_diff``). Keeping the position additive means an orientation-net error never leaks into position.
+Losses are the paper's: the mean Euclidean norm of the error of each 3-vector.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+import os
+import queue
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, replace
+
+import numpy as np
+import torch
+
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
+from hybrid_kinematics_ros.calibration.nets import ResidualNet, to_joint1_frame
+from hybrid_kinematics_ros.kinematics import fk, se3
+from hybrid_kinematics_ros.kinematics.chain import Chain
+
+KINDS = ("position", "orientation")
+UNIT = {"position": ("mm", 1e3), "orientation": ("deg", 180.0 / math.pi)}
+
+
+@dataclass(frozen=True)
+class Preset:
+    name: str
+    arch: str
+    optimizer: str  # "adam" or "adagrad"
+    lr: float
+    batch: int
+    sincos: bool  # sin/cos joint features beside the normalised joints
+    turn: bool  # learn the residual in the frame that turns with joint 1
+    cosine: bool  # cosine learning-rate decay timed to reach zero at the time budget
+    max_epochs: int
+    patience: int  # epochs without validation improvement before stopping; 0: never stop early
+    full_range: bool  # normalise over the joint limits (else over the range seen in the data)
+
+
+PRESETS = {
+    "fast": Preset("fast", "mlp:256x3:silu", "adam", 1e-2, 1024, True, True, True, 100_000, 0, False),
+    "paper": Preset("paper", "D4w", "adagrad", 5e-3, 128, False, False, False, 300, 10, True),
+}
+
+
+def residual_targets(chain: Chain, q: np.ndarray, T: np.ndarray) -> dict[str, np.ndarray]:
+    """Base-frame targets ``{"position": Δp (N, 3) m, "orientation": ω (N, 3) rad}``."""
+    model = fk.fk(chain, q)
+    return {
+        "position": T[:, :3, 3] - model[:, :3, 3],
+        "orientation": se3.rotvec(T[:, :3, :3] @ np.swapaxes(model[:, :3, :3], 1, 2)),
+    }
+
+
+def joint1_axis(chain: Chain) -> np.ndarray | None:
+    """Joint 1's axis in the base frame, or None when joint 1 is prismatic."""
+    return chain.pre[0, :3, :3] @ chain.axes[0] if chain.revolute[0] else None
+
+
+@dataclass
+class NetJob:
+    """Everything one worker needs to train one net (picklable)."""
+
+    kind: str
+    preset: Preset
+    q_train: np.ndarray
+    y_train: np.ndarray
+    q_val: np.ndarray
+    y_val: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    axis: np.ndarray | None
+    max_seconds: float
+    seed: int
+
+
+def build_net(job: NetJob) -> ResidualNet:
+    p = job.preset
+    axis = job.axis if p.turn else None
+    local = to_joint1_frame(job.y_train, job.q_train[:, 0], axis)
+    mean = local.mean(axis=0)
+    scale = float(np.sqrt(np.mean(np.sum((local - mean) ** 2, axis=1)) / 3.0)) or 1.0
+    return ResidualNet(p.arch, job.lower, job.upper, mean, np.full(3, scale), sincos=p.sincos, joint1_axis=axis)
+
+
+def _validation_error(net: ResidualNet, q: torch.Tensor, y: torch.Tensor) -> float:
+    net.eval()
+    with torch.no_grad():
+        err = torch.linalg.vector_norm(net(q) - y, dim=1).mean().item()
+    net.train()
+    return err
+
+
+def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tuple[ResidualNet, list[dict]]:
+    """Train one residual net; returns the best net on validation and the per-epoch history."""
+    torch.manual_seed(job.seed)
+    p = job.preset
+    net = build_net(job)
+    axis = job.axis if p.turn else None
+    mean, scale = net.target_mean.numpy(), net.target_scale.numpy()
+    y_std = (to_joint1_frame(job.y_train, job.q_train[:, 0], axis) - mean) / scale
+    q_train = torch.tensor(job.q_train)
+    y_train = torch.tensor(y_std, dtype=torch.float32)
+    q_val, y_val = torch.tensor(job.q_val), torch.tensor(job.y_val)
+    if p.optimizer == "adam":
+        opt: torch.optim.Optimizer = torch.optim.Adam(net.parameters(), lr=p.lr)
+    else:
+        opt = torch.optim.Adagrad(net.parameters(), lr=p.lr)
+    n = len(q_train)
+    batch = min(p.batch, n)
+    gen = torch.Generator().manual_seed(job.seed)
+    best = (math.inf, None)
+    history: list[dict] = []
+    start = time.perf_counter()
+    stale = 0
+    unit, factor = UNIT[job.kind]
+    for epoch in range(1, p.max_epochs + 1):
+        perm = torch.randperm(n, generator=gen)
+        total, steps = 0.0, 0
+        out_of_time = False
+        for s in range(0, n - batch + 1, batch):
+            elapsed = time.perf_counter() - start
+            if elapsed >= job.max_seconds:
+                out_of_time = True
+                break
+            if p.cosine:
+                for group in opt.param_groups:
+                    group["lr"] = p.lr * 0.5 * (1.0 + math.cos(math.pi * elapsed / job.max_seconds))
+            idx = perm[s : s + batch]
+            loss = torch.linalg.vector_norm(net.standardised(q_train[idx]) - y_train[idx], dim=1).mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            total += loss.item()
+            steps += 1
+        if steps == 0:
+            break
+        val = _validation_error(net, q_val, y_val)
+        if val < best[0]:
+            best = (val, {k: v.clone() for k, v in net.state_dict().items()})
+            stale = 0
+        else:
+            stale += 1
+        entry = {
+            "kind": job.kind,
+            "epoch": epoch,
+            "seconds": round(time.perf_counter() - start, 2),
+            "loss": total / steps,
+            f"val_{unit}": val * factor,
+            f"best_val_{unit}": best[0] * factor,
+        }
+        history.append(entry)
+        if report:
+            report(entry)
+        if out_of_time or (p.patience and stale >= p.patience):
+            break
+    if best[1] is None:
+        raise CalibrationError(f"{job.kind} net: no training step fitted in the time budget; give more time")
+    net.load_state_dict(best[1])
+    net.eval()
+    return net, history
+
+
+def _worker(job: NetJob, out_path: str, progress: mp.Queue) -> list[dict]:
+    torch.set_num_threads(1)
+    net, history = train_net(job, report=progress.put)
+    torch.jit.script(net).save(out_path)
+    return history
+
+
+def train_pair(
+    jobs: dict[str, NetJob], progress: Callable[[dict], None] | None = None, parallel: bool = True
+) -> tuple[dict[str, torch.jit.ScriptModule], dict[str, list[dict]]]:
+    """Train the position and orientation nets, one process and one thread each when ``parallel``.
+
+    Two single-threaded processes beat one process with two threads on a shared 2-core machine.
+    """
+    with tempfile.TemporaryDirectory() as tmp:
+        paths = {kind: os.path.join(tmp, f"{kind}.pt") for kind in jobs}
+        histories: dict[str, list[dict]] = {}
+        if parallel and len(jobs) > 1:
+            ctx = mp.get_context("spawn")
+            with ctx.Manager() as manager:
+                q = manager.Queue()
+                with ctx.Pool(len(jobs)) as pool:
+                    pending = {k: pool.apply_async(_worker, (job, paths[k], q)) for k, job in jobs.items()}
+                    while pending:
+                        try:
+                            entry = q.get(timeout=0.2)
+                            if progress:
+                                progress(entry)
+                        except queue.Empty:
+                            pass
+                        for k in [k for k, r in pending.items() if r.ready()]:
+                            histories[k] = pending.pop(k).get()
+                    while not q.empty() and progress:
+                        progress(q.get())
+        else:
+            for kind, job in jobs.items():
+                net, histories[kind] = train_net(job, report=progress)
+                torch.jit.script(net).save(paths[kind])
+        return {k: torch.jit.load(p) for k, p in paths.items()}, histories
+
+
+def preset(name: str, **overrides: object) -> Preset:
+    if name not in PRESETS:
+        raise CalibrationError(f"unknown preset '{name}'; choose one of {', '.join(PRESETS)}")
+    return replace(PRESETS[name], **{k: v for k, v in overrides.items() if v is not None})
+
+
+def preset_dict(p: Preset) -> dict:
+    return asdict(p)

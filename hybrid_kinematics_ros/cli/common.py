@@ -1,0 +1,71 @@
+"""Helpers shared by the subcommands: choosing the robot, reading and writing CSV files."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from hybrid_kinematics_ros.io.errors import DataError
+from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
+from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+
+POSE_COLUMNS = ("x", "y", "z", "qx", "qy", "qz", "qw")
+
+
+def add_robot_args(p: argparse.ArgumentParser, required: bool = True) -> None:
+    group = p.add_mutually_exclusive_group(required=required)
+    group.add_argument("--robot", help="robot config YAML, or an embedded robot: ur10, rx160")
+    group.add_argument("--urdf", help="URDF file (with --base-link and --tip-link)")
+    p.add_argument("--base-link", help="base link of the chain (with --urdf)")
+    p.add_argument("--tip-link", help="tip link of the chain (with --urdf)")
+
+
+def chain_from_args(args: argparse.Namespace) -> Chain:
+    if args.robot:
+        return load_robot_config(args.robot).chain
+    if not args.base_link or not args.tip_link:
+        raise DataError("--urdf needs --base-link and --tip-link")
+    return chain_from_urdf(Path(args.urdf), args.base_link, args.tip_link)
+
+
+def read_csv(path: Path, columns: tuple[str, ...] | None = None) -> tuple[list[str], np.ndarray]:
+    """Header and float rows of a CSV; ``columns`` picks and orders them. Errors name the file, row and column."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path} does not exist")
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))
+    if not rows:
+        raise DataError(f"{path} is empty; expected a header line")
+    header = [h.strip() for h in rows[0]]
+    if columns is not None:
+        missing = [c for c in columns if c not in header]
+        if missing:
+            raise DataError(f"{path}: missing column(s) {', '.join(missing)} (header: {','.join(header)})")
+        index = [header.index(c) for c in columns]
+    else:
+        index = list(range(len(header)))
+    values = np.empty((len(rows) - 1, len(index)))
+    for r, row in enumerate(rows[1:], start=2):
+        if len(row) != len(header):
+            raise DataError(f"{path}: line {r} has {len(row)} fields, the header has {len(header)}")
+        for c, i in enumerate(index):
+            try:
+                values[r - 2, c] = float(row[i])
+            except ValueError:
+                raise DataError(f"{path}: line {r}, column '{header[i]}': '{row[i]}' is not a number") from None
+    if not np.all(np.isfinite(values)):
+        r = int(np.argwhere(~np.isfinite(values))[0][0]) + 2
+        raise DataError(f"{path}: line {r} has a NaN or infinite value")
+    return [header[i] for i in index], values
+
+
+def write_csv(path: Path, header: list[str], rows: np.ndarray | list) -> None:
+    with Path(path).open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(header)
+        for row in rows:
+            writer.writerow([repr(float(v)) if isinstance(v, float | np.floating) else v for v in row])

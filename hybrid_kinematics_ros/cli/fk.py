@@ -1,0 +1,32 @@
+"""``fk``: joints CSV (header of joint names) to poses CSV ``x,y,z,qx,qy,qz,qw`` in metres, base frame."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+from hybrid_kinematics_ros.cli.common import POSE_COLUMNS, add_robot_args, chain_from_args, read_csv, write_csv
+from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("fk", help="forward kinematics of a joints CSV (hybrid or analytic)")
+    p.add_argument("--model", type=Path, help="model directory (else the analytic model of --robot or --urdf)")
+    add_robot_args(p, required=False)
+    p.add_argument("--joints", required=True, type=Path, help="CSV whose header names the joints (radians)")
+    p.add_argument("--out", required=True, type=Path, help="poses CSV to write")
+    p.add_argument("--analytic", action="store_true", help="uncorrected URDF kinematics")
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    model = HybridModel.load(args.model) if args.model else HybridModel.analytic_only(chain_from_args(args))
+    _, q = read_csv(args.joints, model.joint_names)
+    T = model.fk(q, analytic=args.analytic)
+    position, quat = pose_from_matrix(T)
+    write_csv(args.out, list(POSE_COLUMNS), np.hstack([position, quat]))
+    print(f"wrote {len(q)} poses to {args.out}")
+    return 0

@@ -1,0 +1,81 @@
+"""``train``: pairs bags to a hybrid model directory."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from tqdm import tqdm
+
+from hybrid_kinematics_ros.calibration import train
+from hybrid_kinematics_ros.calibration.fit import fit, load_pairs, split
+from hybrid_kinematics_ros.cli.common import add_robot_args, chain_from_args
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="train the residual nets from pairs bags into a model directory")
+    p.add_argument("--bag", nargs="+", required=True, help="pairs bag(s) to train on")
+    add_robot_args(p)
+    p.add_argument("--out", required=True, type=Path, help="model directory to create")
+    p.add_argument("--preset", default="fast", choices=sorted(train.PRESETS), help="training recipe (default fast)")
+    p.add_argument("--arch-position", help="architecture of the position net (D1, D4, D4w, D4W, Rw, Rd, mlp:WxD)")
+    p.add_argument("--arch-orientation", help="architecture of the orientation net")
+    p.add_argument(
+        "--max-minutes", type=float, default=5.0, help="wall-clock training budget (nets train side by side)"
+    )
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--val-bag", nargs="+", help="separate validation bag(s); default: 10%% of --bag")
+    p.add_argument("--test-bag", nargs="+", help="separate test bag(s); default: 10%% of --bag")
+    p.set_defaults(run=run)
+
+
+class Progress:
+    """One bar per net, advancing with training time; shows epoch, loss and validation error."""
+
+    def __init__(self, seconds: float) -> None:
+        self.bars = {
+            kind: tqdm(total=round(seconds), desc=f"{kind:<11}", unit="s", position=i, leave=True,
+                       bar_format="{desc} {bar} {n_fmt}/{total_fmt} s {postfix}")
+            for i, kind in enumerate(train.KINDS)
+        }  # fmt: skip
+
+    def __call__(self, entry: dict) -> None:
+        bar = self.bars[entry["kind"]]
+        unit = train.UNIT[entry["kind"]][0]
+        bar.n = min(round(entry["seconds"]), bar.total)
+        bar.set_postfix_str(
+            f"epoch {entry['epoch']} loss {entry['loss']:.4f} val {entry[f'val_{unit}']:.5f} {unit} "
+            f"best {entry[f'best_val_{unit}']:.5f} {unit}"
+        )
+
+    def close(self) -> None:
+        for bar in self.bars.values():
+            bar.close()
+
+
+def run(args: argparse.Namespace) -> int:
+    chain = chain_from_args(args)
+    pairs = load_pairs(args.bag, chain)
+    if args.val_bag or args.test_bag:
+        train_pairs, val_pairs, test_pairs = split(pairs, args.seed, (0.0 if args.val_bag else 0.1,
+                                                                      0.0 if args.test_bag else 0.1))  # fmt: skip
+        val_pairs = load_pairs(args.val_bag, chain) if args.val_bag else val_pairs
+        test_pairs = load_pairs(args.test_bag, chain) if args.test_bag else test_pairs
+    else:
+        train_pairs, val_pairs, test_pairs = split(pairs, args.seed)
+    print(f"pairs: {len(train_pairs)} train, {len(val_pairs)} validation, {len(test_pairs)} test"
+          + (f"; dropped {dict(pairs.dropped)}" if pairs.dropped else ""))  # fmt: skip
+    progress = Progress(60.0 * args.max_minutes)
+    try:
+        _, manifest = fit(
+            chain, train_pairs, val_pairs, test_pairs, args.out, train.preset(args.preset), args.max_minutes,
+            seed=args.seed, arch={"position": args.arch_position, "orientation": args.arch_orientation},
+            data_summary={"bags": [str(b) for b in args.bag], "dropped": dict(pairs.dropped)}, progress=progress,
+        )  # fmt: skip
+    finally:
+        progress.close()
+    test = manifest["metrics"]["test"]
+    print(json.dumps({"model": str(args.out), "training_seconds": manifest["training_seconds"],
+                      "test_analytic": test["analytic"], "test_hybrid": test["hybrid"]}))  # fmt: skip
+    return 0

@@ -1,0 +1,139 @@
+"""The model directory: self-contained, checked on load, no pickle anywhere.
+
+Layout: ``model.json`` (the manifest), ``robot.urdf`` (a copy of the URDF the model was trained for),
+``position.pt`` and ``orientation.pt`` (TorchScript residual nets; either may be absent, e.g. position-only).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import platform
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from hybrid_kinematics_ros.io.errors import DataError
+
+SCHEMA_VERSION = 1
+MANIFEST = "model.json"
+URDF_FILE = "robot.urdf"
+NET_FILES = {"position": "position.pt", "orientation": "orientation.pt"}
+REQUIRED = ("schema_version", "urdf_sha256", "base_link", "tip_link", "joint_names", "tool", "joint_limits",
+            "trained_range", "nets")  # fmt: skip
+
+
+def sha256_file(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def versions() -> dict[str, str]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        ours = version("hybrid_kinematics_ros")
+    except PackageNotFoundError:
+        ours = "source"
+    return {"hybrid_kinematics_ros": ours, "torch": torch.__version__, "numpy": np.__version__,
+            "python": platform.python_version()}  # fmt: skip
+
+
+@dataclass
+class ModelFiles:
+    """A loaded model directory: the manifest, the URDF text and the TorchScript nets."""
+
+    path: Path
+    manifest: dict[str, Any]
+    urdf_text: str
+    nets: dict[str, torch.jit.ScriptModule]
+
+
+def save_model_dir(path: Path, manifest: dict[str, Any], urdf_text: str, nets: dict[str, torch.nn.Module]) -> None:
+    """Write a model directory atomically: into a temporary sibling, then renamed into place."""
+    path = Path(path)
+    if path.exists() and any(path.iterdir()):
+        raise DataError(f"{path} exists already and is not empty, not overwriting")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    try:
+        (tmp / URDF_FILE).write_text(urdf_text)
+        files = {}
+        for kind, net in nets.items():
+            module = net if isinstance(net, torch.jit.ScriptModule) else torch.jit.script(net)
+            module.save(str(tmp / NET_FILES[kind]))
+            files[kind] = {"file": NET_FILES[kind], "sha256": sha256_file(tmp / NET_FILES[kind])}
+        full = {
+            "schema_version": SCHEMA_VERSION,
+            "urdf_file": URDF_FILE,
+            "urdf_sha256": hashlib.sha256(urdf_text.encode()).hexdigest(),
+            **manifest,
+            "nets": {**manifest.get("nets", {}), **{k: {**manifest.get("nets", {}).get(k, {}), **v}
+                                                     for k, v in files.items()}},
+            "versions": versions(),
+        }  # fmt: skip
+        (tmp / MANIFEST).write_text(json.dumps(full, indent=2, default=_json_default) + "\n")
+        if path.exists():
+            path.rmdir()
+        tmp.rename(path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"cannot store {type(value).__name__} in model.json")
+
+
+def load_model_dir(path: Path | str) -> ModelFiles:
+    """Load and check a model directory. Raises :class:`DataError` naming the file and the problem."""
+    path = Path(path)
+    manifest_path = path / MANIFEST
+    if not manifest_path.is_file():
+        raise DataError(
+            f"{manifest_path} does not exist: not a model directory (train one with `hybrid-kinematics train`)"
+        )
+    try:
+        manifest = json.loads(manifest_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataError(f"{manifest_path} is not valid JSON: {exc}") from exc
+    if not isinstance(manifest, dict):
+        raise DataError(f"{manifest_path}: expected a JSON object")
+    missing = [k for k in REQUIRED if k not in manifest]
+    if missing:
+        raise DataError(f"{manifest_path}: missing field(s) {', '.join(missing)}")
+    if manifest["schema_version"] != SCHEMA_VERSION:
+        raise DataError(f"{manifest_path}: schema_version {manifest['schema_version']} is not {SCHEMA_VERSION}; "
+                        "retrain with this version")  # fmt: skip
+    urdf_path = path / manifest.get("urdf_file", URDF_FILE)
+    if not urdf_path.is_file():
+        raise DataError(f"{urdf_path} does not exist")
+    urdf_text = urdf_path.read_text()
+    if hashlib.sha256(urdf_text.encode()).hexdigest() != manifest["urdf_sha256"]:
+        raise DataError(f"{urdf_path} does not match urdf_sha256 in {manifest_path}: the URDF copy was changed")
+    nets = {}
+    for kind, entry in manifest["nets"].items():
+        if kind not in NET_FILES:
+            raise DataError(f"{manifest_path}: unknown net '{kind}' (expected {', '.join(NET_FILES)})")
+        file = path / entry.get("file", NET_FILES[kind])
+        if not file.is_file():
+            raise DataError(f"{file} does not exist (listed in {manifest_path})")
+        if sha256_file(file) != entry.get("sha256"):
+            raise DataError(f"{file} is corrupt: its sha256 does not match {manifest_path}")
+        try:
+            nets[kind] = torch.jit.load(str(file), map_location="cpu")
+            with torch.no_grad():
+                out = nets[kind](torch.zeros(1, len(manifest["joint_names"]), dtype=torch.float64))
+        except Exception as exc:  # TorchScript raises RuntimeError and others
+            raise DataError(f"{file} is not a usable TorchScript residual net: {exc}") from exc
+        if tuple(out.shape) != (1, 3) or not torch.all(torch.isfinite(out)):
+            raise DataError(f"{file} returns {tuple(out.shape)} or non-finite values for zero joints; expected (1, 3)")
+    return ModelFiles(path, manifest, urdf_text, nets)
