@@ -100,8 +100,8 @@ class ResidualNet(nn.Module):
         super().__init__()
         n = len(lower)
         span = np.maximum(np.asarray(upper) - np.asarray(lower), 1e-9)
-        self.register_buffer("center", torch.tensor(0.5 * (np.asarray(upper) + np.asarray(lower)), dtype=torch.float32))
-        self.register_buffer("half_span", torch.tensor(0.5 * span, dtype=torch.float32))
+        self.register_buffer("center", torch.tensor(0.5 * (np.asarray(upper) + np.asarray(lower)), dtype=torch.float64))
+        self.register_buffer("half_span", torch.tensor(0.5 * span, dtype=torch.float64))
         self.register_buffer("target_mean", torch.tensor(target_mean, dtype=torch.float64))
         self.register_buffer("target_scale", torch.tensor(target_scale, dtype=torch.float64))
         axis = np.zeros(3) if joint1_axis is None else np.asarray(joint1_axis, dtype=float)
@@ -111,11 +111,12 @@ class ResidualNet(nn.Module):
         self.body = build_body(arch, 3 * n if sincos else n)
 
     def features(self, q: torch.Tensor) -> torch.Tensor:
-        q32 = q.to(torch.float32)
-        x = (q32 - self.center) / self.half_span
+        # features in float64, then the float32 network: no quantisation of large joint values
+        q64 = q.to(torch.float64)
+        x = (q64 - self.center) / self.half_span
         if self.sincos:
-            x = torch.cat([x, torch.sin(q32), torch.cos(q32)], dim=1)
-        return x
+            x = torch.cat([x, torch.sin(q64), torch.cos(q64)], dim=1)
+        return x.to(torch.float32)
 
     def standardised(self, q: torch.Tensor) -> torch.Tensor:
         """The raw network output: the residual in the turning frame, standardised. Training fits this."""

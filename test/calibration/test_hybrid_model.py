@@ -1,0 +1,121 @@
+"""Training for real on a small virtual set, export and load, and refusal of mismatched models."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from hybrid_kinematics_ros.calibration import nets
+from hybrid_kinematics_ros.calibration.evaluate import evaluate
+from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+from hybrid_kinematics_ros.io.errors import DataError
+from hybrid_kinematics_ros.kinematics import fk, se3
+from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR
+
+
+def test_training_cuts_the_error_by_a_large_factor(trained):
+    _, model, manifest, test_pairs = trained
+    report = evaluate(model, test_pairs)
+    assert report["analytic"]["position_mm_mean"] > 1.0
+    assert report["hybrid"]["position_mm_mean"] < report["analytic"]["position_mm_mean"] / 10
+    assert report["hybrid"]["orientation_deg_mean"] < report["analytic"]["orientation_deg_mean"] / 10
+    assert manifest["metrics"]["test"]["hybrid"]["position_mm_mean"] == pytest.approx(
+        report["hybrid"]["position_mm_mean"]
+    )
+
+
+def test_saved_model_reloads_bit_identical(trained):
+    path, model, _, test_pairs = trained
+    again = HybridModel.load(path)
+    np.testing.assert_array_equal(again.fk(test_pairs.q), model.fk(test_pairs.q))
+    manifest = json.loads((path / "model.json").read_text())
+    assert manifest["joint_names"] == list(model.joint_names)
+    assert set(manifest["nets"]) == {"position", "orientation"}
+    assert len(manifest["urdf_sha256"]) == 64 and (path / "robot.urdf").is_file()
+    assert not list(path.glob("*.pkl"))
+
+
+def test_single_and_batched_hybrid_fk_agree(trained):
+    _, model, _, test_pairs = trained
+    batch = model.fk(test_pairs.q[:20])
+    for i in range(20):
+        # float32 nets round differently by batch size: agree to nanometres and nanoradians
+        np.testing.assert_allclose(model.fk_single(test_pairs.q[i]), batch[i], atol=5e-9, rtol=0)
+
+
+def test_hybrid_jacobian_matches_finite_differences(trained):
+    _, model, _, test_pairs = trained
+    q = test_pairs.q[:3]
+    T, J = model.fk_and_jacobian(q)
+    np.testing.assert_allclose(T, model.fk(q), atol=1e-12)
+    eps = 1e-4  # float32 nets: smaller steps drown in rounding
+    for j in range(6):
+        dq = np.zeros(6)
+        dq[j] = eps
+        plus, minus = model.fk(q + dq), model.fk(q - dq)
+        v = (plus[:, :3, 3] - minus[:, :3, 3]) / (2 * eps)
+        w = se3.rotvec(plus[:, :3, :3] @ np.swapaxes(minus[:, :3, :3], 1, 2)) / (2 * eps)
+        np.testing.assert_allclose(J[:, :3, j], v, atol=1e-5)  # the nets contribute ~1e-3: checked to 1%
+        np.testing.assert_allclose(J[:, 3:, j], w, atol=1e-5)  # the nets contribute ~1e-3: checked to 1%
+
+
+def test_analytic_only_model_is_the_urdf_model(ur10):
+    model = HybridModel.analytic_only(ur10.chain)
+    q = np.random.default_rng(0).uniform(-1, 1, (5, 6))
+    np.testing.assert_array_equal(model.fk(q), fk.fk(ur10.chain, q))
+
+
+def test_joint1_frame_turn_is_inverted_exactly():
+    axis = np.array([0.0, 0.6, 0.8])
+    r = np.random.default_rng(1).normal(size=(10, 3))
+    q1 = np.random.default_rng(2).uniform(-3, 3, 10)
+    net = nets.ResidualNet("mlp:4x1", -np.ones(6), np.ones(6), np.zeros(3), np.ones(3), joint1_axis=axis)
+    q = torch.zeros(10, 6, dtype=torch.float64)
+    q[:, 0] = torch.tensor(q1)
+    local = nets.to_joint1_frame(r, q1, axis)
+    np.testing.assert_allclose(net.to_base(torch.tensor(local), q).numpy(), r, atol=1e-12)
+
+
+@pytest.mark.parametrize("arch", ["D1", "D4", "D4w", "D4W", "Rw", "Rd", "mlp:32x3:relu"])
+def test_paper_architectures_build_script_and_run(arch, tmp_path):
+    net = nets.ResidualNet(arch, -np.ones(6), np.ones(6), np.zeros(3), np.ones(3), sincos=False)
+    net.eval()
+    scripted = torch.jit.script(net)
+    scripted.save(str(tmp_path / "n.pt"))
+    q = torch.rand(7, 6, dtype=torch.float64)
+    assert torch.equal(torch.jit.load(str(tmp_path / "n.pt"))(q), net(q))
+
+
+def test_unknown_architecture_is_refused():
+    with pytest.raises(ValueError, match="unknown architecture 'D9'"):
+        nets.build_body("D9", 6)
+
+
+def test_mismatched_and_corrupt_models_are_refused(trained, tmp_path):
+    path = trained[0]
+    other = (CONFIG_DIR / "rx160.urdf").read_text()
+    with pytest.raises(DataError, match="trained for another URDF"):
+        HybridModel.load(path, expect_urdf=other.replace("tool0", "tool0"))
+    with pytest.raises(DataError, match="trained for joints"):
+        HybridModel.load(path, expect_joint_names=("a", "b", "c", "d", "e", "f"))
+
+    def broken(edit):
+        copy = tmp_path / f"m{len(list(tmp_path.iterdir()))}"
+        shutil.copytree(path, copy)
+        edit(copy)
+        return copy
+
+    with pytest.raises(DataError, match=r"position\.pt is corrupt"):
+        HybridModel.load(broken(lambda p: (p / "position.pt").write_bytes(b"junk")))
+    with pytest.raises(DataError, match=r"orientation\.pt does not exist"):
+        HybridModel.load(broken(lambda p: (p / "orientation.pt").unlink()))
+    with pytest.raises(DataError, match="the URDF copy was changed"):
+        HybridModel.load(broken(lambda p: (p / "robot.urdf").write_text(other)))
+    with pytest.raises(DataError, match="not valid JSON"):
+        HybridModel.load(broken(lambda p: (p / "model.json").write_text("{")))
+    with pytest.raises(DataError, match=r"model\.json does not exist"):
+        HybridModel.load(tmp_path)

@@ -1,0 +1,95 @@
+"""train, evaluate and fk through the console entry point, on a tiny bag."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+
+import numpy as np
+
+from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+from hybrid_kinematics_ros.cli.main import main
+from hybrid_kinematics_ros.kinematics import se3
+
+
+def run(*args):
+    return subprocess.run(["hybrid-kinematics", *args], capture_output=True, text=True, check=False)
+
+
+def test_train_evaluate_fk_workflow(tmp_path, capsys):
+    bag = tmp_path / "bag"
+    assert main(["simulate", "--robot", "ur10", "--samples", "1500", "--out", str(bag), "--seed", "3"]) == 0
+    model_dir = tmp_path / "model"
+    result = run(
+        "train",
+        "--bag",
+        str(bag),
+        "--robot",
+        "ur10",
+        "--out",
+        str(model_dir),
+        "--max-minutes",
+        "0.1",
+        "--arch-position",
+        "mlp:32x2",
+        "--arch-orientation",
+        "mlp:32x2",
+    )
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout.strip().splitlines()[-1])
+    assert summary["test_hybrid"]["position_mm_mean"] < summary["test_analytic"]["position_mm_mean"]
+    assert "epoch" in result.stderr  # progress shows epoch, loss and validation error
+
+    plots = tmp_path / "plots"
+    result = run(
+        "evaluate",
+        "--model",
+        str(model_dir),
+        "--bag",
+        str(bag),
+        "--json",
+        str(tmp_path / "e.json"),
+        "--plots",
+        str(plots),
+    )
+    assert result.returncode == 0, result.stderr
+    report = json.loads((tmp_path / "e.json").read_text())
+    assert report["hybrid"]["position_mm_mean"] < report["analytic"]["position_mm_mean"]
+    assert (plots / "position_error_distribution.png").stat().st_size > 1000
+
+    model = HybridModel.load(model_dir)
+    q = np.random.default_rng(0).uniform(-1, 0, (4, 6))
+    joints = tmp_path / "joints.csv"
+    # columns in another order than the model's: the header names them
+    order = [5, 0, 1, 2, 3, 4]
+    joints.write_text(
+        ",".join(model.joint_names[i] for i in order)
+        + "\n"
+        + "\n".join(",".join(repr(float(v)) for v in row[order]) for row in q)
+        + "\n"
+    )
+    for flag, analytic in (([], False), (["--analytic"], True)):
+        out = tmp_path / f"poses{analytic}.csv"
+        result = run("fk", "--model", str(model_dir), "--joints", str(joints), "--out", str(out), *flag)
+        assert result.returncode == 0, result.stderr
+        rows = np.loadtxt(out, delimiter=",", skiprows=1)
+        np.testing.assert_allclose(
+            se3.matrix_from_pose(rows[:, :3], rows[:, 3:]), model.fk(q, analytic=analytic), atol=1e-12
+        )
+
+
+def test_bad_inputs_get_one_line_errors(tmp_path):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("joint_1,joint_2,joint_3,joint_4,joint_5,joint_6\n0,0,x,0,0,0\n")
+    result = run("fk", "--robot", "ur10", "--joints", str(bad), "--out", str(tmp_path / "o.csv"))
+    assert result.returncode == 2
+    assert result.stderr.strip() == (
+        f"hybrid-kinematics fk: error: {bad}: line 2, column 'joint_3': 'x' is not a number"
+    )
+    missing = tmp_path / "missing.csv"
+    missing.write_text("joint_1,joint_2\n0,0\n")
+    result = run("fk", "--robot", "ur10", "--joints", str(missing), "--out", str(tmp_path / "o.csv"))
+    assert "missing column(s) joint_3" in result.stderr and result.returncode == 2
+    result = run("train", "--bag", str(tmp_path / "nobag"), "--robot", "ur10", "--out", str(tmp_path / "m"))
+    assert result.returncode == 2 and "does not exist" in result.stderr
+    assert result.stderr.count("\n") == 1
