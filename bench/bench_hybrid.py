@@ -161,7 +161,7 @@ def inference(_: float) -> None:
                 ["analytic FK, one configuration (µs per call)", single_analytic * 1e6],
                 ["hybrid FK, 100,000 configurations (poses/s)", 1e5 / batch],
             ],
-        )  # fmt: skip
+        )
         + "\n\nTarget: ≤ 100 µs for one configuration."
     )
     write_section("inference", "Hybrid model: inference speed", body)

@@ -143,3 +143,56 @@ def to_joint1_frame(r: np.ndarray, q1: np.ndarray, axis: np.ndarray | None) -> n
     k = np.broadcast_to(axis, r.shape)
     c, s = np.cos(-q1)[:, None], np.sin(-q1)[:, None]
     return r * c + np.cross(k, r) * s + k * np.sum(k * r, axis=1, keepdims=True) * (1.0 - c)
+
+
+class NumpyResidual:
+    """A numpy evaluator of a saved MLP residual net, for single configurations.
+
+    At batch size 1 TorchScript spends ~50 µs per call on operator dispatch; these few numpy products take
+    a few µs. Only plain MLPs (Linear and activation layers) qualify; :meth:`from_script` returns None for
+    others, and callers then use the TorchScript module. Tests check it against TorchScript.
+    """
+
+    _ACT = {
+        "ReLU": lambda x: np.maximum(x, 0.0),
+        "SiLU": lambda x: x * (0.5 + 0.5 * np.tanh(0.5 * x)),
+        "Tanh": np.tanh,
+    }
+
+    def __init__(self, module: torch.jit.ScriptModule, layers: list) -> None:
+        self.center = module.center.numpy()
+        self.half_span = module.half_span.numpy()
+        self.mean = module.target_mean.numpy()
+        self.scale = module.target_scale.numpy()
+        self.axis = module.axis.numpy()
+        self.sincos = bool(module.sincos)
+        self.turn = bool(module.turn)
+        self.layers = layers
+
+    @classmethod
+    def from_script(cls, module: torch.jit.ScriptModule) -> NumpyResidual | None:
+        layers: list = []
+        for child in module.body.children():
+            kind = getattr(child, "original_name", type(child).__name__)
+            if kind == "Linear":
+                # float32 as in the net: the weights' memory traffic dominates the cost at batch size 1
+                layers.append((child.weight.detach().numpy().T.copy(), child.bias.detach().numpy().copy()))
+            elif kind in cls._ACT:
+                layers.append(cls._ACT[kind])
+            else:
+                return None
+        return cls(module, layers)
+
+    def __call__(self, q: np.ndarray) -> np.ndarray:
+        x = (q - self.center) / self.half_span
+        if self.sincos:
+            x = np.concatenate([x, np.sin(q), np.cos(q)], axis=-1)
+        x = x.astype(np.float32)
+        for layer in self.layers:
+            x = x @ layer[0] + layer[1] if isinstance(layer, tuple) else layer(x)
+        r = x.astype(np.float64) * self.scale + self.mean
+        if not self.turn:
+            return r
+        c, s = np.cos(q[..., :1]), np.sin(q[..., :1])
+        k = np.broadcast_to(self.axis, r.shape)
+        return r * c + np.cross(k, r) * s + k * np.sum(k * r, axis=-1, keepdims=True) * (1.0 - c)
