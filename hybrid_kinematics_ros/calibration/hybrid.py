@@ -171,6 +171,26 @@ class HybridModel:
             J[:, 3:] = r @ J[:, 3:] + left_jacobian_so3(w) @ grads["orientation"]
         return hybrid, J
 
+    def fk_and_jacobian_single(self, q: np.ndarray, analytic: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """One configuration: pose ``(4, 4)`` and geometric Jacobian ``(6, n)``, numpy throughout for MLP nets."""
+        q = np.asarray(q, dtype=float)
+        T, J = fk.fk_and_jacobian_single(self.chain, q)
+        if analytic or not self.nets:
+            return T, J
+        if not all(self._fast.values()):
+            T, J = self.fk_and_jacobian(q[None])
+            return T[0], J[0]
+        if "position" in self._fast:
+            dp, ddp = self._fast["position"].value_and_jacobian(q)
+            T[:3, 3] += dp
+            J[:3] += ddp
+        if "orientation" in self._fast:
+            w, dw = self._fast["orientation"].value_and_jacobian(q)
+            r = _exp_so3(w)
+            T[:3, :3] = r @ T[:3, :3]
+            J[3:] = r @ J[3:] + left_jacobian_so3(w) @ dw
+        return T, J
+
     @classmethod
     def analytic_only(cls, chain: Chain) -> HybridModel:
         return cls(chain)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import itertools
 import re
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -145,6 +146,11 @@ def to_joint1_frame(r: np.ndarray, q1: np.ndarray, axis: np.ndarray | None) -> n
     return r * c + np.cross(k, r) * s + k * np.sum(k * r, axis=1, keepdims=True) * (1.0 - c)
 
 
+def _silu_grad(x: np.ndarray) -> np.ndarray:
+    sig = 0.5 + 0.5 * np.tanh(0.5 * x)
+    return sig * (1.0 + x * (1.0 - sig))
+
+
 class NumpyResidual:
     """A numpy evaluator of a saved MLP residual net, for single configurations.
 
@@ -153,10 +159,10 @@ class NumpyResidual:
     others, and callers then use the TorchScript module. Tests check it against TorchScript.
     """
 
-    _ACT = {
-        "ReLU": lambda x: np.maximum(x, 0.0),
-        "SiLU": lambda x: x * (0.5 + 0.5 * np.tanh(0.5 * x)),
-        "Tanh": np.tanh,
+    _ACT: ClassVar[dict] = {
+        "ReLU": (lambda x: np.maximum(x, 0.0), lambda x: (x > 0).astype(x.dtype)),
+        "SiLU": (lambda x: x * (0.5 + 0.5 * np.tanh(0.5 * x)), lambda x: _silu_grad(x)),
+        "Tanh": (np.tanh, lambda x: 1.0 - np.tanh(x) ** 2),
     }
 
     def __init__(self, module: torch.jit.ScriptModule, layers: list) -> None:
@@ -176,9 +182,10 @@ class NumpyResidual:
             kind = getattr(child, "original_name", type(child).__name__)
             if kind == "Linear":
                 # float32 as in the net: the weights' memory traffic dominates the cost at batch size 1
-                layers.append((child.weight.detach().numpy().T.copy(), child.bias.detach().numpy().copy()))
+                weight, bias = child.weight.detach().numpy().T.copy(), child.bias.detach().numpy().copy()
+                layers.append(("linear", weight, bias))
             elif kind in cls._ACT:
-                layers.append(cls._ACT[kind])
+                layers.append(("act", *cls._ACT[kind]))
             else:
                 return None
         return cls(module, layers)
@@ -188,11 +195,40 @@ class NumpyResidual:
         if self.sincos:
             x = np.concatenate([x, np.sin(q), np.cos(q)], axis=-1)
         x = x.astype(np.float32)
-        for layer in self.layers:
-            x = x @ layer[0] + layer[1] if isinstance(layer, tuple) else layer(x)
-        r = x.astype(np.float64) * self.scale + self.mean
+        for kind, a, b in self.layers:
+            x = x @ a + b if kind == "linear" else a(x)
+        return self._to_base(x.astype(np.float64) * self.scale + self.mean, q)
+
+    def _to_base(self, r: np.ndarray, q: np.ndarray) -> np.ndarray:
         if not self.turn:
             return r
         c, s = np.cos(q[..., :1]), np.sin(q[..., :1])
         k = np.broadcast_to(self.axis, r.shape)
         return r * c + np.cross(k, r) * s + k * np.sum(k * r, axis=-1, keepdims=True) * (1.0 - c)
+
+    def value_and_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Residual ``(3,)`` and its derivative ``(3, n)`` for one configuration ``(n,)`` (forward mode)."""
+        x = (q - self.center) / self.half_span
+        jac = np.diag(1.0 / self.half_span)  # (n, features): row j is d(features)/d(q_j)
+        if self.sincos:
+            x = np.concatenate([x, np.sin(q), np.cos(q)])
+            jac = np.concatenate([jac, np.diag(np.cos(q)), np.diag(-np.sin(q))], axis=1)
+        x = x.astype(np.float32)
+        jac = jac.astype(np.float32)
+        for kind, a, b in self.layers:
+            if kind == "linear":
+                x, jac = x @ a + b, jac @ a
+            else:
+                x, jac = a(x), jac * b(x)
+        local = x.astype(np.float64) * self.scale + self.mean
+        dlocal = (jac.astype(np.float64) * self.scale).T  # (3, n)
+        r = self._to_base(local[None], q[None])[0]
+        if not self.turn:
+            return r, dlocal
+        c, s = np.cos(q[0]), np.sin(q[0])
+        k = self.axis
+        kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+        rot = c * np.eye(3) + s * kx + (1.0 - c) * np.outer(k, k)
+        d = rot @ dlocal
+        d[:, 0] += np.cross(k, r)
+        return r, d

@@ -177,3 +177,22 @@ class TorchChain(torch.nn.Module):
 def fk_torch(chain: Chain, q: torch.Tensor) -> torch.Tensor:
     """Differentiable tip poses ``(B, 4, 4)`` in ``q``'s dtype. Build a :class:`TorchChain` once on hot paths."""
     return TorchChain(chain, dtype=q.dtype).to(q.device)(q)
+
+
+def fk_and_jacobian_single(chain: Chain, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One configuration: tip pose ``(4, 4)`` and geometric Jacobian ``(6, n)`` (the IK inner loop)."""
+    a, b = chain.coefficients(np.asarray(q, dtype=float))
+    g = chain.generators
+    local = g[:, 0] + a[:, None, None] * g[:, 1] + b[:, None, None] * g[:, 2]
+    frames = np.empty((chain.dof, 4, 4))
+    t = local[0]
+    frames[0] = t
+    for k in range(1, chain.dof):
+        t = t @ local[k]
+        frames[k] = t
+    tip = t @ chain.post
+    z = np.einsum("kij,kj->ki", frames[:, :3, :3], chain.axes)
+    lever = tip[:3, 3] - frames[:, :3, 3]
+    linear = np.where(chain.revolute[:, None], np.cross(z, lever), z)
+    angular = np.where(chain.revolute[:, None], z, 0.0)
+    return tip, np.concatenate([linear, angular], axis=1).T

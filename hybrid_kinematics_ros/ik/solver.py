@@ -1,0 +1,363 @@
+"""Inverse kinematics through the hybrid model (paper section 3, Fig. 3), and past it.
+
+1. A classical iterative IK on the analytic chain (Levenberg-Marquardt with the analytic Jacobian, joint
+   limits enforced) from a seed; the seed decides which solution is found. Random restarts follow within
+   the time budget if the seed fails.
+2. The hybrid refinement: scipy ``least_squares`` with the joints bounded to a small box around the
+   classical answer ``q0``; the cost compares the target with the **hybrid** FK. Either the paper's eq. 2
+   (12 matrix elements, translation in mm) or a 6-vector (position in mm, rotation vector scaled to mm).
+
+Several solutions come from several seeds, deduplicated modulo 2π on revolute joints (keeping the
+representative nearest the seed) and ordered by distance to the seed. Every result says whether it
+reached the target; a miss is never returned as a success.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.stats import qmc
+
+from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+from hybrid_kinematics_ros.ik.errors import IKError
+from hybrid_kinematics_ros.kinematics import se3
+
+FkJac = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class IKOptions:
+    position_tolerance_mm: float = 1e-4  # success thresholds on the hybrid-FK error
+    orientation_tolerance_deg: float = 1e-4
+    refine_width_rad: float = 0.02  # half width of the box around q0 (paper: "a small interval")
+    cost: str = "pose6"  # "pose6" or "eq2"
+    rotation_scale_mm: float = 1000.0  # pose6: mm of residual per radian of rotation error
+    max_iterations: int = 100  # classical stage, per seed
+    timeout_s: float = 0.05  # per solution, restarts included
+    restarts: bool = True
+    require_calibrated_range: bool = False  # True: a solution outside the trained range fails
+
+
+@dataclass
+class IKResult:
+    success: bool
+    q: np.ndarray | None
+    position_error_mm: float = float("inf")
+    orientation_error_deg: float = float("inf")
+    message: str = ""
+    seconds: float = 0.0
+    in_calibrated_range: bool = True
+    stats: dict = field(default_factory=dict)
+
+
+def _log_so3(r: np.ndarray) -> np.ndarray:
+    """Rotation vector of one rotation matrix; accurate near zero, scipy near π."""
+    skew = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    s = 0.5 * np.sqrt(skew @ skew)
+    c = 0.5 * (np.trace(r) - 1.0)
+    angle = np.arctan2(s, c)
+    if angle < 1e-9:
+        return 0.5 * skew
+    if angle > 3.0:
+        return se3.rotvec(r[None])[0]
+    return angle / (2.0 * s) * skew
+
+
+def _error6(target: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``[p_t − p; log(R_t Rᵀ)]`` in m and rad, base frame."""
+    return np.concatenate([target[:3, 3] - T[:3, 3], _log_so3(target[:3, :3] @ T[:3, :3].T)])
+
+
+def project(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, revolute: np.ndarray) -> np.ndarray:
+    """Into the limits: wrap revolute joints by 2π where that lands inside, clip the rest."""
+    two_pi = 2.0 * np.pi
+    q = np.where(revolute & (q > upper) & (q - two_pi >= lower), q - two_pi, q)
+    q = np.where(revolute & (q < lower) & (q + two_pi <= upper), q + two_pi, q)
+    return np.clip(q, lower, upper)
+
+
+STALL_ITERATIONS = 12  # LM converges in a handful of steps from a good basin; a slow run is stuck
+STALL_COST = 1e-6  # (m or rad)²: still this far after STALL_ITERATIONS means another seed is cheaper
+
+
+def lm_solve(
+    fk_jac: FkJac,
+    target: np.ndarray,
+    seed: np.ndarray,
+    limits: tuple[np.ndarray, np.ndarray, np.ndarray],
+    tol_m: float,
+    tol_rad: float,
+    max_iterations: int,
+    deadline: float,
+) -> tuple[np.ndarray, float, float, int]:
+    """Levenberg-Marquardt on the pose error, projected onto the joint limits.
+
+    ``limits`` is ``(lower, upper, revolute)``. Returns the joints, the position (m) and rotation (rad)
+    errors, and the iterations used. Gives up early when it stalls far from the target.
+    """
+    lower, upper, revolute = limits
+    q = project(seed, lower, upper, revolute)
+    T, J = fk_jac(q)
+    e = _error6(target, T)
+    cost = e @ e
+    lam = 1e-3
+    iterations = 0
+    while iterations < max_iterations:
+        if np.sqrt(e[:3] @ e[:3]) <= tol_m and np.sqrt(e[3:] @ e[3:]) <= tol_rad:
+            break
+        if time.perf_counter() > deadline or (iterations >= STALL_ITERATIONS and cost > STALL_COST):
+            break
+        iterations += 1
+        jtj = J.T @ J
+        step = np.linalg.solve(jtj + lam * (np.diag(np.diag(jtj)) + 1e-9 * np.eye(len(q))), J.T @ e)
+        q_new = project(q + step, lower, upper, revolute)
+        T_new, J_new = fk_jac(q_new)
+        e_new = _error6(target, T_new)
+        cost_new = e_new @ e_new
+        if cost_new < cost:
+            q, T, J, e, cost = q_new, T_new, J_new, e_new, cost_new
+            lam = max(lam / 5.0, 1e-12)
+        else:
+            lam = lam * 8.0
+            if lam >= 1e8:
+                break
+    return q, float(np.sqrt(e[:3] @ e[:3])), float(np.sqrt(e[3:] @ e[3:])), iterations
+
+
+class IKSolver:
+    """IK of a :class:`HybridModel` (hybrid, or analytic with ``analytic=True``)."""
+
+    def __init__(self, model: HybridModel, options: IKOptions | None = None) -> None:
+        self.model = model
+        self.options = options or IKOptions()
+        if self.options.cost not in ("pose6", "eq2"):
+            raise IKError(f"cost must be 'pose6' or 'eq2', got '{self.options.cost}'")
+        chain = model.chain
+        self.lower = np.where(np.isfinite(chain.lower), chain.lower, -2 * np.pi)
+        self.upper = np.where(np.isfinite(chain.upper), chain.upper, 2 * np.pi)
+        self.limits = (self.lower, self.upper, chain.revolute)
+        self._analytic = lambda q: model.fk_and_jacobian_single(q, analytic=True)
+        self._rng = np.random.default_rng(0)
+        # deterministic spread seeds for several solutions
+        sampler = qmc.Halton(d=chain.dof, seed=0)
+        self.spread = qmc.scale(sampler.random(64), self.lower, self.upper)
+
+    # ------------------------------------------------------------------ checks
+    def _check(self, target: np.ndarray, seed: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        target = np.asarray(target, dtype=float)
+        if target.shape != (4, 4) or not np.all(np.isfinite(target)):
+            raise IKError("the target must be a finite 4x4 homogeneous matrix")
+        r = target[:3, :3]
+        if np.abs(r @ r.T - np.eye(3)).max() > 1e-6 or np.linalg.det(r) < 0:
+            raise IKError("the target's rotation is not orthonormal")
+        dof = self.model.chain.dof
+        seed = self.model.chain.mid_limits() if seed is None else np.asarray(seed, dtype=float)
+        if seed.shape != (dof,) or not np.all(np.isfinite(seed)):
+            raise IKError(f"the seed must have {dof} finite joint values, got {seed.shape}")
+        return target, seed
+
+    def errors(self, q: np.ndarray, target: np.ndarray, analytic: bool = False) -> tuple[float, float]:
+        pos, rot = se3.pose_errors(self.model.fk_single(q, analytic=analytic)[None], target[None])
+        return float(pos[0]), float(rot[0])
+
+    # ------------------------------------------------------------------ stages
+    def classical(self, target: np.ndarray, seed: np.ndarray, deadline: float, model_fk: FkJac | None = None):
+        """Stage 1 from one seed, then random restarts while time remains (if enabled)."""
+        o = self.options
+        fk_jac = model_fk or self._analytic
+        tol_m, tol_rad = 1e-3 * o.position_tolerance_mm * 0.1, np.radians(o.orientation_tolerance_deg) * 0.1
+        best = None
+        attempt_seed = seed
+        attempts = 0
+        while True:
+            attempts += 1
+            q, ep, er, _ = lm_solve(fk_jac, target, attempt_seed, self.limits, tol_m, tol_rad,
+                                    o.max_iterations, deadline)  # fmt: skip
+            if best is None or ep + er < best[1] + best[2]:
+                best = (q, ep, er)
+            if ep <= tol_m and er <= tol_rad:
+                break
+            if not o.restarts or time.perf_counter() > deadline:
+                break
+            attempt_seed = self._rng.uniform(self.lower, self.upper)
+        return best[0], best[1], best[2], attempts
+
+    def refine(self, target: np.ndarray, q0: np.ndarray, recentre: int = 4) -> tuple[np.ndarray, dict]:
+        """Stage 2: bounded least squares through the hybrid FK in a box around ``q0``.
+
+        Near a singularity the hybrid answer can lie outside the box; when the solve ends on the box's
+        edge short of the tolerance, the box moves to the new point (at most ``recentre`` times).
+        """
+        q, info = self._refine_box(target, q0)
+        boxes = 1
+        while boxes <= recentre:
+            pos, rot = self.errors(q, target)
+            on_edge = np.abs(q - q0).max() >= self.options.refine_width_rad * 0.999
+            if not on_edge or (pos <= self.options.position_tolerance_mm
+                               and rot <= self.options.orientation_tolerance_deg):  # fmt: skip
+                break
+            q0 = q
+            q, more = self._refine_box(target, q0)
+            info["nfev"] += more["nfev"]
+            boxes += 1
+        info["boxes"] = boxes
+        return q, info
+
+    def _refine_box(self, target: np.ndarray, q0: np.ndarray) -> tuple[np.ndarray, dict]:
+        o = self.options
+        lo = np.maximum(self.lower, q0 - o.refine_width_rad)
+        hi = np.minimum(self.upper, q0 + o.refine_width_rad)
+        model = self.model
+        scale = np.array([1e3, 1e3, 1e3, o.rotation_scale_mm, o.rotation_scale_mm, o.rotation_scale_mm])
+        mm = np.ones((3, 4))
+        mm[:, 3] = 1e3
+
+        if o.cost == "pose6":
+
+            def fun(q):
+                return scale * _error6(target, model.fk_single(q))
+
+            def jac(q):
+                return -scale[:, None] * model.fk_and_jacobian_single(q)[1]
+        else:
+
+            def fun(q):
+                return ((target - model.fk_single(q))[:3] * mm).ravel()
+
+            def jac(q):
+                T, J = model.fk_and_jacobian_single(q)
+                d = np.empty((3, 4, len(q)))
+                for j in range(len(q)):
+                    w = J[3:, j]
+                    wx = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+                    d[:, :3, j] = wx @ T[:3, :3]
+                    d[:, 3, j] = J[:3, j]
+                return -(d * mm[..., None]).reshape(12, len(q))
+
+        q_start = np.clip(q0, lo, hi)
+        sol = least_squares(fun, q_start, jac=jac, bounds=(lo, hi), method="trf", xtol=1e-15, ftol=1e-15,
+                            gtol=1e-15, max_nfev=60, x_scale=1.0)  # fmt: skip
+        return sol.x, {"nfev": int(sol.nfev), "status": int(sol.status)}
+
+    # ------------------------------------------------------------------ API
+    def solve(self, target: np.ndarray, seed: np.ndarray | None = None, analytic: bool = False) -> IKResult:
+        """One solution, the one the seed leads to (or a restart's, if the seed fails)."""
+        start = time.perf_counter()
+        target, seed = self._check(target, seed)
+        deadline = start + self.options.timeout_s
+        q0, _, _, attempts = self.classical(target, seed, deadline)
+        stats = {"attempts": attempts}
+        q = q0
+        if not analytic and self.model.nets:
+            q, info = self.refine(target, q0)
+            stats.update(info)
+        return self._result(q, target, analytic, start, stats)
+
+    def _result(self, q: np.ndarray, target: np.ndarray, analytic: bool, start: float, stats: dict) -> IKResult:
+        o = self.options
+        pos, rot = self.errors(q, target, analytic)
+        inside = bool(self.model.in_calibrated_range(q)[0])
+        ok = pos <= o.position_tolerance_mm and rot <= o.orientation_tolerance_deg
+        if ok and not inside and o.require_calibrated_range and not analytic:
+            bounds = zip(self.model.joint_names, q, self.model.trained_lower, self.model.trained_upper, strict=True)
+            outside = [n for n, v, lo, hi in bounds if not lo <= v <= hi]
+            message = f"the solution lies outside the calibrated joint range ({', '.join(outside)})"
+            ok = False
+        elif ok:
+            message = "solved"
+        else:
+            message = (f"no solution within tolerance: best error {pos:.3g} mm / {rot:.3g} deg "
+                       "(target unreachable, or no convergence within the iteration and time budget)")  # fmt: skip
+        return IKResult(ok, q, pos, rot, message, time.perf_counter() - start, inside, stats)
+
+    def solve_many(
+        self, target: np.ndarray, seed: np.ndarray | None = None, max_solutions: int = 8,
+        extra_seeds: list[np.ndarray] | None = None, analytic: bool = False,
+    ) -> list[IKResult]:  # fmt: skip
+        """Up to ``max_solutions`` distinct solutions, nearest to the seed first. Empty if none reached."""
+        start = time.perf_counter()
+        target, seed = self._check(target, seed)
+        seeds = [seed, *(extra_seeds or []), *self.spread]
+        found: list[np.ndarray] = []
+        o = self.options
+        tol_m, tol_rad = 1e-3 * o.position_tolerance_mm, np.radians(o.orientation_tolerance_deg)
+        for s in seeds:
+            deadline = time.perf_counter() + o.timeout_s
+            q, ep, er, _ = lm_solve(self._analytic, target, s, self.limits, tol_m * 0.1, tol_rad * 0.1,
+                                    o.max_iterations, deadline)  # fmt: skip
+            if ep > tol_m or er > tol_rad:
+                continue
+            q = self._nearest_equivalent(q, seed)
+            if not any(self._same(q, f) for f in found):
+                found.append(q)
+        found.sort(key=lambda q: float(np.linalg.norm(q - seed)))
+        results = []
+        for q0 in found[:max_solutions]:
+            q, stats = (q0, {}) if analytic or not self.model.nets else self.refine(target, q0)
+            result = self._result(q, target, analytic, start, stats)
+            if result.success:
+                results.append(result)
+        return results
+
+    def _nearest_equivalent(self, q: np.ndarray, seed: np.ndarray) -> np.ndarray:
+        """Shift revolute joints by multiples of 2π towards the seed, staying inside the limits."""
+        out = q.copy()
+        rev = self.model.chain.revolute
+        for j in np.flatnonzero(rev):
+            k = np.round((seed[j] - q[j]) / (2 * np.pi))
+            for shift in (k, k - np.sign(k)) if k else (0,):
+                cand = q[j] + 2 * np.pi * shift
+                if self.lower[j] - 1e-12 <= cand <= self.upper[j] + 1e-12:
+                    out[j] = cand
+                    break
+        return out
+
+    def _same(self, a: np.ndarray, b: np.ndarray, tol: float = 1e-3) -> bool:
+        d = a - b
+        rev = self.model.chain.revolute
+        d[rev] = (d[rev] + np.pi) % (2 * np.pi) - np.pi
+        return bool(np.all(np.abs(d) < tol))
+
+    def solve_trajectory(self, targets: np.ndarray, seed: np.ndarray | None = None) -> list[IKResult]:
+        """A sequence of targets, each seeded by the previous answer. Close seeds let LM run directly on the
+        hybrid model (no classical stage, no scipy), which is what makes it cheap per pose."""
+        results = []
+        prev = None if seed is None else np.asarray(seed, dtype=float)
+        hybrid = self.model.fk_and_jacobian_single
+        o = self.options
+        tol_m, tol_rad = 1e-3 * o.position_tolerance_mm * 0.1, np.radians(o.orientation_tolerance_deg) * 0.1
+        for target in np.asarray(targets):
+            start = time.perf_counter()
+            if prev is None:
+                result = self.solve(target)
+            else:
+                target, _ = self._check(target, prev)
+                q, _, _, it = lm_solve(hybrid, target, prev, self.limits, tol_m, tol_rad, 30,
+                                       start + o.timeout_s)  # fmt: skip
+                result = self._result(q, target, False, start, {"iterations": it})
+                if not result.success:
+                    result = self.solve(target, prev)
+            results.append(result)
+            prev = result.q if result.success else prev
+        return results
+
+    def wang_baseline(self, target: np.ndarray, seed: np.ndarray | None = None, iterations: int = 1) -> IKResult:
+        """Wang et al. [26] as the paper adapted it: analytic IK of a target compensated by the nets' error.
+
+        ``T_comp = T_target · (T_hybrid(q)⁻¹ · T_analytic(q))`` at the current answer, then analytic IK again.
+        For comparison only.
+        """
+        start = time.perf_counter()
+        target, seed = self._check(target, seed)
+        deadline = start + self.options.timeout_s * (iterations + 1)
+        q, *_ = self.classical(target, seed, deadline)
+        for _ in range(iterations):
+            T_h = self.model.fk_single(q)
+            T_a = self.model.fk_single(q, analytic=True)
+            compensated = target @ se3.inverse(T_h) @ T_a
+            q, *_ = self.classical(compensated, q, deadline)
+        return self._result(q, target, False, start, {"method": "wang"})

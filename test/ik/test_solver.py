@@ -1,0 +1,119 @@
+"""IK round trips through the hybrid model, several solutions, clean failures, limits never violated."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+from hybrid_kinematics_ros.ik.errors import IKError
+from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
+from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
+from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR, load_robot_config
+
+GENEROUS = IKOptions(timeout_s=1.0)  # tests check correctness; bench/ measures speed
+
+
+def targets(model, n, seed):
+    q = np.random.default_rng(seed).uniform(model.chain.lower, model.chain.upper, (n, model.chain.dof))
+    return q, model.fk(q)
+
+
+def test_hybrid_round_trip_ur10(trained):
+    _, model, _, _ = trained
+    solver = IKSolver(model, GENEROUS)
+    _, T = targets(model, 40, 1)
+    for target in T:
+        r = solver.solve(target)
+        assert r.success, r.message
+        assert r.position_error_mm < 1e-4 and r.orientation_error_deg < 1e-4
+        assert np.all(r.q >= model.chain.lower) and np.all(r.q <= model.chain.upper)
+        pos, _ = se3.pose_errors(model.fk(r.q)[0], target)
+        assert pos == pytest.approx(r.position_error_mm, abs=2e-6)  # batched float32 nets round differently
+
+
+@pytest.mark.parametrize("cost", ["pose6", "eq2"])
+def test_round_trip_rx160_analytic_model(cost):
+    cfg = load_robot_config("rx160")
+    model = HybridModel.analytic_only(cfg.chain)
+    solver = IKSolver(model, IKOptions(timeout_s=1.0, cost=cost))
+    _, T = targets(model, 30, 2)
+    for target in T:
+        r = solver.solve(target, analytic=True)
+        assert r.success, r.message
+        assert np.all(r.q >= model.chain.lower - 1e-12) and np.all(r.q <= model.chain.upper + 1e-12)
+
+
+def test_near_elbow_singularity(trained):
+    _, model, _, _ = trained
+    solver = IKSolver(model, GENEROUS)
+    q = np.array([0.3, -1.2, 1e-3, -1.0, 1.2, 0.4])
+    r = solver.solve(model.fk(q)[0], seed=q + 0.05)
+    assert r.success, r.message
+
+
+def test_ur10_distinct_branches():
+    """Full URDF limits: the UR10 has up to 8 analytic branches; they are distinct and all reach the target."""
+    chain = chain_from_urdf(CONFIG_DIR / "ur10.urdf", "base_link", "tool0")
+    model = HybridModel.analytic_only(chain)
+    solver = IKSolver(model, IKOptions(timeout_s=1.0))
+    q = np.array([0.4, -1.1, 1.3, -0.8, 1.1, 0.3])
+    results = solver.solve_many(model.fk(q)[0], seed=q, max_solutions=8, analytic=True)
+    assert len(results) == 8
+    assert np.allclose(results[0].q, q, atol=1e-6)  # nearest to the seed first
+    dists = [np.linalg.norm(r.q - q) for r in results]
+    assert dists == sorted(dists)
+    for i, a in enumerate(results):
+        assert a.success
+        for b in results[i + 1 :]:
+            wrapped = (a.q - b.q + np.pi) % (2 * np.pi) - np.pi
+            assert np.abs(wrapped).max() > 1e-3
+
+
+def test_unreachable_target_fails_cleanly(trained):
+    _, model, _, _ = trained
+    solver = IKSolver(model, IKOptions(timeout_s=0.05))
+    target = np.eye(4)
+    target[:3, 3] = [3.0, 0.0, 0.5]  # 3 m away: the UR10 reaches 1.3 m
+    r = solver.solve(target)
+    assert not r.success
+    assert "no solution within tolerance" in r.message
+    assert solver.solve_many(target, max_solutions=3) == []
+
+
+def test_outside_calibrated_range_can_be_refused(trained):
+    _, model, _, _ = trained
+    narrow = HybridModel(model.chain, model.nets, {"trained_range": {"lower": [-0.5] * 6, "upper": [0.5] * 6}})
+    q = np.array([1.0, -0.3, 0.4, -0.2, 0.3, 0.1])  # joint_1 outside the trained range
+    strict = IKSolver(narrow, IKOptions(timeout_s=1.0, require_calibrated_range=True))
+    r = strict.solve(narrow.fk(q)[0], seed=q)
+    assert not r.success and "outside the calibrated joint range (joint_1)" in r.message
+    assert not r.in_calibrated_range
+    lenient = IKSolver(narrow, IKOptions(timeout_s=1.0)).solve(narrow.fk(q)[0], seed=q)
+    assert lenient.success and not lenient.in_calibrated_range
+
+
+def test_bad_requests_raise(trained):
+    _, model, _, _ = trained
+    solver = IKSolver(model)
+    with pytest.raises(IKError, match="finite 4x4"):
+        solver.solve(np.full((4, 4), np.nan))
+    with pytest.raises(IKError, match="6 finite joint values"):
+        solver.solve(np.eye(4), seed=np.zeros(3))
+    bad = np.eye(4)
+    bad[0, 0] = 2.0
+    with pytest.raises(IKError, match="not orthonormal"):
+        solver.solve(bad)
+
+
+def test_trajectory_and_wang_baseline(trained):
+    _, model, _, _ = trained
+    solver = IKSolver(model, GENEROUS)
+    q0 = np.array([0.2, -1.3, 1.4, -1.2, 1.0, 0.1])
+    path = q0 + np.linspace(0, 0.3, 25)[:, None] * np.array([1, 0.5, -0.5, 0.3, 0.2, 0.1])
+    results = solver.solve_trajectory(model.fk(path), seed=q0)
+    assert all(r.success for r in results)
+    wang = solver.wang_baseline(model.fk(q0)[0], seed=q0)
+    ours = solver.solve(model.fk(q0)[0], seed=q0)
+    assert ours.position_error_mm < wang.position_error_mm
