@@ -23,6 +23,7 @@ setup(
     entry_points={
         "console_scripts": [
             "hybrid-kinematics = hybrid_kinematics_ros.cli.main:main",
+            "kinematics_node = hybrid_kinematics_ros.nodes.kinematics_node:main",
         ],
     },
 )

@@ -1,0 +1,91 @@
+"""Messages to core arrays and back. Every check a request needs lives here, with messages that say what
+to fix; nodes turn :class:`RequestError` into ``success = false``."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import JointState
+
+from hybrid_kinematics_ros.kinematics.se3 import matrix_from_pose, pose_from_matrix
+
+QUAT_TOLERANCE = 1e-3  # |‖q‖ − 1| accepted (and normalised) in requests
+
+
+class RequestError(ValueError):
+    """A request the node cannot answer; the message says what to fix."""
+
+
+def joints_from_msg(msg: JointState, names: Sequence[str], what: str = "joint state") -> np.ndarray:
+    """Joint values in the model's order. Empty names mean the model's order."""
+    position = list(msg.position)
+    if not msg.name:
+        if len(position) != len(names):
+            raise RequestError(f"{what} has {len(position)} positions and no names; the model has {len(names)} "
+                               f"joints ({', '.join(names)})")  # fmt: skip
+        q = np.asarray(position, dtype=float)
+    else:
+        if len(msg.name) != len(position):
+            raise RequestError(f"{what} has {len(msg.name)} names but {len(position)} positions")
+        if len(set(msg.name)) != len(msg.name):
+            dup = sorted({n for n in msg.name if list(msg.name).count(n) > 1})
+            raise RequestError(f"{what} names joint(s) {', '.join(dup)} more than once")
+        index = {n: i for i, n in enumerate(msg.name)}
+        missing = [n for n in names if n not in index]
+        if missing:
+            unknown = [n for n in msg.name if n not in names]
+            raise RequestError(f"{what} lacks joint(s) {', '.join(missing)}"
+                               + (f" and has unknown joint(s) {', '.join(unknown)}" if unknown else ""))  # fmt: skip
+        q = np.array([position[index[n]] for n in names], dtype=float)
+    if not np.all(np.isfinite(q)):
+        raise RequestError(f"{what} has NaN or infinite positions")
+    return q
+
+
+def joints_from_msg_lenient(msg: JointState, names: Sequence[str]) -> np.ndarray | None:
+    """For topics: the model's joints picked from a possibly larger joint state; None if some are missing."""
+    index = {n: i for i, n in enumerate(msg.name)}
+    if len(msg.name) != len(msg.position) or any(n not in index for n in names):
+        return None
+    q = np.array([msg.position[index[n]] for n in names], dtype=float)
+    return q if np.all(np.isfinite(q)) else None
+
+
+def matrix_from_msg(msg: PoseStamped, base_link: str) -> np.ndarray:
+    if msg.header.frame_id not in ("", base_link):
+        raise RequestError(f"target is in frame '{msg.header.frame_id}'; give it in '{base_link}' (or leave it empty)")
+    p, o = msg.pose.position, msg.pose.orientation
+    position = np.array([p.x, p.y, p.z])
+    quat = np.array([o.x, o.y, o.z, o.w])
+    if not (np.all(np.isfinite(position)) and np.all(np.isfinite(quat))):
+        raise RequestError("target pose has NaN or infinite values")
+    norm = float(np.linalg.norm(quat))
+    if abs(norm - 1.0) > QUAT_TOLERANCE:
+        raise RequestError(f"target orientation is not a unit quaternion (norm {norm:.6g})")
+    return matrix_from_pose(position, quat / norm)[0]
+
+
+def pose_msg(T: np.ndarray, frame_id: str, stamp: Time) -> PoseStamped:
+    position, quat = pose_from_matrix(T)
+    msg = PoseStamped()
+    msg.header.frame_id = frame_id
+    msg.header.stamp = stamp
+    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in position[0])
+    o = msg.pose.orientation
+    o.x, o.y, o.z, o.w = (float(v) for v in quat[0])
+    return msg
+
+
+def joint_state_msg(q: np.ndarray, names: Sequence[str], stamp: Time) -> JointState:
+    msg = JointState()
+    msg.header.stamp = stamp
+    msg.name = list(names)
+    msg.position = [float(v) for v in q]
+    return msg
+
+
+def stamp_is_zero(stamp: Time) -> bool:
+    return stamp.sec == 0 and stamp.nanosec == 0

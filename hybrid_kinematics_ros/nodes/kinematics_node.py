@@ -1,0 +1,228 @@
+"""The kinematics node: FK and IK services through the hybrid model, and the corrected pose of the robot.
+
+An adapter only: it turns messages into core calls and results back into messages. IK runs in its own
+callback group, so a long IK never blocks FK or the pose topic.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import rclpy
+from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+
+from hybrid_kinematics_interfaces.srv import ComputeFK, ComputeIK
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
+from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+from hybrid_kinematics_ros.ik.errors import IKError
+from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
+from hybrid_kinematics_ros.io.errors import DataError
+from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
+from hybrid_kinematics_ros.kinematics.errors import KinematicsError
+from hybrid_kinematics_ros.nodes.convert import (
+    RequestError,
+    joint_state_msg,
+    joints_from_msg,
+    joints_from_msg_lenient,
+    matrix_from_msg,
+    pose_msg,
+    stamp_is_zero,
+)
+
+LOAD_ERRORS = (DataError, KinematicsError, CalibrationError, OSError)
+MAX_SOLUTIONS = 16
+
+
+class StartupError(RuntimeError):
+    """The node cannot serve with its parameters; the message says which one to fix."""
+
+
+class KinematicsNode(Node):
+    def __init__(self, name: str = "kinematics_node", **kwargs) -> None:
+        super().__init__(name, **kwargs)
+
+        def declare(name: str, default, description: str):
+            # all read-only: a change needs a reload, which reads them again from the node's start
+            desc = ParameterDescriptor(description=description, read_only=True)
+            return self.declare_parameter(name, default, desc).value
+
+        self.model_dir = declare("model_dir", "", "trained model directory; empty: analytic URDF kinematics only")
+        self.urdf_path = declare("urdf_path", "", "URDF file (or give robot_description)")
+        self.robot_description = declare("robot_description", "", "URDF text (used when urdf_path is empty)")
+        self.base_link = declare("base_link", "", "base link of the chain (default: the model's)")
+        self.tip_link = declare("tip_link", "", "tip link of the chain (default: the model's)")
+        topic = declare("joint_states_topic", "/joint_states", "joint states to turn into corrected poses")
+        publish = declare("publish_corrected_pose", True, "publish ~/corrected_pose for each joint state")
+        self.ik_timeout_ms = declare("ik_timeout_ms", 50.0, "time budget per IK solution")
+        self.require_range = declare(
+            "require_calibrated_range", False, "IK: fail solutions outside the calibrated joint range"
+        )
+
+        self._lock = threading.Lock()
+        self.model, self.solver = self._load()
+        self._latest: np.ndarray | None = None
+
+        fk_group = MutuallyExclusiveCallbackGroup()
+        ik_group = MutuallyExclusiveCallbackGroup()
+        self.create_service(ComputeFK, "~/compute_fk", self._on_fk, callback_group=fk_group)
+        self.create_service(ComputeIK, "~/compute_ik", self._on_ik, callback_group=ik_group)
+        self.create_service(Trigger, "~/reload", self._on_reload, callback_group=ik_group)
+        self.pose_pub = (
+            self.create_publisher(PoseStamped, "~/corrected_pose", QoSProfile(depth=100)) if publish else None
+        )
+        self.create_subscription(JointState, topic, self._on_joint_state, qos_profile_sensor_data,
+                                 callback_group=fk_group)  # fmt: skip
+        m = self.model
+        kind = f"hybrid model {self.model_dir}" if m.nets else "analytic URDF model (no model_dir)"
+        self.get_logger().info(f"serving {kind}: {m.chain.base_link} -> {m.chain.tip_link}, "
+                               f"joints {', '.join(m.joint_names)}")  # fmt: skip
+
+    # ------------------------------------------------------------------ loading
+    def _urdf(self) -> str | None:
+        if self.urdf_path:
+            if not Path(self.urdf_path).is_file():
+                raise StartupError(f"parameter urdf_path: {self.urdf_path} does not exist")
+            return Path(self.urdf_path).read_text()
+        return self.robot_description or None
+
+    def _load(self) -> tuple[HybridModel, IKSolver]:
+        try:
+            urdf = self._urdf()
+            if self.model_dir:
+                model = HybridModel.load(self.model_dir, expect_urdf=urdf)
+                for name, value in (("base_link", self.base_link), ("tip_link", self.tip_link)):
+                    if value and value != getattr(model.chain, name):
+                        raise StartupError(f"parameter {name} '{value}' differs from the model's "
+                                           f"'{getattr(model.chain, name)}'")  # fmt: skip
+            else:
+                if urdf is None or not self.base_link or not self.tip_link:
+                    raise StartupError(
+                        "give model_dir, or urdf_path (or robot_description) with base_link and tip_link"
+                    )
+                model = HybridModel.analytic_only(chain_from_urdf(urdf, self.base_link, self.tip_link))
+        except LOAD_ERRORS as exc:
+            raise StartupError(str(exc)) from exc
+        return model, self._solver(model)
+
+    def _solver(self, model: HybridModel) -> IKSolver:
+        return IKSolver(model, IKOptions(timeout_s=self.ik_timeout_ms / 1e3,
+                                         require_calibrated_range=self.require_range))  # fmt: skip
+
+    # ------------------------------------------------------------------ callbacks
+    def _on_joint_state(self, msg: JointState) -> None:
+        model = self.model
+        q = joints_from_msg_lenient(msg, model.joint_names)
+        if q is None:
+            self.get_logger().warn(f"joint states lack some of {', '.join(model.joint_names)}; no corrected pose",
+                                   throttle_duration_sec=5.0)  # fmt: skip
+            return
+        self._latest = q
+        if self.pose_pub is not None:
+            self.pose_pub.publish(pose_msg(model.fk_single(q), model.chain.base_link, msg.header.stamp))
+
+    def _on_fk(self, request: ComputeFK.Request, response: ComputeFK.Response) -> ComputeFK.Response:
+        model = self.model
+        try:
+            if not request.joint_states:
+                raise RequestError("joint_states is empty; send at least one configuration")
+            q = np.array([joints_from_msg(js, model.joint_names, f"joint_states[{i}]")
+                          for i, js in enumerate(request.joint_states)])  # fmt: skip
+            T = (
+                model.fk(q, analytic=request.analytic_only)
+                if len(q) > 1
+                else model.fk_single(q[0], analytic=request.analytic_only)[None]
+            )
+            now = self.get_clock().now().to_msg()
+            response.poses = [
+                pose_msg(t, model.chain.base_link, now if stamp_is_zero(js.header.stamp) else js.header.stamp)
+                for t, js in zip(T, request.joint_states, strict=True)
+            ]
+            response.in_calibrated_range = [bool(v) for v in model.in_calibrated_range(q)]
+            response.success = True
+            response.message = (
+                "ok"
+                if all(response.in_calibrated_range)
+                else ("some configurations lie outside the calibrated joint range; their correction is extrapolated")
+            )
+        except (RequestError, KinematicsError) as exc:
+            response.success, response.message = False, str(exc)
+        return response
+
+    def _on_ik(self, request: ComputeIK.Request, response: ComputeIK.Response) -> ComputeIK.Response:
+        model, solver = self.model, self.solver
+        try:
+            target = matrix_from_msg(request.target, model.chain.base_link)
+            if request.seed.position or request.seed.name:
+                seed = joints_from_msg(request.seed, model.joint_names, "seed")
+            else:
+                seed = self._latest
+            k = max(1, int(request.max_solutions))
+            if k > MAX_SOLUTIONS:
+                raise RequestError(f"max_solutions {k} is above the limit of {MAX_SOLUTIONS}")
+            if k == 1:
+                results = [solver.solve(target, seed, analytic=request.analytic_only)]
+            else:
+                extra = [self._latest] if self._latest is not None and seed is not self._latest else []
+                results = solver.solve_many(target, seed, k, extra, analytic=request.analytic_only)
+            good = [r for r in results if r.success]
+            now = self.get_clock().now().to_msg()
+            response.solutions = [joint_state_msg(r.q, model.joint_names, now) for r in good]
+            response.position_error_mm = [float(r.position_error_mm) for r in good]
+            response.orientation_error_deg = [float(r.orientation_error_deg) for r in good]
+            response.success = bool(good)
+            if good:
+                response.message = f"{len(good)} solution(s)"
+            else:
+                response.message = results[0].message if results else "no solution found from any seed"
+        except (RequestError, IKError, KinematicsError) as exc:
+            response.success, response.message = False, str(exc)
+        return response
+
+    def _on_reload(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """Load ``model_dir`` again; on failure the old model keeps serving."""
+        try:
+            model, solver = self._load()
+        except StartupError as exc:
+            response.success, response.message = False, f"reload failed, still serving the old model: {exc}"
+            self.get_logger().error(response.message)
+            return response
+        with self._lock:
+            self.model, self.solver = model, solver
+        response.success, response.message = True, f"reloaded {self.model_dir or 'the URDF model'}"
+        self.get_logger().info(response.message)
+        return response
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args)
+    try:
+        node = KinematicsNode()
+    except StartupError as exc:
+        rclpy.logging.get_logger("kinematics_node").fatal(f"cannot start: {exc}")
+        rclpy.try_shutdown()
+        return 1
+    executor = MultiThreadedExecutor(num_threads=2)
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

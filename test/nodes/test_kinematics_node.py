@@ -1,0 +1,244 @@
+"""The kinematics node as ros2 run starts it: real services, real topics, bad requests, reload."""
+
+from __future__ import annotations
+
+import shutil
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from geometry_msgs.msg import PoseStamped
+from rclpy.executors import SingleThreadedExecutor
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+
+from hybrid_kinematics_interfaces.srv import ComputeFK, ComputeIK
+from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR
+from hybrid_kinematics_ros.nodes.convert import joint_state_msg, pose_msg
+from test.nodes.rosutil import Client, start, stop
+
+pytestmark = pytest.mark.ros
+NODE = "/kinematics_node"
+
+
+@pytest.fixture(scope="module")
+def ros():
+    rclpy.init()
+    yield
+    rclpy.shutdown()
+
+
+@pytest.fixture(scope="module")
+def served(ros, trained, tmp_path_factory):
+    """The node serving a copy of the trained model, and a client."""
+    model_dir = tmp_path_factory.mktemp("served") / "model"
+    shutil.copytree(trained[0], model_dir)
+    log = model_dir.parent / "node.log"
+    proc = start("kinematics_node", "-p", f"model_dir:={model_dir}", log=log)
+    client = Client()
+    try:
+        fk = client.service(ComputeFK, f"{NODE}/compute_fk")
+        ik = client.service(ComputeIK, f"{NODE}/compute_ik")
+        reload = client.service(Trigger, f"{NODE}/reload")
+        yield client, fk, ik, reload, trained[1], model_dir, proc
+    finally:
+        client.close()
+        assert stop(proc) == 0, log.read_text()
+
+
+def fk_request(qs, names, analytic=False):
+    req = ComputeFK.Request()
+    req.joint_states = [joint_state_msg(q, names, rclpy.time.Time().to_msg()) for q in qs]
+    req.analytic_only = analytic
+    return req
+
+
+def poses_of(response):
+    return np.array(
+        [
+            se3.matrix_from_pose(
+                [p.pose.position.x, p.pose.position.y, p.pose.position.z],
+                [p.pose.orientation.x, p.pose.orientation.y, p.pose.orientation.z, p.pose.orientation.w],
+            )[0]
+            for p in response.poses
+        ]
+    )
+
+
+def test_fk_matches_the_core(served):
+    client, fk, _, _, model, _, _ = served
+    q = np.random.default_rng(0).uniform(model.trained_lower, model.trained_upper, (50, 6))
+    resp = client.call(fk, fk_request(q, model.joint_names))
+    assert resp.success, resp.message
+    np.testing.assert_allclose(poses_of(resp), model.fk(q), atol=1e-9)
+    assert resp.in_calibrated_range == [True] * 50
+    assert {p.header.frame_id for p in resp.poses} == {"base_link"}
+    one = client.call(fk, fk_request(q[:1], model.joint_names))
+    np.testing.assert_allclose(poses_of(one)[0], model.fk_single(q[0]), atol=1e-9)
+    analytic = client.call(fk, fk_request(q[:3], model.joint_names, analytic=True))
+    np.testing.assert_allclose(poses_of(analytic), model.fk(q[:3], analytic=True), atol=1e-9)
+    # names select and order the joints
+    order = [3, 1, 0, 5, 4, 2]
+    shuffled = client.call(fk, fk_request(q[:2, order], [model.joint_names[i] for i in order]))
+    np.testing.assert_allclose(poses_of(shuffled), model.fk(q[:2]), atol=1e-9)
+    outside = client.call(fk, fk_request([model.trained_upper + 0.05], model.joint_names))
+    assert outside.success and outside.in_calibrated_range == [False]
+
+
+def ik_request(T, seed=None, names=(), k=1):
+    req = ComputeIK.Request()
+    req.target = pose_msg(T, "base_link", rclpy.time.Time().to_msg())
+    if seed is not None:
+        req.seed = joint_state_msg(seed, names, rclpy.time.Time().to_msg())
+    req.max_solutions = k
+    return req
+
+
+def test_ik_single_and_several_solutions(served):
+    client, _, ik, _, model, _, _ = served
+    q = np.array([0.3, -1.2, 1.3, -0.9, 1.1, 0.2])
+    T = model.fk(q)[0]
+    resp = client.call(ik, ik_request(T, q + 0.05, model.joint_names))
+    assert resp.success, resp.message
+    solution = np.array(resp.solutions[0].position)
+    pos, rot = se3.pose_errors(model.fk_single(solution), T)
+    assert pos < 1e-4 and rot < 1e-4
+    assert resp.position_error_mm[0] == pytest.approx(pos, abs=1e-9)
+    many = client.call(ik, ik_request(T, q, model.joint_names, k=8))
+    assert many.success and len(many.solutions) >= 2
+    dists = [np.linalg.norm(np.array(s.position) - q) for s in many.solutions]
+    assert dists == sorted(dists)
+
+
+BAD_FK = {
+    "NaN": (lambda names: fk_request([[np.nan, 0, 0, 0, 0, 0]], names), "NaN"),
+    "count": (lambda names: fk_request([[0, 0, 0]], []), "3 positions and no names"),
+    "unknown": (lambda names: fk_request([[0] * 6], [*names[:5], "elbow"]), "unknown joint(s) elbow"),
+    "duplicate": (lambda names: fk_request([[0] * 6], [*names[:5], names[0]]), "more than once"),
+    "empty": (lambda names: ComputeFK.Request(), "joint_states is empty"),
+}
+
+
+def test_bad_fk_requests_and_the_node_keeps_serving(served):
+    client, fk, _, _, model, _, _ = served
+    good = fk_request([np.zeros(6)], model.joint_names)
+    for name, (make, message) in BAD_FK.items():
+        resp = client.call(fk, make(model.joint_names))
+        assert not resp.success, name
+        assert message in resp.message, (name, resp.message)
+        assert client.call(fk, good).success
+
+
+def test_bad_ik_requests_and_the_node_keeps_serving(served):
+    client, fk, ik, _, model, _, _ = served
+    T = model.fk(np.array([0.1, -1.0, 1.0, -1.0, 1.0, 0.0]))[0]
+    cases = []
+    req = ik_request(T)
+    req.target.pose.orientation.w = 2.0
+    cases.append((req, "not a unit quaternion"))
+    req = ik_request(T)
+    req.target.pose.orientation.x = req.target.pose.orientation.y = 0.0
+    req.target.pose.orientation.z = req.target.pose.orientation.w = 0.0
+    cases.append((req, "not a unit quaternion (norm 0)"))
+    req = ik_request(T)
+    req.target.header.frame_id = "world"
+    cases.append((req, "in frame 'world'"))
+    req = ik_request(T)
+    req.target.pose.position.x = float("nan")
+    cases.append((req, "NaN"))
+    far = T.copy()
+    far[:3, 3] = [4.0, 0.0, 0.0]
+    cases.append((ik_request(far), "no solution"))
+    cases.append((ik_request(T, np.zeros(4), ()), "4 positions and no names"))
+    for req, message in cases:
+        resp = client.call(ik, req, timeout=60)
+        assert not resp.success and message in resp.message, resp.message
+        assert client.call(fk, fk_request([np.zeros(6)], model.joint_names)).success
+    assert client.call(ik, ik_request(T)).success
+
+
+def test_corrected_pose_topic_rate_and_stamps(served):
+    client, _, _, _, model, _, _ = served
+    received = []
+    client.node.create_subscription(PoseStamped, f"{NODE}/corrected_pose", received.append, 100)
+    pub = client.node.create_publisher(JointState, "/joint_states", 100)
+    client.spin_for(1.0)  # discovery
+    sent = {}
+    q = np.array([0.2, -1.1, 1.2, -0.8, 1.0, 0.3])
+    start_time = time.monotonic()
+    n = 220  # 2 s at 110 Hz
+    for i in range(n):
+        msg = JointState()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = 1000 + i, 7
+        msg.name = [*model.joint_names, "gripper"]  # extra joints are ignored
+        msg.position = [*(q + 1e-3 * i), 0.5]
+        sent[(1000 + i, 7)] = q + 1e-3 * i
+        pub.publish(msg)
+        client.spin_for(max(0.0, start_time + (i + 1) / 110.0 - time.monotonic()))
+    client.spin_for(1.0)
+    assert len(received) >= 0.95 * n
+    for msg in received:
+        key = (msg.header.stamp.sec, msg.header.stamp.nanosec)
+        assert key in sent
+        T = model.fk_single(sent[key])
+        assert abs(msg.pose.position.x - T[0, 3]) < 1e-9
+
+
+def test_reload_is_atomic(served):
+    client, fk, _, reload, model, model_dir, _ = served
+    good = fk_request([np.full(6, 0.1)], model.joint_names)
+    before = poses_of(client.call(fk, good))
+    backup = (model_dir / "position.pt").read_bytes()
+    (model_dir / "position.pt").write_bytes(b"corrupt")
+    try:
+        resp = client.call(reload, Trigger.Request())
+        assert not resp.success and "position.pt is corrupt" in resp.message
+        np.testing.assert_array_equal(poses_of(client.call(fk, good)), before)
+    finally:
+        (model_dir / "position.pt").write_bytes(backup)
+    assert client.call(reload, Trigger.Request()).success
+    np.testing.assert_allclose(poses_of(client.call(fk, good)), before, atol=1e-12)
+
+
+def test_refuses_to_start_for_another_urdf(ros, trained, tmp_path):
+    log = tmp_path / "node.log"
+    proc = start(
+        "kinematics_node", "-p", f"model_dir:={trained[0]}", "-p", f"urdf_path:={CONFIG_DIR / 'rx160.urdf'}", log=log
+    )
+    assert proc.wait(60) == 1
+    lines = [line for line in log.read_text().splitlines() if line.strip()]
+    assert len(lines) == 1 and "trained for another URDF" in lines[0] and "FATAL" in lines[0]
+
+
+def test_in_process_node_with_defaults_file(ros):
+    from hybrid_kinematics_ros.nodes.kinematics_node import KinematicsNode
+
+    node = KinematicsNode(
+        parameter_overrides=[
+            rclpy.parameter.Parameter("urdf_path", value=str(CONFIG_DIR / "ur10.urdf")),
+            rclpy.parameter.Parameter("base_link", value="base_link"),
+            rclpy.parameter.Parameter("tip_link", value="tool0"),
+        ]
+    )
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    client = Client("in_process_client")
+    try:
+        fk = client.node.create_client(ComputeFK, "/kinematics_in_process/compute_fk")
+        deadline = time.monotonic() + 30
+        while not fk.service_is_ready() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+            client.executor.spin_once(timeout_sec=0.05)
+        future = fk.call_async(fk_request([np.zeros(6)], node.model.joint_names))
+        while not future.done() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+            client.executor.spin_once(timeout_sec=0.05)
+        resp = future.result()
+        assert resp.success
+        np.testing.assert_allclose(poses_of(resp)[0], node.model.fk_single(np.zeros(6)), atol=1e-12)
+    finally:
+        client.close()
+        executor.shutdown()
+        node.destroy_node()
