@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import rclpy
 from geometry_msgs.msg import PoseStamped
-from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
@@ -213,32 +212,22 @@ def test_refuses_to_start_for_another_urdf(ros, trained, tmp_path):
 
 
 def test_in_process_node_with_defaults_file(ros):
+    """config/kinematics.yaml's parameters, with the URDF path made absolute, serve the embedded UR10."""
+    import yaml
+
     from hybrid_kinematics_ros.nodes.kinematics_node import KinematicsNode
 
-    node = KinematicsNode(
-        parameter_overrides=[
-            rclpy.parameter.Parameter("urdf_path", value=str(CONFIG_DIR / "ur10.urdf")),
-            rclpy.parameter.Parameter("base_link", value="base_link"),
-            rclpy.parameter.Parameter("tip_link", value="tool0"),
-        ]
-    )
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
+    params = yaml.safe_load((CONFIG_DIR / "kinematics.yaml").read_text())["kinematics_node"]["ros__parameters"]
+    params["urdf_path"] = str(CONFIG_DIR.parent / params["urdf_path"])
+    overrides = [rclpy.parameter.Parameter(k, value=v) for k, v in params.items()]
+    node = KinematicsNode("kinematics_in_process", parameter_overrides=overrides)
     client = Client("in_process_client")
+    client.executor.add_node(node)  # one executor spins the node and its client
     try:
-        fk = client.node.create_client(ComputeFK, "/kinematics_in_process/compute_fk")
-        deadline = time.monotonic() + 30
-        while not fk.service_is_ready() and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.05)
-            client.executor.spin_once(timeout_sec=0.05)
-        future = fk.call_async(fk_request([np.zeros(6)], node.model.joint_names))
-        while not future.done() and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.05)
-            client.executor.spin_once(timeout_sec=0.05)
-        resp = future.result()
+        fk = client.service(ComputeFK, "/kinematics_in_process/compute_fk")
+        resp = client.call(fk, fk_request([np.zeros(6)], node.model.joint_names))
         assert resp.success
         np.testing.assert_allclose(poses_of(resp)[0], node.model.fk_single(np.zeros(6)), atol=1e-12)
     finally:
         client.close()
-        executor.shutdown()
         node.destroy_node()
