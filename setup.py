@@ -24,6 +24,8 @@ setup(
         "console_scripts": [
             "hybrid-kinematics = hybrid_kinematics_ros.cli.main:main",
             "kinematics_node = hybrid_kinematics_ros.nodes.kinematics_node:main",
+            "sim_cell_node = hybrid_kinematics_ros.nodes.sim_cell_node:main",
+            "recorder_node = hybrid_kinematics_ros.nodes.recorder_node:main",
         ],
     },
 )

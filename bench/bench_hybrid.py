@@ -46,13 +46,28 @@ def run_fit(robot: str, tr: Pairs, va: Pairs, te: Pairs, preset: train.Preset, m
 
 
 def row(label: str, stats: dict, seconds: float | None = None) -> list:
-    out = [label, stats["position_mm_mean"], stats["position_mm_p95"], stats["position_mm_max"],
-           stats["orientation_deg_mean"], stats["orientation_deg_p95"], stats["orientation_deg_max"]]  # fmt: skip
+    out = [
+        label,
+        stats["position_mm_mean"],
+        stats["position_mm_p95"],
+        stats["position_mm_max"],
+        stats["orientation_deg_mean"],
+        stats["orientation_deg_p95"],
+        stats["orientation_deg_max"],
+    ]
     return [*out, "" if seconds is None else f"{seconds:.0f}"]
 
 
-HEAD = ["model", "position mean (mm)", "position p95 (mm)", "position max (mm)", "orientation mean (deg)",
-        "orientation p95 (deg)", "orientation max (deg)", "wall time (s)"]  # fmt: skip
+HEAD = [
+    "model",
+    "position mean (mm)",
+    "position p95 (mm)",
+    "position max (mm)",
+    "orientation mean (deg)",
+    "orientation p95 (deg)",
+    "orientation max (deg)",
+    "wall time (s)",
+]
 PAPER_ARCH = {"position": "D4w", "orientation": "Rw"}
 
 
@@ -98,8 +113,10 @@ def curve(minutes: float) -> None:
     rows = []
     for n in (1_000, 3_000, 10_000, 30_000, 100_000):
         tr = big.subset(np.arange(n))
-        for label, preset, arch in (("ours", train.PRESETS["fast"], None), ("paper D4w/Rw", train.PRESETS["paper"],
-                                                                              PAPER_ARCH)):  # fmt: skip
+        for label, preset, arch in (
+            ("ours", train.PRESETS["fast"], None),
+            ("paper D4w/Rw", train.PRESETS["paper"], PAPER_ARCH),
+        ):
             _, report, seconds, _ = run_fit(robot, tr, va, te, preset, minutes, arch)
             rows.append(row(f"{n:,} samples, {label}", report["hybrid"], seconds))
     body = (

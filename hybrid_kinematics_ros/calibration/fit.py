@@ -66,9 +66,18 @@ def fit(
     for seed_offset, kind in enumerate(train.KINDS):
         p = replace(preset, arch=arch.get(kind) or preset.arch)
         jobs[kind] = train.NetJob(
-            kind, p, train_pairs.q, y_train[kind], val_pairs.q, y_val[kind], norm_lower, norm_upper,
-            train.joint1_axis(chain), 60.0 * max_minutes, seed + seed_offset,
-        )  # fmt: skip
+            kind,
+            p,
+            train_pairs.q,
+            y_train[kind],
+            val_pairs.q,
+            y_val[kind],
+            norm_lower,
+            norm_upper,
+            train.joint1_axis(chain),
+            60.0 * max_minutes,
+            seed + seed_offset,
+        )
     start = time.perf_counter()
     nets, histories = train.train_pair(jobs, progress=progress, parallel=parallel)
     seconds = time.perf_counter() - start
@@ -81,15 +90,22 @@ def fit(
         "tool": chain.tool.tolist(),
         "joint_limits": {"lower": chain.lower.tolist(), "upper": chain.upper.tolist()},
         "trained_range": {"lower": lower.tolist(), "upper": upper.tolist()},
-        "nets": {kind: {"arch": job.preset.arch, "epochs": len(histories[kind]), **_best(histories[kind])}
-                 for kind, job in jobs.items()},
+        "nets": {
+            kind: {"arch": job.preset.arch, "epochs": len(histories[kind]), **_best(histories[kind])}
+            for kind, job in jobs.items()
+        },
         "preset": asdict(preset),
         "seed": seed,
         "training_seconds": round(seconds, 1),
-        "data": {**(data_summary or {}), "train": len(train_pairs), "val": len(val_pairs), "test": len(test_pairs),
-                 "frame_id": train_pairs.frame_id},
+        "data": {
+            **(data_summary or {}),
+            "train": len(train_pairs),
+            "val": len(val_pairs),
+            "test": len(test_pairs),
+            "frame_id": train_pairs.frame_id,
+        },
         "metrics": {"test": metrics},
-    }  # fmt: skip
+    }
     save_model_dir(out, manifest, chain.urdf_text, nets)
     return HybridModel.load(out), manifest
 

@@ -80,16 +80,21 @@ class HybridModel:
         chain = chain.with_tool(np.asarray(m["tool"], dtype=float))
         chain = chain.with_limits(m["joint_limits"]["lower"], m["joint_limits"]["upper"])
         if tuple(m["joint_names"]) != chain.joint_names:
-            raise DataError(f"{files.path}: model.json joints {m['joint_names']} differ from the URDF's chain "
-                            f"{list(chain.joint_names)}")  # fmt: skip
+            raise DataError(
+                f"{files.path}: model.json joints {m['joint_names']} differ from the URDF's chain "
+                f"{list(chain.joint_names)}"
+            )
         if expect_urdf is not None:
             expected = chain_from_urdf(expect_urdf, m["base_link"], m["tip_link"])
             if expected.urdf_sha256 != m["urdf_sha256"]:
-                raise DataError(f"{files.path} was trained for another URDF (sha256 {m['urdf_sha256'][:12]}…, "
-                                f"given {expected.urdf_sha256[:12]}…); retrain or use the matching URDF")  # fmt: skip
+                raise DataError(
+                    f"{files.path} was trained for another URDF (sha256 {m['urdf_sha256'][:12]}…, "
+                    f"given {expected.urdf_sha256[:12]}…); retrain or use the matching URDF"
+                )
         if expect_joint_names is not None and tuple(expect_joint_names) != chain.joint_names:
-            raise DataError(f"{files.path} was trained for joints {list(chain.joint_names)}, "
-                            f"not {list(expect_joint_names)}")  # fmt: skip
+            raise DataError(
+                f"{files.path} was trained for joints {list(chain.joint_names)}, not {list(expect_joint_names)}"
+            )
         return cls(chain, files.nets, m, Path(path))
 
     @property

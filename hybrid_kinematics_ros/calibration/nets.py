@@ -47,10 +47,15 @@ class _ResBlock(nn.Module):
     def __init__(self, width_in: int, width: int) -> None:
         super().__init__()
         self.main = nn.Sequential(
-            nn.Linear(width_in, width), nn.BatchNorm1d(width), nn.ReLU(),
-            nn.Linear(width, width), nn.BatchNorm1d(width), nn.ReLU(),
-            nn.Linear(width, width), nn.BatchNorm1d(width),
-        )  # fmt: skip
+            nn.Linear(width_in, width),
+            nn.BatchNorm1d(width),
+            nn.ReLU(),
+            nn.Linear(width, width),
+            nn.BatchNorm1d(width),
+            nn.ReLU(),
+            nn.Linear(width, width),
+            nn.BatchNorm1d(width),
+        )
         self.shortcut = (
             nn.Sequential(nn.Linear(width_in, width), nn.BatchNorm1d(width)) if width_in != width else nn.Identity()
         )

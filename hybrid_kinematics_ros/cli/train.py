@@ -35,10 +35,16 @@ class Progress:
 
     def __init__(self, seconds: float) -> None:
         self.bars = {
-            kind: tqdm(total=round(seconds), desc=f"{kind:<11}", unit="s", position=i, leave=True,
-                       bar_format="{desc} {bar} {n_fmt}/{total_fmt} s {postfix}")
+            kind: tqdm(
+                total=round(seconds),
+                desc=f"{kind:<11}",
+                unit="s",
+                position=i,
+                leave=True,
+                bar_format="{desc} {bar} {n_fmt}/{total_fmt} s {postfix}",
+            )
             for i, kind in enumerate(train.KINDS)
-        }  # fmt: skip
+        }
 
     def __call__(self, entry: dict) -> None:
         bar = self.bars[entry["kind"]]
@@ -58,24 +64,43 @@ def run(args: argparse.Namespace) -> int:
     chain = chain_from_args(args)
     pairs = load_pairs(args.bag, chain)
     if args.val_bag or args.test_bag:
-        train_pairs, val_pairs, test_pairs = split(pairs, args.seed, (0.0 if args.val_bag else 0.1,
-                                                                      0.0 if args.test_bag else 0.1))  # fmt: skip
+        train_pairs, val_pairs, test_pairs = split(
+            pairs, args.seed, (0.0 if args.val_bag else 0.1, 0.0 if args.test_bag else 0.1)
+        )
         val_pairs = load_pairs(args.val_bag, chain) if args.val_bag else val_pairs
         test_pairs = load_pairs(args.test_bag, chain) if args.test_bag else test_pairs
     else:
         train_pairs, val_pairs, test_pairs = split(pairs, args.seed)
-    print(f"pairs: {len(train_pairs)} train, {len(val_pairs)} validation, {len(test_pairs)} test"
-          + (f"; dropped {dict(pairs.dropped)}" if pairs.dropped else ""))  # fmt: skip
+    print(
+        f"pairs: {len(train_pairs)} train, {len(val_pairs)} validation, {len(test_pairs)} test"
+        + (f"; dropped {dict(pairs.dropped)}" if pairs.dropped else "")
+    )
     progress = Progress(60.0 * args.max_minutes)
     try:
         _, manifest = fit(
-            chain, train_pairs, val_pairs, test_pairs, args.out, train.preset(args.preset), args.max_minutes,
-            seed=args.seed, arch={"position": args.arch_position, "orientation": args.arch_orientation},
-            data_summary={"bags": [str(b) for b in args.bag], "dropped": dict(pairs.dropped)}, progress=progress,
-        )  # fmt: skip
+            chain,
+            train_pairs,
+            val_pairs,
+            test_pairs,
+            args.out,
+            train.preset(args.preset),
+            args.max_minutes,
+            seed=args.seed,
+            arch={"position": args.arch_position, "orientation": args.arch_orientation},
+            data_summary={"bags": [str(b) for b in args.bag], "dropped": dict(pairs.dropped)},
+            progress=progress,
+        )
     finally:
         progress.close()
     test = manifest["metrics"]["test"]
-    print(json.dumps({"model": str(args.out), "training_seconds": manifest["training_seconds"],
-                      "test_analytic": test["analytic"], "test_hybrid": test["hybrid"]}))  # fmt: skip
+    print(
+        json.dumps(
+            {
+                "model": str(args.out),
+                "training_seconds": manifest["training_seconds"],
+                "test_analytic": test["analytic"],
+                "test_hybrid": test["hybrid"],
+            }
+        )
+    )
     return 0

@@ -175,8 +175,9 @@ class IKSolver:
         attempts = 0
         while True:
             attempts += 1
-            q, ep, er, _ = lm_solve(fk_jac, target, attempt_seed, self.limits, tol_m, tol_rad,
-                                    o.max_iterations, deadline)  # fmt: skip
+            q, ep, er, _ = lm_solve(
+                fk_jac, target, attempt_seed, self.limits, tol_m, tol_rad, o.max_iterations, deadline
+            )
             if best is None or ep + er < best[1] + best[2]:
                 best = (q, ep, er)
             if ep <= tol_m and er <= tol_rad:
@@ -197,8 +198,9 @@ class IKSolver:
         while boxes <= recentre:
             pos, rot = self.errors(q, target)
             on_edge = np.abs(q - q0).max() >= self.options.refine_width_rad * 0.999
-            if not on_edge or (pos <= self.options.position_tolerance_mm
-                               and rot <= self.options.orientation_tolerance_deg):  # fmt: skip
+            if not on_edge or (
+                pos <= self.options.position_tolerance_mm and rot <= self.options.orientation_tolerance_deg
+            ):
                 break
             q0 = q
             q, more = self._refine_box(target, q0)
@@ -239,8 +241,18 @@ class IKSolver:
                 return -(d * mm[..., None]).reshape(12, len(q))
 
         q_start = np.clip(q0, lo, hi)
-        sol = least_squares(fun, q_start, jac=jac, bounds=(lo, hi), method="trf", xtol=1e-15, ftol=1e-15,
-                            gtol=1e-15, max_nfev=60, x_scale=1.0)  # fmt: skip
+        sol = least_squares(
+            fun,
+            q_start,
+            jac=jac,
+            bounds=(lo, hi),
+            method="trf",
+            xtol=1e-15,
+            ftol=1e-15,
+            gtol=1e-15,
+            max_nfev=60,
+            x_scale=1.0,
+        )
         return sol.x, {"nfev": int(sol.nfev), "status": int(sol.status)}
 
     # ------------------------------------------------------------------ API
@@ -270,14 +282,20 @@ class IKSolver:
         elif ok:
             message = "solved"
         else:
-            message = (f"no solution within tolerance: best error {pos:.3g} mm / {rot:.3g} deg "
-                       "(target unreachable, or no convergence within the iteration and time budget)")  # fmt: skip
+            message = (
+                f"no solution within tolerance: best error {pos:.3g} mm / {rot:.3g} deg "
+                "(target unreachable, or no convergence within the iteration and time budget)"
+            )
         return IKResult(ok, q, pos, rot, message, time.perf_counter() - start, inside, stats)
 
     def solve_many(
-        self, target: np.ndarray, seed: np.ndarray | None = None, max_solutions: int = 8,
-        extra_seeds: list[np.ndarray] | None = None, analytic: bool = False,
-    ) -> list[IKResult]:  # fmt: skip
+        self,
+        target: np.ndarray,
+        seed: np.ndarray | None = None,
+        max_solutions: int = 8,
+        extra_seeds: list[np.ndarray] | None = None,
+        analytic: bool = False,
+    ) -> list[IKResult]:
         """Up to ``max_solutions`` distinct solutions, nearest to the seed first. Empty if none reached."""
         start = time.perf_counter()
         target, seed = self._check(target, seed)
@@ -287,8 +305,9 @@ class IKSolver:
         tol_m, tol_rad = 1e-3 * o.position_tolerance_mm, np.radians(o.orientation_tolerance_deg)
         for s in seeds:
             deadline = time.perf_counter() + o.timeout_s
-            q, ep, er, _ = lm_solve(self._analytic, target, s, self.limits, tol_m * 0.1, tol_rad * 0.1,
-                                    o.max_iterations, deadline)  # fmt: skip
+            q, ep, er, _ = lm_solve(
+                self._analytic, target, s, self.limits, tol_m * 0.1, tol_rad * 0.1, o.max_iterations, deadline
+            )
             if ep > tol_m or er > tol_rad:
                 continue
             q = self._nearest_equivalent(q, seed)
@@ -336,8 +355,7 @@ class IKSolver:
                 result = self.solve(target)
             else:
                 target, _ = self._check(target, prev)
-                q, _, _, it = lm_solve(hybrid, target, prev, self.limits, tol_m, tol_rad, 30,
-                                       start + o.timeout_s)  # fmt: skip
+                q, _, _, it = lm_solve(hybrid, target, prev, self.limits, tol_m, tol_rad, 30, start + o.timeout_s)
                 result = self._result(q, target, False, start, {"iterations": it})
                 if not result.success:
                     result = self.solve(target, prev)

@@ -24,8 +24,17 @@ SCHEMA_VERSION = 1
 MANIFEST = "model.json"
 URDF_FILE = "robot.urdf"
 NET_FILES = {"position": "position.pt", "orientation": "orientation.pt"}
-REQUIRED = ("schema_version", "urdf_sha256", "base_link", "tip_link", "joint_names", "tool", "joint_limits",
-            "trained_range", "nets")  # fmt: skip
+REQUIRED = (
+    "schema_version",
+    "urdf_sha256",
+    "base_link",
+    "tip_link",
+    "joint_names",
+    "tool",
+    "joint_limits",
+    "trained_range",
+    "nets",
+)
 
 
 def sha256_file(path: Path) -> str:
@@ -39,8 +48,12 @@ def versions() -> dict[str, str]:
         ours = version("hybrid_kinematics_ros")
     except PackageNotFoundError:
         ours = "source"
-    return {"hybrid_kinematics_ros": ours, "torch": torch.__version__, "numpy": np.__version__,
-            "python": platform.python_version()}  # fmt: skip
+    return {
+        "hybrid_kinematics_ros": ours,
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+    }
 
 
 @dataclass
@@ -72,10 +85,12 @@ def save_model_dir(path: Path, manifest: dict[str, Any], urdf_text: str, nets: d
             "urdf_file": URDF_FILE,
             "urdf_sha256": hashlib.sha256(urdf_text.encode()).hexdigest(),
             **manifest,
-            "nets": {**manifest.get("nets", {}), **{k: {**manifest.get("nets", {}).get(k, {}), **v}
-                                                     for k, v in files.items()}},
+            "nets": {
+                **manifest.get("nets", {}),
+                **{k: {**manifest.get("nets", {}).get(k, {}), **v} for k, v in files.items()},
+            },
             "versions": versions(),
-        }  # fmt: skip
+        }
         (tmp / MANIFEST).write_text(json.dumps(full, indent=2, default=_json_default) + "\n")
         if path.exists():
             path.rmdir()
@@ -111,8 +126,10 @@ def load_model_dir(path: Path | str) -> ModelFiles:
     if missing:
         raise DataError(f"{manifest_path}: missing field(s) {', '.join(missing)}")
     if manifest["schema_version"] != SCHEMA_VERSION:
-        raise DataError(f"{manifest_path}: schema_version {manifest['schema_version']} is not {SCHEMA_VERSION}; "
-                        "retrain with this version")  # fmt: skip
+        raise DataError(
+            f"{manifest_path}: schema_version {manifest['schema_version']} is not {SCHEMA_VERSION}; "
+            "retrain with this version"
+        )
     urdf_path = path / manifest.get("urdf_file", URDF_FILE)
     if not urdf_path.is_file():
         raise DataError(f"{urdf_path} does not exist")

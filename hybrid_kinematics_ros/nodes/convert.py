@@ -24,8 +24,10 @@ def joints_from_msg(msg: JointState, names: Sequence[str], what: str = "joint st
     position = list(msg.position)
     if not msg.name:
         if len(position) != len(names):
-            raise RequestError(f"{what} has {len(position)} positions and no names; the model has {len(names)} "
-                               f"joints ({', '.join(names)})")  # fmt: skip
+            raise RequestError(
+                f"{what} has {len(position)} positions and no names; the model has {len(names)} "
+                f"joints ({', '.join(names)})"
+            )
         q = np.asarray(position, dtype=float)
     else:
         if len(msg.name) != len(position):
@@ -37,8 +39,10 @@ def joints_from_msg(msg: JointState, names: Sequence[str], what: str = "joint st
         missing = [n for n in names if n not in index]
         if missing:
             unknown = [n for n in msg.name if n not in names]
-            raise RequestError(f"{what} lacks joint(s) {', '.join(missing)}"
-                               + (f" and has unknown joint(s) {', '.join(unknown)}" if unknown else ""))  # fmt: skip
+            raise RequestError(
+                f"{what} lacks joint(s) {', '.join(missing)}"
+                + (f" and has unknown joint(s) {', '.join(unknown)}" if unknown else "")
+            )
         q = np.array([position[index[n]] for n in names], dtype=float)
     if not np.all(np.isfinite(q)):
         raise RequestError(f"{what} has NaN or infinite positions")

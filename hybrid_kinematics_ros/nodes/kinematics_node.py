@@ -80,12 +80,14 @@ class KinematicsNode(Node):
         self.pose_pub = (
             self.create_publisher(PoseStamped, "~/corrected_pose", QoSProfile(depth=100)) if publish else None
         )
-        self.create_subscription(JointState, topic, self._on_joint_state, qos_profile_sensor_data,
-                                 callback_group=fk_group)  # fmt: skip
+        self.create_subscription(
+            JointState, topic, self._on_joint_state, qos_profile_sensor_data, callback_group=fk_group
+        )
         m = self.model
         kind = f"hybrid model {self.model_dir}" if m.nets else "analytic URDF model (no model_dir)"
-        self.get_logger().info(f"serving {kind}: {m.chain.base_link} -> {m.chain.tip_link}, "
-                               f"joints {', '.join(m.joint_names)}")  # fmt: skip
+        self.get_logger().info(
+            f"serving {kind}: {m.chain.base_link} -> {m.chain.tip_link}, joints {', '.join(m.joint_names)}"
+        )
 
     # ------------------------------------------------------------------ loading
     def _urdf(self) -> str | None:
@@ -102,8 +104,9 @@ class KinematicsNode(Node):
                 model = HybridModel.load(self.model_dir, expect_urdf=urdf)
                 for name, value in (("base_link", self.base_link), ("tip_link", self.tip_link)):
                     if value and value != getattr(model.chain, name):
-                        raise StartupError(f"parameter {name} '{value}' differs from the model's "
-                                           f"'{getattr(model.chain, name)}'")  # fmt: skip
+                        raise StartupError(
+                            f"parameter {name} '{value}' differs from the model's '{getattr(model.chain, name)}'"
+                        )
             else:
                 if urdf is None or not self.base_link or not self.tip_link:
                     raise StartupError(
@@ -115,16 +118,19 @@ class KinematicsNode(Node):
         return model, self._solver(model)
 
     def _solver(self, model: HybridModel) -> IKSolver:
-        return IKSolver(model, IKOptions(timeout_s=self.ik_timeout_ms / 1e3,
-                                         require_calibrated_range=self.require_range))  # fmt: skip
+        return IKSolver(
+            model, IKOptions(timeout_s=self.ik_timeout_ms / 1e3, require_calibrated_range=self.require_range)
+        )
 
     # ------------------------------------------------------------------ callbacks
     def _on_joint_state(self, msg: JointState) -> None:
         model = self.model
         q = joints_from_msg_lenient(msg, model.joint_names)
         if q is None:
-            self.get_logger().warn(f"joint states lack some of {', '.join(model.joint_names)}; no corrected pose",
-                                   throttle_duration_sec=5.0)  # fmt: skip
+            self.get_logger().warn(
+                f"joint states lack some of {', '.join(model.joint_names)}; no corrected pose",
+                throttle_duration_sec=5.0,
+            )
             return
         self._latest = q
         if self.pose_pub is not None:
@@ -135,8 +141,12 @@ class KinematicsNode(Node):
         try:
             if not request.joint_states:
                 raise RequestError("joint_states is empty; send at least one configuration")
-            q = np.array([joints_from_msg(js, model.joint_names, f"joint_states[{i}]")
-                          for i, js in enumerate(request.joint_states)])  # fmt: skip
+            q = np.array(
+                [
+                    joints_from_msg(js, model.joint_names, f"joint_states[{i}]")
+                    for i, js in enumerate(request.joint_states)
+                ]
+            )
             T = (
                 model.fk(q, analytic=request.analytic_only)
                 if len(q) > 1

@@ -1,0 +1,73 @@
+"""Smooth joint trajectories through waypoints, for the simulated cell.
+
+Between waypoints every joint follows the same smoothstep profile (zero velocity at both ends), timed so
+the fastest joint moves at ``speed`` rad/s on average; the robot then dwells for ``dwell_s`` (still
+windows for static-mode recording). Patterns: ``random`` waypoints in a reduced joint range, and
+``cube``, the ISO 9283 test cube (its 8 corners and centre) reached through analytic IK.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hybrid_kinematics_ros.kinematics.chain import Chain
+from hybrid_kinematics_ros.simulation.errors import SimulationError
+from hybrid_kinematics_ros.simulation.sampling import joint_range
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    waypoints: np.ndarray  # (W, n)
+    starts: np.ndarray  # (W,) start time of the move towards waypoint i (s); move 0 is a dwell at waypoint 0
+    durations: np.ndarray  # (W,) move durations (s)
+    dwell_s: float
+
+    @property
+    def period(self) -> float:
+        return float(self.starts[-1] + self.durations[-1] + self.dwell_s)
+
+    def __call__(self, t: np.ndarray) -> np.ndarray:
+        """Joints ``(B, n)`` at times ``t (B,)`` s; the trajectory loops."""
+        t = np.asarray(t, dtype=float) % self.period
+        i = np.clip(np.searchsorted(self.starts, t, side="right") - 1, 0, len(self.starts) - 1)
+        prev = self.waypoints[i - 1]
+        s = np.clip((t - self.starts[i]) / self.durations[i], 0.0, 1.0)
+        s = s * s * (3.0 - 2.0 * s)
+        return prev + s[:, None] * (self.waypoints[i] - prev)
+
+
+def through(waypoints: np.ndarray, speed: float, dwell_s: float) -> Trajectory:
+    if speed <= 0:
+        raise SimulationError(f"trajectory speed must be positive, got {speed}")
+    w = np.asarray(waypoints, dtype=float)
+    step = np.abs(w - np.roll(w, 1, axis=0)).max(axis=1)  # move i goes from waypoint i-1 to i (looping)
+    durations = np.maximum(1.5 * step / speed, 0.05)  # smoothstep peaks at 1.5x its mean speed
+    starts = np.concatenate([[0.0], np.cumsum(durations + dwell_s)[:-1]])
+    return Trajectory(w, starts, durations, dwell_s)
+
+
+def random_waypoints(chain: Chain, count: int, rng: np.random.Generator, fraction: float = 0.6) -> np.ndarray:
+    lo, hi = joint_range(chain, fraction)
+    return rng.uniform(lo, hi, (count, chain.dof))
+
+
+def cube_waypoints(chain: Chain, centre_q: np.ndarray, side_m: float = 0.3) -> np.ndarray:
+    """ISO 9283 cube: centre and 8 corners around the tip pose at ``centre_q``, orientation kept."""
+    from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+    from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
+    from hybrid_kinematics_ros.kinematics import fk
+
+    solver = IKSolver(HybridModel.analytic_only(chain), IKOptions(timeout_s=0.5))
+    centre = fk.fk_single(chain, centre_q)
+    out = [np.asarray(centre_q, dtype=float)]
+    half = side_m / 2
+    for corner in np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).T.reshape(-1, 3):
+        target = centre.copy()
+        target[:3, 3] += half * corner
+        result = solver.solve(target, out[-1], analytic=True)
+        if not result.success:
+            raise SimulationError(f"cube corner {corner * half} m is not reachable from the centre; use a smaller side")
+        out.append(result.q)
+    return np.array(out)
