@@ -82,7 +82,7 @@ def fit(
     nets, histories = train.train_pair(jobs, progress=progress, parallel=parallel)
     seconds = time.perf_counter() - start
     model = HybridModel(chain, nets, {"trained_range": {"lower": lower.tolist(), "upper": upper.tolist()}})
-    metrics = evaluate(model, test_pairs)
+    metrics = evaluate(model, test_pairs)  # eager nets here; the saved TorchScript is checked against them
     manifest = {
         "base_link": chain.base_link,
         "tip_link": chain.tip_link,

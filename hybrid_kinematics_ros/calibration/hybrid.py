@@ -60,7 +60,7 @@ class HybridModel:
         self.nets = dict(nets or {})
         self.manifest = dict(manifest or {})
         self.path = path
-        self._fast = {kind: NumpyResidual.from_script(net) for kind, net in self.nets.items()}
+        self._fast = {kind: NumpyResidual.from_module(net) for kind, net in self.nets.items()}
         rng = self.manifest.get("trained_range")
         self.trained_lower = np.asarray(rng["lower"], dtype=float) if rng else chain.lower
         self.trained_upper = np.asarray(rng["upper"], dtype=float) if rng else chain.upper

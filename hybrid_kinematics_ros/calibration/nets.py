@@ -160,7 +160,7 @@ class NumpyResidual:
     """A numpy evaluator of a saved MLP residual net, for single configurations.
 
     At batch size 1 TorchScript spends ~50 µs per call on operator dispatch; these few numpy products take
-    a few µs. Only plain MLPs (Linear and activation layers) qualify; :meth:`from_script` returns None for
+    a few µs. Only plain MLPs (Linear and activation layers) qualify; :meth:`from_module` returns None for
     others, and callers then use the TorchScript module. Tests check it against TorchScript.
     """
 
@@ -176,15 +176,16 @@ class NumpyResidual:
         self.mean = module.target_mean.numpy()
         self.scale = module.target_scale.numpy()
         self.axis = module.axis.numpy()
-        self.sincos = bool(module.sincos)
+        self.sincos = bool(module.sincos)  # ScriptModules keep plain attributes
         self.turn = bool(module.turn)
         self.layers = layers
 
     @classmethod
-    def from_script(cls, module: torch.jit.ScriptModule) -> NumpyResidual | None:
+    def from_module(cls, module: torch.nn.Module) -> NumpyResidual | None:
+        """From a loaded TorchScript net or an eager :class:`ResidualNet`; None if not a plain MLP."""
         layers: list = []
         for child in module.body.children():
-            kind = getattr(child, "original_name", type(child).__name__)
+            kind = getattr(child, "original_name", None) or type(child).__name__
             if kind == "Linear":
                 # float32 as in the net: the weights' memory traffic dominates the cost at batch size 1
                 weight, bias = child.weight.detach().numpy().T.copy(), child.bias.detach().numpy().copy()

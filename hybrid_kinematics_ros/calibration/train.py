@@ -10,9 +10,7 @@ from __future__ import annotations
 
 import math
 import multiprocessing as mp
-import os
 import queue
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
@@ -168,45 +166,46 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
     return net, history
 
 
-def _worker(job: NetJob, out_path: str, progress: mp.Queue) -> list[dict]:
+def _worker(job: NetJob, progress: mp.Queue) -> tuple[dict, list[dict]]:
     torch.set_num_threads(1)
     net, history = train_net(job, report=progress.put)
-    torch.jit.script(net).save(out_path)
-    return history
+    return {k: v.numpy() for k, v in net.state_dict().items()}, history
 
 
 def train_pair(
     jobs: dict[str, NetJob], progress: Callable[[dict], None] | None = None, parallel: bool = True
-) -> tuple[dict[str, torch.jit.ScriptModule], dict[str, list[dict]]]:
+) -> tuple[dict[str, ResidualNet], dict[str, list[dict]]]:
     """Train the position and orientation nets, one process and one thread each when ``parallel``.
 
-    Two single-threaded processes beat one process with two threads on a shared 2-core machine.
+    Two single-threaded processes beat one process with two threads on a shared 2-core machine. Workers
+    send back plain weights; the eager nets are rebuilt here (TorchScript only when a model is saved).
     """
-    with tempfile.TemporaryDirectory() as tmp:
-        paths = {kind: os.path.join(tmp, f"{kind}.pt") for kind in jobs}
-        histories: dict[str, list[dict]] = {}
-        if parallel and len(jobs) > 1:
-            ctx = mp.get_context("spawn")
-            with ctx.Manager() as manager:
-                q = manager.Queue()
-                with ctx.Pool(len(jobs)) as pool:
-                    pending = {k: pool.apply_async(_worker, (job, paths[k], q)) for k, job in jobs.items()}
-                    while pending:
-                        try:
-                            entry = q.get(timeout=0.2)
-                            if progress:
-                                progress(entry)
-                        except queue.Empty:
-                            pass
-                        for k in [k for k, r in pending.items() if r.ready()]:
-                            histories[k] = pending.pop(k).get()
-                    while not q.empty() and progress:
-                        progress(q.get())
-        else:
-            for kind, job in jobs.items():
-                net, histories[kind] = train_net(job, report=progress)
-                torch.jit.script(net).save(paths[kind])
-        return {k: torch.jit.load(p) for k, p in paths.items()}, histories
+    histories: dict[str, list[dict]] = {}
+    nets: dict[str, ResidualNet] = {}
+    if parallel and len(jobs) > 1:
+        ctx = mp.get_context("spawn")
+        with ctx.Manager() as manager:
+            q = manager.Queue()
+            with ctx.Pool(len(jobs), maxtasksperchild=1) as pool:
+                pending = {k: pool.apply_async(_worker, (job, q)) for k, job in jobs.items()}
+                while pending:
+                    try:
+                        entry = q.get(timeout=0.2)
+                        if progress:
+                            progress(entry)
+                    except queue.Empty:
+                        pass
+                    for k in [k for k, r in pending.items() if r.ready()]:
+                        state, histories[k] = pending.pop(k).get()
+                        net = build_net(jobs[k])
+                        net.load_state_dict({name: torch.from_numpy(v) for name, v in state.items()})
+                        nets[k] = net.eval()
+                while not q.empty() and progress:
+                    progress(q.get())
+    else:
+        for kind, job in jobs.items():
+            nets[kind], histories[kind] = train_net(job, report=progress)
+    return nets, histories
 
 
 def preset(name: str, **overrides: object) -> Preset:

@@ -79,6 +79,7 @@ def save_model_dir(path: Path, manifest: dict[str, Any], urdf_text: str, nets: d
         for kind, net in nets.items():
             module = net if isinstance(net, torch.jit.ScriptModule) else torch.jit.script(net)
             module.save(str(tmp / NET_FILES[kind]))
+            _check_saved(net, tmp / NET_FILES[kind], len(manifest.get("joint_names", [])))
             files[kind] = {"file": NET_FILES[kind], "sha256": sha256_file(tmp / NET_FILES[kind])}
         full = {
             "schema_version": SCHEMA_VERSION,
@@ -98,6 +99,18 @@ def save_model_dir(path: Path, manifest: dict[str, Any], urdf_text: str, nets: d
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def _check_saved(net: torch.nn.Module, file: Path, dof: int) -> None:
+    """The saved TorchScript must reproduce the net it came from."""
+    if not dof:
+        return
+    q = torch.linspace(-2.0, 2.0, 7 * dof, dtype=torch.float64).reshape(7, dof)
+    with torch.no_grad():
+        expected = net(q)
+        got = torch.jit.load(str(file))(q)
+    if not torch.allclose(expected, got, rtol=0, atol=1e-12):
+        raise DataError(f"{file}: the saved TorchScript does not reproduce the trained net")
 
 
 def _json_default(value: Any) -> Any:
