@@ -11,16 +11,49 @@ from typing import Any
 import numpy as np
 
 from hybrid_kinematics_ros.calibration import train
+from hybrid_kinematics_ros.calibration.alignment import AlignOptions, AlignResult, align
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.io.model_dir import save_model_dir
-from hybrid_kinematics_ros.io.pairs import Pairs, read_pairs
+from hybrid_kinematics_ros.io.pairs import (
+    JOINTS_TOPIC,
+    RAW_JOINTS_TOPIC,
+    RAW_POSE_TOPIC,
+    Pairs,
+    bag_topics,
+    read_pairs,
+)
+from hybrid_kinematics_ros.io.raw_bag import RawRecording, read_raw
 from hybrid_kinematics_ros.kinematics.chain import Chain
 
 
-def load_pairs(bags: Sequence[str | Path], chain: Chain) -> Pairs:
-    pairs = Pairs.concatenate([read_pairs(b, chain.joint_names) for b in bags])
+def align_raw(
+    bag: str | Path,
+    chain: Chain,
+    options: AlignOptions | None = None,
+    frame_id: str | None = None,
+    joints_topic: str = RAW_JOINTS_TOPIC,
+    tracker_topic: str = RAW_POSE_TOPIC,
+) -> tuple[AlignResult, RawRecording]:
+    rec = read_raw(bag, joints_topic, tracker_topic)
+    return align(chain, rec, options, frame_id), rec
+
+
+def load_pairs(bags: Sequence[str | Path], chain: Chain, raw_frame_id: str | None = None) -> Pairs:
+    """Pairs from pairs bags, or from raw recordings, which are aligned on the fly.
+
+    ``raw_frame_id`` names the frame of raw recordings' pairs (e.g. the base link when the tracker frame
+    is the robot base, as in the simulated cell).
+    """
+    parts = []
+    for bag in bags:
+        topics = bag_topics(bag)
+        if JOINTS_TOPIC not in topics and RAW_JOINTS_TOPIC in topics and RAW_POSE_TOPIC in topics:
+            parts.append(align_raw(bag, chain, frame_id=raw_frame_id)[0].pairs)
+        else:
+            parts.append(read_pairs(bag, chain.joint_names))
+    pairs = Pairs.concatenate(parts)
     if pairs.frame_id != chain.base_link:
         raise CalibrationError(
             f"the pairs are in frame '{pairs.frame_id}', not the base link '{chain.base_link}'; "

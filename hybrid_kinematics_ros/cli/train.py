@@ -25,6 +25,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--max-minutes", type=float, default=5.0, help="wall-clock training budget (nets train side by side)"
     )
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--raw-frame-id", help="raw recordings: frame of their pairs (the base link if the tracker frame is it)"
+    )
     p.add_argument("--val-bag", nargs="+", help="separate validation bag(s); default: 10%% of --bag")
     p.add_argument("--test-bag", nargs="+", help="separate test bag(s); default: 10%% of --bag")
     p.set_defaults(run=run)
@@ -62,7 +65,7 @@ class Progress:
 
 def run(args: argparse.Namespace) -> int:
     chain = chain_from_args(args)
-    pairs = load_pairs(args.bag, chain)
+    pairs = load_pairs(args.bag, chain, args.raw_frame_id)
     if args.val_bag or args.test_bag:
         train_pairs, val_pairs, test_pairs = split(
             pairs, args.seed, (0.0 if args.val_bag else 0.1, 0.0 if args.test_bag else 0.1)

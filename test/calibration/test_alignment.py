@@ -1,0 +1,113 @@
+"""Alignment of 110 Hz joints with 3 kHz tracker poses, on synthetic streams with a known truth."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from hybrid_kinematics_ros.calibration.alignment import AlignOptions, align, estimate_offset
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
+from hybrid_kinematics_ros.io.raw_bag import RawRecording
+from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
+from hybrid_kinematics_ros.simulation.cell import VirtualCell
+from hybrid_kinematics_ros.simulation.trajectory import random_waypoints, through
+
+T0 = 1_700_000_000_000_000_000
+
+
+def recording(offset_s=0.0123, seconds=30.0, noise=True, gap=None, speed=0.25, seed=1):
+    cfg = load_robot_config("ur10")
+    cell = VirtualCell.from_config(cfg, noise=noise)
+    rng = np.random.default_rng(seed)
+    traj = through(random_waypoints(cfg.chain, 30, rng), speed, 0.3)
+    tj = np.arange(0.0, seconds, 1 / 110)
+    tp = np.arange(-0.1, seconds + 0.1, 1 / 3000)
+    if gap is not None:
+        tp = tp[(tp < gap[0]) | (tp >= gap[1])]
+    p, quat = pose_from_matrix(cell.measure(traj(tp), rng))
+    rec = RawRecording(
+        T0 + np.round(tj * 1e9).astype(np.int64),
+        cfg.chain.joint_names,
+        traj(tj),
+        T0 + np.round((tp + offset_s) * 1e9).astype(np.int64),
+        "tracker",
+        p,
+        quat,
+        False,
+        Counter(),
+    )
+    return cfg, cell, traj, rec
+
+
+def test_clock_offset_is_recovered_to_a_fifth_of_a_millisecond():
+    for offset in (0.0123, -0.0371):
+        cfg, _, _, rec = recording(offset_s=offset)
+        assert abs(estimate_offset(cfg.chain, rec) - offset) < 2e-4
+
+
+def test_alignment_error_is_far_below_the_tracker_noise():
+    cfg, cell, _, rec = recording(noise=False)
+    result = align(cfg.chain, rec, AlignOptions(offset_s=0.0123), frame_id="base_link")
+    truth = cell.robot.fk(result.pairs.q)
+    pos, _ = se3.pose_errors(result.pairs.T, truth)
+    assert np.mean(pos) < 0.001 and np.percentile(pos, 99) < 0.003  # mm: well below 15 µm noise
+    assert result.pairs.frame_id == "base_link"
+    np.testing.assert_array_equal(result.pairs.stamps, rec.joint_stamps[: len(result.pairs)])
+
+
+def test_gaps_are_not_bridged_and_nothing_is_extrapolated():
+    cfg, _, _, rec = recording(gap=(10.0, 10.3), noise=False)
+    result = align(cfg.chain, rec, AlignOptions(offset_s=0.0123, max_gap_s=0.02))
+    stamps_s = (result.pairs.stamps - T0) * 1e-9
+    assert not np.any((stamps_s > 10.0) & (stamps_s < 10.3))
+    assert result.rejected["tracker_gap"] == pytest.approx(0.3 * 110, abs=2)
+    # tracker stream starts 0.1 s before the joints and ends 0.1 s after: shift it so joints overhang
+    late = RawRecording(
+        rec.joint_stamps,
+        rec.joint_names,
+        rec.q,
+        rec.pose_stamps + 500_000_000,
+        rec.pose_frame,
+        rec.positions,
+        rec.quats,
+        False,
+        Counter(),
+    )
+    result = align(cfg.chain, late, AlignOptions(offset_s=0.0123))
+    assert result.rejected["outside_tracker_stream"] > 0
+    assert result.pairs.stamps.min() >= late.pose_stamps[0] - 12_300_000
+
+
+def test_fast_motion_is_rejected():
+    cfg, _, _, rec = recording(speed=1.5, noise=False, seconds=10)
+    result = align(cfg.chain, rec, AlignOptions(offset_s=0.0123, max_joint_speed=0.5))
+    assert result.rejected["moving_too_fast"] > 0
+
+
+def test_static_mode_averages_still_windows():
+    cfg, cell, traj, rec = recording(seconds=30, speed=1.0)
+    result = align(cfg.chain, rec, AlignOptions(offset_s=0.0123, still_min_s=0.2, max_joint_speed=5.0))
+    assert 3 <= len(result.pairs) <= len(traj.waypoints) + 1
+    pos, _ = se3.pose_errors(result.pairs.T, cell.robot.fk(result.pairs.q))
+    assert np.mean(pos) < 0.01  # averaging 0.3 s of 3 kHz samples removes most of the 15 µm noise
+
+
+def test_robot_standing_still_cannot_give_an_offset():
+    cfg, _, _, rec = recording(seconds=5)
+    still = RawRecording(
+        rec.joint_stamps,
+        rec.joint_names,
+        np.repeat(rec.q[:1], len(rec.q), 0),
+        rec.pose_stamps,
+        rec.pose_frame,
+        np.repeat(rec.positions[:1], len(rec.positions), 0),
+        np.repeat(rec.quats[:1], len(rec.quats), 0),
+        False,
+        Counter(),
+    )
+    with pytest.raises(CalibrationError, match="does not move"):
+        estimate_offset(cfg.chain, still)
