@@ -70,6 +70,7 @@ def estimate_offset(chain: Chain, rec: RawRecording, max_offset_s: float = 0.5, 
         kernel = np.ones(smooth) / smooth
         positions = np.column_stack([np.convolve(positions[:, i], kernel, mode="valid") for i in range(3)])
         times = np.convolve(times, kernel, mode="valid")
+    max_gap = 5.0 * float(np.median(np.diff(times)))  # beam breaks: interpolating across them is no data
     blocks = len(tj) // per_window
     used = blocks * per_window
     t_blocks = tj[:used].reshape(blocks, per_window)
@@ -78,9 +79,9 @@ def estimate_offset(chain: Chain, rec: RawRecording, max_offset_s: float = 0.5, 
 
     def mismatch(offset: float) -> float:
         query = tj[:used] + offset
-        valid = (query >= times[0]) & (query <= times[-1])
+        valid = _bridged(query, times, max_gap)
         if valid.mean() < 0.5:
-            return np.inf
+            return 1e9  # (m²) no overlap: worse than any real mismatch, and finite for the minimiser
         moved = np.column_stack([np.interp(query, times, positions[:, i]) for i in range(3)])
         e = (moved - p_fk[:used]).reshape(blocks, per_window, 3)
         e = e - e.mean(axis=1, keepdims=True)
@@ -91,33 +92,63 @@ def estimate_offset(chain: Chain, rec: RawRecording, max_offset_s: float = 0.5, 
 
     grid = np.arange(-max_offset_s, max_offset_s + 1e-12, 0.002)
     costs = np.array([mismatch(o) for o in grid])
-    if not np.isfinite(costs).any():
+    if np.all(costs >= 1e9):
         raise CalibrationError("the joint and tracker streams do not overlap in time")
     best = float(grid[int(np.argmin(costs))])
     coarse = float(minimize_scalar(mismatch, bounds=(best - 0.003, best + 0.003), method="bounded").x)
-    return _refine_offset(tj, rec.q, p_fk, times, positions, coarse)
+    return _refine_offset(chain, tj, rec.q, p_fk, times, positions, coarse, max_gap)
 
 
-def _refine_offset(tj, q, p_fk, times, positions, offset: float, rounds: int = 3) -> float:
-    """Joint least squares of the offset and a smooth model of the nominal FK's error.
+def error_features(chain: Chain, q: np.ndarray) -> np.ndarray:
+    """``(N, 3, m)``: a linear model of the nominal FK's position error, first order in the geometry.
 
-    ``p_tracker(t + offset) − p_fk(t) ≈ Φ(q) β + v(t) δ``: the features ``Φ = [1, sin kq, cos kq]`` (k = 1, 2)
-    absorb most of the model error, which depends on the configuration only; ``v δ`` is the timing error,
-    which depends on the velocity, zero while the robot stands still. Newton steps on ``δ``.
+    Columns: the rotation of every joint frame (a constant offset of that frame's origin), the lever
+    ``−[p_tip − p_k]×`` of every frame (a small rotation of that frame), the positional Jacobian (joint
+    zero offsets), and per-axis ``[1, sin kq, cos kq]`` (k = 1, 2) for what depends on the configuration
+    otherwise, such as joint compliance.
+    """
+    frames = fk.joint_frames(chain, q)
+    tip = frames[:, -1, :3, 3]
+    n = len(q)
+    blocks = [frames[:, k, :3, :3] for k in range(frames.shape[1])]
+    for k in range(frames.shape[1] - 1):
+        lever = tip - frames[:, k, :3, 3]
+        skew = np.zeros((n, 3, 3))
+        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -lever[:, 2], lever[:, 1], -lever[:, 0]
+        skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = lever[:, 2], -lever[:, 1], lever[:, 0]
+        blocks.append(-skew)
+    blocks.append(fk.jacobian_from_frames(chain, frames)[:, :3])
+    phi = np.hstack([np.ones((n, 1)), np.sin(q), np.cos(q), np.sin(2 * q), np.cos(2 * q)])
+    per_axis = np.zeros((n, 3, 3 * phi.shape[1]))
+    for axis in range(3):
+        per_axis[:, axis, axis * phi.shape[1] : (axis + 1) * phi.shape[1]] = phi
+    blocks.append(per_axis)
+    return np.concatenate(blocks, axis=2)
+
+
+def _bridged(query: np.ndarray, times: np.ndarray, max_gap: float) -> np.ndarray:
+    """True where ``query`` lies between two samples of ``times`` at most ``max_gap`` apart."""
+    after = np.clip(np.searchsorted(times, query), 1, len(times) - 1)
+    inside = (query >= times[0]) & (query <= times[-1])
+    return inside & (times[after] - times[after - 1] <= max_gap)
+
+
+def _refine_offset(
+    chain: Chain, tj, q, p_fk, times, positions, offset: float, max_gap: float, rounds: int = 3
+) -> float:
+    """Joint least squares of the offset and a model of the nominal FK's error (:func:`error_features`).
+
+    ``p_tracker(t + offset) − p_fk(t) ≈ F(q) β + v(t) δ``: the model error depends on the configuration
+    only, the timing error ``v δ`` on the velocity, and vanishes while the robot stands still.
     """
     v = np.gradient(p_fk, tj, axis=0)
-    phi = np.hstack([np.ones((len(q), 1)), np.sin(q), np.cos(q), np.sin(2 * q), np.cos(2 * q)])
+    features = error_features(chain, q)
     for _ in range(rounds):
         query = tj + offset
-        valid = (query >= times[0]) & (query <= times[-1])
+        valid = _bridged(query, times, max_gap)
         moved = np.column_stack([np.interp(query[valid], times, positions[:, i]) for i in range(3)])
         e = moved - p_fk[valid]
-        f, vv = phi[valid], v[valid]
-        n, m = f.shape
-        design = np.zeros((3 * n, 3 * m + 1))
-        for k in range(3):
-            design[k::3, k * m : (k + 1) * m] = f
-            design[k::3, -1] = vv[:, k]
+        design = np.concatenate([features[valid], v[valid][:, :, None]], axis=2).reshape(-1, features.shape[2] + 1)
         solution = np.linalg.lstsq(design, e.reshape(-1), rcond=None)[0]
         # p_tracker(t + offset) = p_true(t + offset − true offset): δ is the excess of the trial offset
         offset -= float(solution[-1])

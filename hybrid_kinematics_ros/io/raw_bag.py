@@ -57,6 +57,7 @@ class BagWriter:
         self.first_ns: int | None = None
         self.last_ns = 0
         self.closed = False
+        self.custom_data: dict[str, str] = {"writer": "hybrid_kinematics_ros"}
         self.sync_metadata()
 
     def __enter__(self) -> BagWriter:
@@ -109,10 +110,18 @@ class BagWriter:
             {t: (m, self.counts[t]) for t, (_, m) in self.channels.items()},
             self.first_ns or 0,
             self.last_ns,
+            self.custom_data,
         )
 
 
-def write_metadata(path: Path, mcap_name: str, topics: dict[str, tuple[str, int]], start: int, end: int) -> None:
+def write_metadata(
+    path: Path,
+    mcap_name: str,
+    topics: dict[str, tuple[str, int]],
+    start: int,
+    end: int,
+    custom_data: dict[str, str] | None = None,
+) -> None:
     """rosbag2's ``metadata.yaml`` (version 9), as ``ros2 bag info`` and rosbags read it."""
     total = sum(count for _, count in topics.values())
     duration = max(0, end - start)
@@ -147,7 +156,7 @@ def write_metadata(path: Path, mcap_name: str, topics: dict[str, tuple[str, int]
                     "message_count": total,
                 }
             ],
-            "custom_data": {"writer": "hybrid_kinematics_ros"},
+            "custom_data": dict(custom_data or {}),
             "ros_distro": "jazzy",
         }
     }

@@ -126,6 +126,13 @@ class RecorderNode(Node):
         try:
             rec = self._recording()
             result = align(self.chain, rec, self.options, self.pairs_frame or None)
+            writer.custom_data.update(
+                {
+                    "clock_offset_s": repr(result.offset_s),
+                    "pairs": str(len(result.pairs)),
+                    **{f"rejected_{k}": str(v) for k, v in result.rejected.items()},
+                }
+            )
             write_pairs_into(writer, result.pairs)
             self.last_offset, self.last_rejected, self.last_pairs = result.offset_s, result.rejected, len(result.pairs)
             message += (

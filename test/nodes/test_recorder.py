@@ -1,0 +1,138 @@
+"""The simulated cell and the recorder as separate processes: alignment, clock offset, kills."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import time
+
+import numpy as np
+import pytest
+import rclpy
+import yaml
+from std_srvs.srv import Trigger
+
+from hybrid_kinematics_ros.calibration.alignment import AlignOptions, align
+from hybrid_kinematics_ros.io.pairs import read_pairs
+from hybrid_kinematics_ros.io.raw_bag import read_raw
+from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR, load_robot_config
+from hybrid_kinematics_ros.simulation.truth import TrueRobot
+from test.nodes.rosutil import Client, start, stop
+
+pytestmark = pytest.mark.ros
+OFFSET = 0.0123
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory):
+    rclpy.init()
+    log = tmp_path_factory.mktemp("sim") / "sim.log"
+    sim = start(
+        "sim_cell_node",
+        "--params-file",
+        str(CONFIG_DIR / "sim_cell.yaml"),
+        "-p",
+        f"tracker_clock_offset_s:={OFFSET}",
+        log=log,
+    )
+    client = Client("recorder_test_client")
+    yield client, log
+    client.close()
+    assert stop(sim) == 0, log.read_text()
+    rclpy.shutdown()
+
+
+def recorder(tmp_path, name):
+    return start(
+        "recorder_node",
+        "-p",
+        f"output_dir:={tmp_path}",
+        "-p",
+        f"bag_name:={name}",
+        "-p",
+        "pairs_frame_id:=base_link",
+        log=tmp_path / f"{name}.log",
+    )
+
+
+def test_thirty_seconds_recorded_and_aligned(cell, tmp_path):
+    client, _ = cell
+    proc = recorder(tmp_path, "run")
+    client.service(Trigger, "/recorder_node/stop")  # up and recording
+    time.sleep(30.0)
+    assert stop(proc, signal.SIGINT, timeout=60) == 0
+    log = (tmp_path / "run.log").read_text()
+    meta = yaml.safe_load((tmp_path / "run" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    offset = float(meta["custom_data"]["clock_offset_s"])
+    assert abs(offset - OFFSET) < 2e-4, log
+    cfg = load_robot_config("ur10")
+    pairs = read_pairs(tmp_path / "run", cfg.chain.joint_names)
+    assert len(pairs) > 0.5 * 30 * 110  # beam breaks, and messages lost when the machine is saturated
+    truth = TrueRobot.from_config(cfg).fk(pairs.q)
+    pos, _ = se3.pose_errors(pairs.T, truth)
+    # tracker noise alone (σ 15 µm per axis) gives a mean norm of 24 µm; alignment must add little
+    assert np.mean(pos) < 0.035, (np.mean(pos), np.percentile(pos, 99))
+    raw = read_raw(tmp_path / "run", "/joint_states", "/tracker/pose")
+    assert len(raw.pose_stamps) > 15 * 3000 and not raw.truncated
+
+
+def test_sigkill_keeps_what_was_written_and_align_recovers_it(cell, tmp_path):
+    client, _ = cell
+    proc = recorder(tmp_path, "killed")
+    client.service(Trigger, "/recorder_node/stop")
+    time.sleep(8.0)
+    stop(proc, signal.SIGKILL)
+    raw = read_raw(tmp_path / "killed", "/joint_states", "/tracker/pose")
+    assert len(raw.joint_stamps) > 5 * 110 * 0.8  # everything but the chunk in progress
+    assert len(raw.pose_stamps) > 5 * 3000 * 0.8
+    result = align(load_robot_config("ur10").chain, raw, AlignOptions(), frame_id="base_link")
+    assert abs(result.offset_s - OFFSET) < 5e-4
+    cli = subprocess.run(
+        [
+            "hybrid-kinematics",
+            "align",
+            "--bag",
+            str(tmp_path / "killed"),
+            "--out",
+            str(tmp_path / "pairs"),
+            "--robot",
+            "ur10",
+            "--frame-id",
+            "base_link",
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert cli.returncode == 0, cli.stderr
+    assert len(read_pairs(tmp_path / "pairs")) == len(result.pairs)
+
+
+def test_start_stop_services_split_recordings(cell, tmp_path):
+    client, _ = cell
+    proc = start(
+        "recorder_node",
+        "-p",
+        f"output_dir:={tmp_path}",
+        "-p",
+        "autostart:=false",
+        "-p",
+        "pairs_frame_id:=base_link",
+        log=tmp_path / "split.log",
+    )
+    try:
+        start_srv = client.service(Trigger, "/recorder_node/start")
+        stop_srv = client.service(Trigger, "/recorder_node/stop")
+        assert not client.call(stop_srv, Trigger.Request()).success  # not recording yet
+        for _ in range(2):
+            assert client.call(start_srv, Trigger.Request()).success
+            time.sleep(4.0)
+            answer = client.call(stop_srv, Trigger.Request(), timeout=60)
+            assert answer.success and "pairs" in answer.message, answer.message
+    finally:
+        stop(proc)
+    bags = sorted(p for p in tmp_path.iterdir() if p.is_dir())
+    assert len(bags) == 2
+    for bag in bags:
+        assert len(read_pairs(bag)) > 200
