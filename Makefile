@@ -28,7 +28,7 @@ test: bootstrap
 
 demo: bootstrap
 	$(ENV)
-	scripts/demo.sh
+	python scripts/demo.py
 
 bench: bootstrap
 	$(ENV)

@@ -124,12 +124,17 @@ class ResidualNet(nn.Module):
             x = torch.cat([x, torch.sin(q64), torch.cos(q64)], dim=1)
         return x.to(torch.float32)
 
+    @torch.jit.ignore
     def standardised(self, q: torch.Tensor) -> torch.Tensor:
         """The raw network output: the residual in the turning frame, standardised. Training fits this."""
         return self.body(self.features(q))
 
+    @torch.jit.ignore
     def to_base(self, r: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-        """Turn residuals from the joint-1 frame into the base frame (Rodrigues about the joint-1 axis)."""
+        """Turn residuals from the joint-1 frame into the base frame (eager helper for tests)."""
+        return self._turn(r, q)
+
+    def _turn(self, r: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
         if not self.turn:
             return r
         q1 = q[:, 0:1].to(torch.float64)
@@ -138,8 +143,8 @@ class ResidualNet(nn.Module):
         return r * torch.cos(q1) + kxr * torch.sin(q1) + k * (k * r).sum(1, keepdim=True) * (1.0 - torch.cos(q1))
 
     def forward(self, q: torch.Tensor) -> torch.Tensor:
-        r = self.standardised(q).to(torch.float64) * self.target_scale + self.target_mean
-        return self.to_base(r, q)
+        r = self.body(self.features(q)).to(torch.float64) * self.target_scale + self.target_mean
+        return self._turn(r, q)
 
 
 def to_joint1_frame(r: np.ndarray, q1: np.ndarray, axis: np.ndarray | None) -> np.ndarray:

@@ -1,0 +1,278 @@
+"""The main job, end to end on the simulated cell, with real processes:
+
+sim_cell_node -> recorder_node (MCAP bag with aligned pairs) -> hybrid-kinematics train -> evaluate ->
+kinematics_node serving the model -> a client calls FK and IK -> a summary table and an HTML report.
+
+Every process started here is stopped when the demo ends or is interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+LIB = ROOT / "install" / "hybrid_kinematics_ros" / "lib" / "hybrid_kinematics_ros"
+PROCS: list[subprocess.Popen] = []
+REPORTED = [f"{q}_{s}" for q in ("position_mm", "orientation_deg") for s in ("mean", "median", "p95", "p99", "max")]
+
+
+def say(text: str) -> None:
+    print(f"\n=== {text}", flush=True)
+
+
+def launch(name: str, *args: str, log: Path) -> subprocess.Popen:
+    proc = subprocess.Popen(
+        [str(LIB / name), "--ros-args", *args],
+        stdout=log.open("w"),
+        stderr=subprocess.STDOUT,
+        cwd=ROOT,
+        start_new_session=True,
+    )
+    PROCS.append(proc)
+    return proc
+
+
+def stop(proc: subprocess.Popen, timeout: float = 60.0) -> None:
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGINT)
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+
+
+def cli(*args: str) -> str:
+    result = subprocess.run(["hybrid-kinematics", *args], cwd=ROOT, stdout=subprocess.PIPE, text=True, check=False)
+    if result.returncode != 0:
+        raise SystemExit(f"hybrid-kinematics {args[0]} failed (exit {result.returncode})")
+    return result.stdout
+
+
+def wait_for(path: Path, text: str, timeout: float = 90.0) -> None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if path.exists() and text in path.read_text():
+            return
+        time.sleep(0.5)
+    raise SystemExit(f"timed out waiting for '{text}' in {path}")
+
+
+def client_round_trip(model_dir: Path, out: Path) -> dict:
+    """FK and IK through the running kinematics node, checked against the model itself."""
+    import numpy as np
+    import rclpy
+
+    from hybrid_kinematics_interfaces.srv import ComputeFK, ComputeIK
+    from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+    from hybrid_kinematics_ros.kinematics import se3
+    from hybrid_kinematics_ros.nodes.convert import joint_state_msg, pose_msg
+
+    model = HybridModel.load(model_dir)
+    rclpy.init()
+    node = rclpy.create_node("demo_client")
+    try:
+        fk = node.create_client(ComputeFK, "/kinematics_node/compute_fk")
+        ik = node.create_client(ComputeIK, "/kinematics_node/compute_ik")
+        if not (fk.wait_for_service(timeout_sec=60) and ik.wait_for_service(timeout_sec=60)):
+            raise SystemExit("the kinematics node did not come up; see " + str(out / "kinematics_node.log"))
+
+        def call(client, request):
+            future = client.call_async(request)
+            while not future.done():
+                rclpy.spin_once(node, timeout_sec=0.05)
+            return future.result()
+
+        rng = np.random.default_rng(7)
+        q = rng.uniform(model.trained_lower, model.trained_upper, (20, model.chain.dof))
+        stamp = node.get_clock().now().to_msg()
+        req = ComputeFK.Request(joint_states=[joint_state_msg(qi, model.joint_names, stamp) for qi in q])
+        fk_resp = call(fk, req)
+        ik_pos, ik_rot, ik_ms, solved = [], [], [], 0
+        for target in fk_resp.poses:
+            start = time.perf_counter()
+            resp = call(ik, ComputeIK.Request(target=target, max_solutions=1))
+            ik_ms.append(1e3 * (time.perf_counter() - start))
+            if resp.success:
+                solved += 1
+                T = model.fk_single(np.array(resp.solutions[0].position))
+                p, r = se3.pose_errors(
+                    T,
+                    se3.matrix_from_pose(
+                        [target.pose.position.x, target.pose.position.y, target.pose.position.z],
+                        [
+                            target.pose.orientation.x,
+                            target.pose.orientation.y,
+                            target.pose.orientation.z,
+                            target.pose.orientation.w,
+                        ],
+                    )[0],
+                )
+                ik_pos.append(float(p))
+                ik_rot.append(float(r))
+        many = call(ik, ComputeIK.Request(target=pose_msg(model.fk_single(q[0]), "base_link", stamp), max_solutions=8))
+        return {
+            "fk_success": fk_resp.success,
+            "ik_solved": solved,
+            "ik_requests": len(q),
+            "ik_position_error_mm_mean": float(np.mean(ik_pos)) if ik_pos else None,
+            "ik_orientation_error_deg_mean": float(np.mean(ik_rot)) if ik_rot else None,
+            "ik_round_trip_ms_median": float(np.median(ik_ms)),
+            "ik_solutions_for_8": len(many.solutions),
+        }
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
+
+
+def html_report(out: Path, evaluation: dict, ros: dict, meta: dict) -> Path:
+    a, h = evaluation["analytic"], evaluation["hybrid"]
+    rows = "".join(
+        f"<tr><td>{label}</td><td>{a[k]:.4f}</td><td>{h[k]:.5f}</td></tr>"
+        for label, k in (
+            ("position mean (mm)", "position_mm_mean"),
+            ("position p95 (mm)", "position_mm_p95"),
+            ("position max (mm)", "position_mm_max"),
+            ("orientation mean (deg)", "orientation_deg_mean"),
+            ("orientation p95 (deg)", "orientation_deg_p95"),
+            ("orientation max (deg)", "orientation_deg_max"),
+        )
+    )
+    plots = "".join(f'<img src="{Path(p).relative_to(out)}" style="max-width:100%">' for p in evaluation["plots"])
+    page = f"""<!doctype html><html><head><meta charset="utf-8"><title>hybrid_kinematics_ros demo report</title>
+<style>body{{font-family:sans-serif;max-width:1000px;margin:2em auto}}
+td,th{{padding:4px 10px;border-bottom:1px solid #ddd}}</style>
+</head><body><h1>Hybrid kinematics: calibration report (simulated UR10 cell)</h1>
+<p>Recording: {meta["pairs"]} aligned pairs, tracker clock offset {meta["offset_ms"]:.3f} ms.
+Test set: {evaluation["pairs"]} separate virtual-cell samples with tracker noise.</p>
+<table><tr><th>error</th><th>URDF model</th><th>hybrid model</th></tr>{rows}</table>
+<h2>Kinematics node</h2><pre>{json.dumps(ros, indent=2)}</pre>
+<h2>Error distributions (paper Figs. 4 and 8)</h2>{plots}</body></html>"""
+    path = out / "report.html"
+    path.write_text(page)
+    return path
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--record-seconds", type=float, default=150.0)
+    parser.add_argument("--train-minutes", type=float, default=3.0)
+    parser.add_argument("--out", type=Path, default=ROOT / "out" / "demo")
+    args = parser.parse_args()
+    out = args.out.resolve()
+    if out.exists():
+        import shutil
+
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    os.environ.setdefault("ROS_DOMAIN_ID", str(30 + os.getpid() % 60))
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    bag = out / "recording"
+    try:
+        say(f"1/5 simulated cell (110 Hz joints, 3 kHz tracker) and recorder, {args.record_seconds:g} s")
+        sim = launch(
+            "sim_cell_node",
+            "--params-file",
+            str(ROOT / "config" / "sim_cell.yaml"),
+            "-p",
+            "speed:=0.6",
+            "-p",
+            "dwell_s:=0.1",
+            log=out / "sim_cell_node.log",
+        )
+        rec = launch(
+            "recorder_node",
+            "-p",
+            f"output_dir:={out}",
+            "-p",
+            "bag_name:=recording",
+            "-p",
+            "pairs_frame_id:=base_link",
+            "-p",
+            "max_joint_speed:=1.5",
+            log=out / "recorder_node.log",
+        )
+        wait_for(out / "recorder_node.log", "recording into")
+        for elapsed in range(int(args.record_seconds)):
+            if elapsed % 15 == 0:
+                print(f"  recording... {elapsed:>4d} s / {args.record_seconds:g} s", flush=True)
+            time.sleep(1.0)
+        stop(rec, timeout=120)
+        stop(sim)
+        print("  " + (out / "recorder_node.log").read_text().strip().splitlines()[-1])
+        meta = __import__("yaml").safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        custom = meta["custom_data"]
+        info = {"pairs": int(custom.get("pairs", 0)), "offset_ms": 1e3 * float(custom.get("clock_offset_s", "nan"))}
+
+        say(f"2/5 training the hybrid model ({args.train_minutes:g} min budget)")
+        model = out / "model"
+        cli(
+            "train", "--bag", str(bag), "--robot", "ur10", "--out", str(model), "--max-minutes", str(args.train_minutes)
+        )
+
+        say("3/5 evaluating on a separate test set from the virtual cell")
+        test = out / "test_bag"
+        cli(
+            "simulate",
+            "--robot",
+            "ur10",
+            "--samples",
+            "5000",
+            "--out",
+            str(test),
+            "--seed",
+            "99",
+            "--range-fraction",
+            "0.6",
+        )
+        evaluation = json.loads(
+            cli(
+                "evaluate",
+                "--model",
+                str(model),
+                "--bag",
+                str(test),
+                "--json",
+                str(out / "evaluation.json"),
+                "--plots",
+                str(out / "plots"),
+            )
+        )
+
+        say("4/5 kinematics node serving the model; a client calls FK and IK")
+        node = launch("kinematics_node", "-p", f"model_dir:={model}", log=out / "kinematics_node.log")
+        ros = client_round_trip(model, out)
+        stop(node)
+
+        say("5/5 report")
+        report = html_report(out, evaluation, ros, info)
+        a, h = evaluation["analytic"], evaluation["hybrid"]
+        print(f"\n{'':28s}{'URDF model':>14s}{'hybrid model':>16s}")
+        print(f"{'position mean (mm)':28s}{a['position_mm_mean']:14.4f}{h['position_mm_mean']:16.5f}")
+        print(f"{'position p95 (mm)':28s}{a['position_mm_p95']:14.4f}{h['position_mm_p95']:16.5f}")
+        print(f"{'orientation mean (deg)':28s}{a['orientation_deg_mean']:14.4f}{h['orientation_deg_mean']:16.5f}")
+        print(f"{'orientation p95 (deg)':28s}{a['orientation_deg_p95']:14.4f}{h['orientation_deg_p95']:16.5f}")
+        print(
+            f"\nIK via the node: {ros['ik_solved']}/{ros['ik_requests']} solved, round-trip error "
+            f"{ros['ik_position_error_mm_mean']:.2e} mm / {ros['ik_orientation_error_deg_mean']:.2e} deg, "
+            f"median {ros['ik_round_trip_ms_median']:.1f} ms; {ros['ik_solutions_for_8']} solutions for an "
+            "8-solution request"
+        )
+        print(f"recording: {bag}  ({info['pairs']} pairs, clock offset {info['offset_ms']:.3f} ms)")
+        print(f"report:    {report}")
+        return 0
+    finally:
+        for proc in PROCS:
+            stop(proc, timeout=20)
+
+
+if __name__ == "__main__":
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    sys.exit(main())
