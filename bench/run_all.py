@@ -7,6 +7,7 @@ import sys
 
 STEPS = [
     ["bench.bench_fk"],
+    ["bench.bench_cell"],
     ["bench.bench_hybrid", "inference"],
     ["bench.bench_ik"],
     ["bench.bench_nodes"],
