@@ -2,7 +2,7 @@
 # Both run the idempotent bootstrap first (seconds when nothing changed).
 SHELL := /bin/bash
 .ONESHELL:
-.SHELLFLAGS := -eu -o pipefail -c
+.SHELLFLAGS := -e -o pipefail -c
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 ENV := . ./env.sh
 
