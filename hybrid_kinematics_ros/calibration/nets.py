@@ -184,6 +184,9 @@ class NumpyResidual:
         self.sincos = bool(module.sincos)  # ScriptModules keep plain attributes
         self.turn = bool(module.turn)
         self.layers = layers
+        k = self.axis
+        self.kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])  # k × r = kx @ r
+        self.kk = np.outer(k, k)
 
     @classmethod
     def from_module(cls, module: torch.nn.Module) -> NumpyResidual | None:
@@ -210,12 +213,17 @@ class NumpyResidual:
             x = x @ a + b if kind == "linear" else a(x)
         return self._to_base(x.astype(np.float64) * self.scale + self.mean, q)
 
+    def _rotation(self, q1: float) -> np.ndarray:
+        c, s = np.cos(q1), np.sin(q1)
+        return c * np.eye(3) + s * self.kx + (1.0 - c) * self.kk
+
     def _to_base(self, r: np.ndarray, q: np.ndarray) -> np.ndarray:
         if not self.turn:
             return r
-        c, s = np.cos(q[..., :1]), np.sin(q[..., :1])
-        k = np.broadcast_to(self.axis, r.shape)
-        return r * c + np.cross(k, r) * s + k * np.sum(k * r, axis=-1, keepdims=True) * (1.0 - c)
+        if r.ndim == 1:
+            return self._rotation(q[0]) @ r
+        c, s = np.cos(q[:, :1]), np.sin(q[:, :1])
+        return r * c + (r @ self.kx.T) * s + (r @ self.kk) * (1.0 - c)
 
     def value_and_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Residual ``(3,)`` and its derivative ``(3, n)`` for one configuration ``(n,)`` (forward mode)."""
@@ -233,13 +241,10 @@ class NumpyResidual:
                 x, jac = a(x), jac * b(x)
         local = x.astype(np.float64) * self.scale + self.mean
         dlocal = (jac.astype(np.float64) * self.scale).T  # (3, n)
-        r = self._to_base(local[None], q[None])[0]
         if not self.turn:
-            return r, dlocal
-        c, s = np.cos(q[0]), np.sin(q[0])
-        k = self.axis
-        kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-        rot = c * np.eye(3) + s * kx + (1.0 - c) * np.outer(k, k)
+            return local, dlocal
+        rot = self._rotation(q[0])
+        r = rot @ local
         d = rot @ dlocal
-        d[:, 0] += np.cross(k, r)
+        d[:, 0] += self.kx @ r
         return r, d

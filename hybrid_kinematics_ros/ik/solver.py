@@ -187,7 +187,7 @@ class IKSolver:
             attempt_seed = self._rng.uniform(self.lower, self.upper)
         return best[0], best[1], best[2], attempts
 
-    def refine(self, target: np.ndarray, q0: np.ndarray, recentre: int = 4) -> tuple[np.ndarray, dict]:
+    def refine(self, target: np.ndarray, q0: np.ndarray, recentre: int = 1) -> tuple[np.ndarray, dict]:
         """Stage 2: bounded least squares through the hybrid FK in a box around ``q0``.
 
         Near a singularity the hybrid answer can lie outside the box; when the solve ends on the box's
@@ -211,6 +211,7 @@ class IKSolver:
 
     def _refine_box(self, target: np.ndarray, q0: np.ndarray) -> tuple[np.ndarray, dict]:
         o = self.options
+        q0 = np.clip(q0, self.lower, self.upper)
         lo = np.maximum(self.lower, q0 - o.refine_width_rad)
         hi = np.minimum(self.upper, q0 + o.refine_width_rad)
         model = self.model
@@ -257,17 +258,44 @@ class IKSolver:
 
     # ------------------------------------------------------------------ API
     def solve(self, target: np.ndarray, seed: np.ndarray | None = None, analytic: bool = False) -> IKResult:
-        """One solution, the one the seed leads to (or a restart's, if the seed fails)."""
+        """One solution, the one the seed leads to; if that branch fails (for instance its hybrid solution
+        lies beyond a joint limit), other seeds are tried while the time budget lasts."""
         start = time.perf_counter()
         target, seed = self._check(target, seed)
         deadline = start + self.options.timeout_s
-        q0, _, _, attempts = self.classical(target, seed, deadline)
-        stats = {"attempts": attempts}
-        q = q0
-        if not analytic and self.model.nets:
-            q, info = self.refine(target, q0)
-            stats.update(info)
-        return self._result(q, target, analytic, start, stats)
+        stats = {"attempts": 0, "refinements": 0}
+        best = None
+        attempt_seed = seed
+        while True:
+            q0, _, _, attempts = self.classical(target, attempt_seed, deadline)
+            stats["attempts"] += attempts
+            q = q0
+            if not analytic and self.model.nets:
+                q, info = self.refine(target, q0)
+                stats["refinements"] += 1
+                stats.update(info)
+            result = self._result(q, target, analytic, start, dict(stats))
+            if not result.success and not analytic and self.model.nets:
+                # near a singularity the bounded boxes crawl; damped LM on the hybrid model does not
+                q, *_ = lm_solve(
+                    self.model.fk_and_jacobian_single,
+                    target,
+                    q,
+                    self.limits,
+                    1e-4 * self.options.position_tolerance_mm,
+                    np.radians(self.options.orientation_tolerance_deg) * 0.1,
+                    50,
+                    deadline,
+                )
+                stats["hybrid_lm"] = True
+                result = self._result(q, target, analytic, start, dict(stats))
+            if best is None or result.position_error_mm < best.position_error_mm:
+                best = result
+            if result.success or not self.options.restarts or time.perf_counter() > deadline:
+                break
+            attempt_seed = self._rng.uniform(self.lower, self.upper)
+        best.seconds = time.perf_counter() - start
+        return best
 
     def _result(self, q: np.ndarray, target: np.ndarray, analytic: bool, start: float, stats: dict) -> IKResult:
         o = self.options

@@ -191,8 +191,16 @@ def fk_and_jacobian_single(chain: Chain, q: np.ndarray) -> tuple[np.ndarray, np.
         t = t @ local[k]
         frames[k] = t
     tip = t @ chain.post
-    z = np.einsum("kij,kj->ki", frames[:, :3, :3], chain.axes)
+    z = np.matmul(frames[:, :3, :3], chain.axes[:, :, None])[:, :, 0]
     lever = tip[:3, 3] - frames[:, :3, 3]
-    linear = np.where(chain.revolute[:, None], np.cross(z, lever), z)
-    angular = np.where(chain.revolute[:, None], z, 0.0)
-    return tip, np.concatenate([linear, angular], axis=1).T
+    jac = np.empty((6, chain.dof))
+    # z × lever written out: np.cross costs ~20 µs on arrays this small
+    jac[0] = z[:, 1] * lever[:, 2] - z[:, 2] * lever[:, 1]
+    jac[1] = z[:, 2] * lever[:, 0] - z[:, 0] * lever[:, 2]
+    jac[2] = z[:, 0] * lever[:, 1] - z[:, 1] * lever[:, 0]
+    jac[3:] = z.T
+    prismatic = ~chain.revolute
+    if prismatic.any():
+        jac[:3, prismatic] = z[prismatic].T
+        jac[3:, prismatic] = 0.0
+    return tip, jac

@@ -10,7 +10,7 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import JointState
 
-from hybrid_kinematics_ros.kinematics.se3 import matrix_from_pose, pose_from_matrix
+from hybrid_kinematics_ros.kinematics.se3 import matrix_from_pose, pose_from_matrix, quat_from_rotation
 
 QUAT_TOLERANCE = 1e-3  # |‖q‖ − 1| accepted (and normalised) in requests
 
@@ -72,15 +72,24 @@ def matrix_from_msg(msg: PoseStamped, base_link: str) -> np.ndarray:
     return matrix_from_pose(position, quat / norm)[0]
 
 
-def pose_msg(T: np.ndarray, frame_id: str, stamp: Time) -> PoseStamped:
-    position, quat = pose_from_matrix(T)
+def pose_msg(T: np.ndarray, frame_id: str, stamp: Time, quat: np.ndarray | None = None) -> PoseStamped:
+    """A PoseStamped of one 4x4; pass ``quat`` when it was computed in a batch already."""
+    quat = quat_from_rotation(T[:3, :3]) if quat is None else quat
     msg = PoseStamped()
     msg.header.frame_id = frame_id
     msg.header.stamp = stamp
-    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in position[0])
+    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = T[:3, 3].tolist()
     o = msg.pose.orientation
-    o.x, o.y, o.z, o.w = (float(v) for v in quat[0])
+    o.x, o.y, o.z, o.w = quat.tolist()
     return msg
+
+
+def pose_msgs(T: np.ndarray, frame_id: str, stamps: list[Time]) -> list[PoseStamped]:
+    """PoseStamped messages of a batch ``(B, 4, 4)``, quaternions converted in one call."""
+    if len(T) == 1:
+        return [pose_msg(T[0], frame_id, stamps[0])]
+    _, quats = pose_from_matrix(T)
+    return [pose_msg(t, frame_id, stamp, q) for t, stamp, q in zip(T, stamps, quats, strict=True)]
 
 
 def joint_state_msg(q: np.ndarray, names: Sequence[str], stamp: Time) -> JointState:

@@ -17,7 +17,7 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
@@ -36,6 +36,7 @@ from hybrid_kinematics_ros.nodes.convert import (
     joints_from_msg_lenient,
     matrix_from_msg,
     pose_msg,
+    pose_msgs,
     stamp_is_zero,
 )
 
@@ -80,9 +81,9 @@ class KinematicsNode(Node):
         self.pose_pub = (
             self.create_publisher(PoseStamped, "~/corrected_pose", QoSProfile(depth=100)) if publish else None
         )
-        self.create_subscription(
-            JointState, topic, self._on_joint_state, qos_profile_sensor_data, callback_group=fk_group
-        )
+        # best effort (matches reliable and best-effort publishers) with a deep queue for bursts
+        joint_qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.BEST_EFFORT)
+        self.create_subscription(JointState, topic, self._on_joint_state, joint_qos, callback_group=fk_group)
         m = self.model
         kind = f"hybrid model {self.model_dir}" if m.nets else "analytic URDF model (no model_dir)"
         self.get_logger().info(
@@ -153,10 +154,8 @@ class KinematicsNode(Node):
                 else model.fk_single(q[0], analytic=request.analytic_only)[None]
             )
             now = self.get_clock().now().to_msg()
-            response.poses = [
-                pose_msg(t, model.chain.base_link, now if stamp_is_zero(js.header.stamp) else js.header.stamp)
-                for t, js in zip(T, request.joint_states, strict=True)
-            ]
+            stamps = [now if stamp_is_zero(js.header.stamp) else js.header.stamp for js in request.joint_states]
+            response.poses = pose_msgs(T, model.chain.base_link, stamps)
             response.in_calibrated_range = [bool(v) for v in model.in_calibrated_range(q)]
             response.success = True
             response.message = (

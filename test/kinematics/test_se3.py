@@ -75,3 +75,13 @@ def test_ik_cost_is_paper_eq2_in_mm():
 def test_non_unit_quaternion_is_refused():
     with pytest.raises(KinematicsError, match="unit quaternions"):
         se3.matrix_from_pose([0, 0, 0], [0, 0, 0, 2.0])
+
+
+@settings(max_examples=300, deadline=None)
+@given(quats)
+def test_single_quaternion_conversion_matches_scipy(q):
+    r = Rotation.from_quat(normalised(q)).as_matrix()
+    for m in r:
+        expected = Rotation.from_matrix(m).as_quat()
+        expected *= -1.0 if expected[3] < 0 else 1.0
+        np.testing.assert_allclose(se3.quat_from_rotation(m), expected, atol=1e-12)
