@@ -132,6 +132,25 @@ def client_round_trip(model_dir: Path, out: Path) -> dict:
         rclpy.shutdown()
 
 
+def near_trajectory_test_set(bag: Path, out: Path, count: int = 5000) -> None:
+    """Fresh virtual-cell measurements (with tracker noise) at configurations within ±0.03 rad of recorded
+    ones: the region a calibration covers. A trajectory is a curve in joint space, so this is where the
+    model is meant to be used; far from it the nets extrapolate (the demo prints that too)."""
+    import numpy as np
+
+    from hybrid_kinematics_ros.io.pairs import Pairs, read_pairs, write_pairs
+    from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+    from hybrid_kinematics_ros.simulation.cell import VirtualCell
+
+    cfg = load_robot_config("ur10")
+    recorded = read_pairs(bag, cfg.chain.joint_names)
+    rng = np.random.default_rng(123)
+    q = recorded.q[rng.integers(0, len(recorded), count)] + rng.uniform(-0.03, 0.03, (count, cfg.chain.dof))
+    q = np.clip(q, cfg.chain.lower, cfg.chain.upper)
+    T = VirtualCell.from_config(cfg).measure(q, rng)
+    write_pairs(out, Pairs(q, T, 10**18 + 10**7 * np.arange(count), cfg.chain.joint_names, cfg.base_link))
+
+
 def html_report(out: Path, evaluation: dict, ros: dict, meta: dict) -> Path:
     a, h = evaluation["analytic"], evaluation["hybrid"]
     rows = "".join(
