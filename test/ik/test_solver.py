@@ -88,7 +88,8 @@ def test_outside_calibrated_range_can_be_refused(trained):
     q = np.array([1.0, -0.3, 0.4, -0.2, 0.3, 0.1])  # joint_1 outside the trained range
     strict = IKSolver(narrow, IKOptions(timeout_s=1.0, require_calibrated_range=True))
     r = strict.solve(narrow.fk(q)[0], seed=q)
-    assert not r.success and "outside the calibrated joint range (joint_1)" in r.message
+    # other branches are tried too; every one of them leaves the trained box here
+    assert not r.success and "outside the calibrated joint range (" in r.message
     assert not r.in_calibrated_range
     lenient = IKSolver(narrow, IKOptions(timeout_s=1.0)).solve(narrow.fk(q)[0], seed=q)
     assert lenient.success and not lenient.in_calibrated_range
