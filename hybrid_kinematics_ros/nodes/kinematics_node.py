@@ -11,11 +11,10 @@ import threading
 from pathlib import Path
 
 import numpy as np
-import rclpy
 from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -39,13 +38,10 @@ from hybrid_kinematics_ros.nodes.convert import (
     pose_msgs,
     stamp_is_zero,
 )
+from hybrid_kinematics_ros.nodes.runtime import StartupError, run_node
 
 LOAD_ERRORS = (DataError, KinematicsError, CalibrationError, OSError)
 MAX_SOLUTIONS = 16
-
-
-class StartupError(RuntimeError):
-    """The node cannot serve with its parameters; the message says which one to fix."""
 
 
 class KinematicsNode(Node):
@@ -213,24 +209,7 @@ class KinematicsNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
-    try:
-        node = KinematicsNode()
-    except StartupError as exc:
-        rclpy.logging.get_logger("kinematics_node").fatal(f"cannot start: {exc}")
-        rclpy.try_shutdown()
-        return 1
-    executor = MultiThreadedExecutor(num_threads=2)
-    executor.add_node(node)
-    try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node("kinematics_node", KinematicsNode, lambda: MultiThreadedExecutor(num_threads=2), args)
 
 
 if __name__ == "__main__":

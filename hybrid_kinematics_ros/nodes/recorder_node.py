@@ -35,6 +35,7 @@ from hybrid_kinematics_ros.io.pairs import JOINT_STATE, POSE_STAMPED
 from hybrid_kinematics_ros.io.raw_bag import BagWriter, RawRecording, write_pairs_into
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.nodes.runtime import StartupError, run_node
 
 
 class _Columns:
@@ -83,7 +84,7 @@ class RecorderNode(Node):
         try:
             self.chain = load_robot_config(robot).chain
         except KinematicsError as exc:
-            raise SystemExit(f"recorder_node: parameter robot: {exc}") from exc
+            raise StartupError(f"parameter robot: {exc}") from exc
         qos = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
         self.create_subscription(JointState, self.joints_topic, self._on_joints, qos, raw=True)
         self.create_subscription(PoseStamped, self.pose_topic, self._on_pose, qos, raw=True)
@@ -96,14 +97,20 @@ class RecorderNode(Node):
         self.last_rejected: Counter = Counter()
         self.last_pairs = 0
         if autostart:
-            self.start(self.bag_name or None)
+            try:
+                self.start(self.bag_name or None)
+            except DataError as exc:  # an existing bag or an unwritable folder
+                raise StartupError(str(exc)) from exc
 
     # ------------------------------------------------------------------ recording
     def start(self, name: str | None = None) -> Path:
         if self.writer is not None:
             raise DataError(f"already recording into {self.writer.path}")
         name = name or "recording_" + datetime.now(UTC).strftime("%Y%m%d_%H%M%S_%f")
-        self.output_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            self.output_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise DataError(f"parameter output_dir: cannot create {self.output_dir}: {exc.strerror}") from exc
         writer = BagWriter(self.output_dir / name)
         writer.add_topic(self.joints_topic, JOINT_STATE)
         writer.add_topic(self.pose_topic, POSE_STAMPED)
@@ -257,30 +264,31 @@ class RecorderNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
-    stopping = []
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stopping.append(True))
-    try:
-        node = RecorderNode()
-    except (DataError, SystemExit) as exc:
-        rclpy.logging.get_logger("recorder_node").fatal(f"cannot start: {exc}")
-        rclpy.try_shutdown()
-        return 1
+    """SIGINT and SIGTERM end the spin loop, so the bag is finalised with its pairs."""
     from rclpy.experimental import EventsExecutor
 
-    executor = EventsExecutor()
-    executor.add_node(node)
-    try:
+    stopping: list[bool] = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stopping.append(True))
+
+    def spin(executor) -> None:
+        # EventsExecutor.spin() ignores SIGINT here; this loop does not
         while rclpy.ok() and not stopping:
             executor.spin_once(timeout_sec=0.1)
-    finally:
+
+    def finish(node: RecorderNode) -> None:
         if node.writer is not None:
             node.stop()
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+
+    return run_node(
+        "recorder_node",
+        RecorderNode,
+        EventsExecutor,
+        args,
+        spin=spin,
+        on_exit=finish,
+        signal_handler_options=rclpy.signals.SignalHandlerOptions.NO,
+    )
 
 
 if __name__ == "__main__":

@@ -15,13 +15,14 @@ import numpy as np
 import rclpy
 from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from sensor_msgs.msg import JointState
 
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
+from hybrid_kinematics_ros.nodes.runtime import run_node
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from hybrid_kinematics_ros.simulation.trajectory import cube_waypoints, random_waypoints, through
 
@@ -161,20 +162,11 @@ class SimCellNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
-    node = SimCellNode()
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
+    def finish(node: SimCellNode) -> None:
         node.stop()
         node._report()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+
+    return run_node("sim_cell_node", SimCellNode, SingleThreadedExecutor, args, on_exit=finish)
 
 
 if __name__ == "__main__":

@@ -119,3 +119,12 @@ def test_start_stop_services_split_recordings(cell, tmp_path):
     assert len(bags) == 2
     for bag in bags:
         assert len(read_pairs(bag)) > 200
+
+
+def test_unwritable_output_is_one_clear_line(tmp_path):
+    proc = start(
+        "recorder_node", "-r", "__node:=recorder_bad", "-p", "output_dir:=/proc/no_such_dir", log=tmp_path / "bad.log"
+    )
+    assert proc.wait(60) == 1
+    lines = [line for line in (tmp_path / "bad.log").read_text().splitlines() if line.strip()]
+    assert len(lines) == 1 and "FATAL" in lines[0] and "output_dir" in lines[0]

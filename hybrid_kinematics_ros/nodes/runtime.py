@@ -1,0 +1,45 @@
+"""One way to run a node's process: init, build the node (a startup error is one FATAL line and exit 1),
+spin, and always clean up, also on Ctrl-C and external shutdown."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import rclpy
+from rclpy.executors import Executor, ExternalShutdownException
+from rclpy.node import Node
+
+
+class StartupError(RuntimeError):
+    """The node cannot serve with its parameters; the message says which one to fix."""
+
+
+def run_node(
+    name: str,
+    make_node: Callable[[], Node],
+    make_executor: Callable[[], Executor],
+    args: list[str] | None = None,
+    spin: Callable[[Executor], None] | None = None,
+    on_exit: Callable[[Node], None] | None = None,
+    **init_kwargs,
+) -> int:
+    rclpy.init(args=args, **init_kwargs)
+    try:
+        node = make_node()
+    except StartupError as exc:
+        rclpy.logging.get_logger(name).fatal(f"cannot start: {exc}")
+        rclpy.try_shutdown()
+        return 1
+    executor = make_executor()
+    executor.add_node(node)
+    try:
+        (spin or (lambda ex: ex.spin()))(executor)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if on_exit is not None:
+            on_exit(node)
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
