@@ -13,7 +13,6 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.nets import NumpyResidual
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.io.model_dir import load_model_dir
@@ -199,7 +198,3 @@ class HybridModel:
     @classmethod
     def analytic_only(cls, chain: Chain) -> HybridModel:
         return cls(chain)
-
-    def require_nets(self) -> None:
-        if not self.nets:
-            raise CalibrationError("this model has no residual nets; train one with `hybrid-kinematics train`")

@@ -13,7 +13,7 @@ import multiprocessing as mp
 import queue
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -212,7 +212,3 @@ def preset(name: str, **overrides: object) -> Preset:
     if name not in PRESETS:
         raise CalibrationError(f"unknown preset '{name}'; choose one of {', '.join(PRESETS)}")
     return replace(PRESETS[name], **{k: v for k, v in overrides.items() if v is not None})
-
-
-def preset_dict(p: Preset) -> dict:
-    return asdict(p)

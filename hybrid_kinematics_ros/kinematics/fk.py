@@ -174,11 +174,6 @@ class TorchChain(torch.nn.Module):
         return torch.cat([linear, angular], dim=2).transpose(1, 2)
 
 
-def fk_torch(chain: Chain, q: torch.Tensor) -> torch.Tensor:
-    """Differentiable tip poses ``(B, 4, 4)`` in ``q``'s dtype. Build a :class:`TorchChain` once on hot paths."""
-    return TorchChain(chain, dtype=q.dtype).to(q.device)(q)
-
-
 def fk_and_jacobian_single(chain: Chain, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One configuration: tip pose ``(4, 4)`` and geometric Jacobian ``(6, n)`` (the IK inner loop)."""
     a, b = chain.coefficients(np.asarray(q, dtype=float))
