@@ -161,9 +161,12 @@ def test_bad_ik_requests_and_the_node_keeps_serving(served):
 def test_corrected_pose_topic_rate_and_stamps(served):
     client, _, _, _, model, _, _ = served
     received = []
-    client.node.create_subscription(PoseStamped, f"{NODE}/corrected_pose", received.append, 100)
+    sub = client.node.create_subscription(PoseStamped, f"{NODE}/corrected_pose", received.append, 100)
     pub = client.node.create_publisher(JointState, "/joint_states", 100)
-    client.spin_for(1.0)  # discovery
+    deadline = time.monotonic() + 30.0
+    while (pub.get_subscription_count() < 1 or sub.get_publisher_count() < 1) and time.monotonic() < deadline:
+        client.spin_for(0.1)  # discovery: both ends matched before anything is sent
+    client.spin_for(0.5)
     sent = {}
     q = np.array([0.2, -1.1, 1.2, -0.8, 1.0, 0.3])
     start_time = time.monotonic()
