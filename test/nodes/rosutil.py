@@ -61,14 +61,18 @@ class Client:
             raise TimeoutError(f"service {name} did not appear within {timeout} s")
         return client
 
-    def call(self, client, request, timeout: float = 30.0):
-        future = client.call_async(request)
-        deadline = time.monotonic() + timeout
-        while not future.done():
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"no answer from {client.srv_name} within {timeout} s")
-            self.executor.spin_once(timeout_sec=0.05)
-        return future.result()
+    def call(self, client, request, timeout: float = 30.0, first_timeout: float = 5.0):
+        """Call, and resend once if the first request goes unanswered: with Fast DDS a client's first
+        request can be lost while its response reader is still matching (the services here are idempotent)."""
+        for wait in (min(first_timeout, timeout), timeout):
+            future = client.call_async(request)
+            deadline = time.monotonic() + wait
+            while not future.done() and time.monotonic() < deadline:
+                self.executor.spin_once(timeout_sec=0.05)
+            if future.done():
+                return future.result()
+            client.remove_pending_request(future)
+        raise TimeoutError(f"no answer from {client.srv_name} within {timeout} s")
 
     def spin_for(self, seconds: float) -> None:
         end = time.monotonic() + seconds
