@@ -14,6 +14,7 @@ from rclpy.executors import SingleThreadedExecutor
 
 ROOT = Path(__file__).resolve().parents[2]
 LIB = ROOT / "install" / "hybrid_kinematics_ros" / "lib" / "hybrid_kinematics_ros"
+STARTED: list[subprocess.Popen] = []  # every process a test started; conftest stops leftovers after each test
 
 
 def executable(name: str) -> Path:
@@ -26,7 +27,7 @@ def executable(name: str) -> Path:
 def start(name: str, *ros_args: str, log: Path | None = None) -> subprocess.Popen:
     """Start an installed executable the way ``ros2 run`` would, in its own process group."""
     out = open(log, "w") if log else subprocess.DEVNULL  # noqa: SIM115 - closed with the process
-    return subprocess.Popen(
+    proc = subprocess.Popen(
         [str(executable(name)), "--ros-args", *ros_args],
         stdout=out,
         stderr=subprocess.STDOUT,
@@ -34,6 +35,8 @@ def start(name: str, *ros_args: str, log: Path | None = None) -> subprocess.Pope
         start_new_session=True,
         env=os.environ.copy(),
     )
+    STARTED.append(proc)
+    return proc
 
 
 def stop(proc: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 15.0) -> int:
