@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
@@ -38,7 +37,7 @@ from hybrid_kinematics_ros.nodes.convert import (
     pose_msgs,
     stamp_is_zero,
 )
-from hybrid_kinematics_ros.nodes.runtime import StartupError, run_node
+from hybrid_kinematics_ros.nodes.runtime import StartupError, read_only_parameter, run_node
 
 LOAD_ERRORS = (DataError, KinematicsError, CalibrationError, OSError)
 MAX_SOLUTIONS = 16
@@ -49,9 +48,7 @@ class KinematicsNode(Node):
         super().__init__(name, **kwargs)
 
         def declare(name: str, default, description: str):
-            # all read-only: a change needs a reload, which reads them again from the node's start
-            desc = ParameterDescriptor(description=description, read_only=True)
-            return self.declare_parameter(name, default, desc).value
+            return read_only_parameter(self, name, default, description)
 
         self.model_dir = declare("model_dir", "", "trained model directory; empty: analytic URDF kinematics only")
         self.urdf_path = declare("urdf_path", "", "URDF file (or give robot_description)")

@@ -21,7 +21,6 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
@@ -35,7 +34,7 @@ from hybrid_kinematics_ros.io.pairs import JOINT_STATE, POSE_STAMPED
 from hybrid_kinematics_ros.io.raw_bag import BagWriter, RawRecording, write_pairs_into
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
-from hybrid_kinematics_ros.nodes.runtime import StartupError, run_node
+from hybrid_kinematics_ros.nodes.runtime import StartupError, read_only_parameter, run_node
 
 
 class _Columns:
@@ -62,10 +61,8 @@ class RecorderNode(Node):
     def __init__(self, name: str = "recorder_node", **kwargs) -> None:
         super().__init__(name, **kwargs)
 
-        def declare(key: str, default, description: str):
-            return self.declare_parameter(
-                key, default, ParameterDescriptor(description=description, read_only=True)
-            ).value
+        def declare(name: str, default, description: str):
+            return read_only_parameter(self, name, default, description)
 
         self.joints_topic = declare("joint_states_topic", "/joint_states", "raw joint states")
         self.pose_topic = declare("tracker_topic", "/tracker/pose", "raw tracker poses (geometry_msgs/PoseStamped)")

@@ -6,8 +6,15 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import Executor, ExternalShutdownException
 from rclpy.node import Node
+
+
+def read_only_parameter(node: Node, name: str, default, description: str):
+    """Declare a described, read-only parameter and return its value. The nodes here read parameters once,
+    at start (or on reload), so changing them at run time would silently do nothing: refuse it instead."""
+    return node.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=True)).value
 
 
 class StartupError(RuntimeError):

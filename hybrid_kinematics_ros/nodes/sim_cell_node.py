@@ -14,7 +14,6 @@ import time
 import numpy as np
 import rclpy
 from geometry_msgs.msg import PoseStamped
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
@@ -22,7 +21,7 @@ from sensor_msgs.msg import JointState
 
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
-from hybrid_kinematics_ros.nodes.runtime import run_node
+from hybrid_kinematics_ros.nodes.runtime import read_only_parameter, run_node
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from hybrid_kinematics_ros.simulation.trajectory import cube_waypoints, random_waypoints, through
 
@@ -33,10 +32,8 @@ class SimCellNode(Node):
     def __init__(self, name: str = "sim_cell_node", **kwargs) -> None:
         super().__init__(name, **kwargs)
 
-        def declare(key: str, default, description: str):
-            return self.declare_parameter(
-                key, default, ParameterDescriptor(description=description, read_only=True)
-            ).value
+        def declare(name: str, default, description: str):
+            return read_only_parameter(self, name, default, description)
 
         robot = declare("robot", "ur10", "robot config YAML or embedded robot name")
         pattern = declare("pattern", "random", "waypoint pattern: random or cube")
