@@ -165,10 +165,10 @@ class IKSolver:
         return float(pos[0]), float(rot[0])
 
     # ------------------------------------------------------------------ stages
-    def classical(self, target: np.ndarray, seed: np.ndarray, deadline: float, model_fk: FkJac | None = None):
+    def classical(self, target: np.ndarray, seed: np.ndarray, deadline: float):
         """Stage 1 from one seed, then random restarts while time remains (if enabled)."""
         o = self.options
-        fk_jac = model_fk or self._analytic
+        fk_jac = self._analytic
         tol_m, tol_rad = 1e-3 * o.position_tolerance_mm * 0.1, np.radians(o.orientation_tolerance_deg) * 0.1
         best = None
         attempt_seed = seed
