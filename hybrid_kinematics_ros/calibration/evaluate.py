@@ -17,6 +17,8 @@ def error_stats(pos_mm: np.ndarray, rot_deg: np.ndarray) -> dict[str, float]:
         return {"count": 0}
     out: dict[str, float] = {"count": len(pos_mm)}
     for name, values in (("position_mm", pos_mm), ("orientation_deg", rot_deg)):
+        if np.all(np.isnan(values)):
+            continue
         out[f"{name}_mean"] = float(np.mean(values))
         out[f"{name}_median"] = float(np.median(values))
         out[f"{name}_p95"] = float(np.percentile(values, 95))
@@ -26,13 +28,22 @@ def error_stats(pos_mm: np.ndarray, rot_deg: np.ndarray) -> dict[str, float]:
 
 
 def pose_errors_of(model: HybridModel, pairs: Pairs) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    analytic = model.fk(pairs.q, analytic=True)
-    hybrid = model.fk(pairs.q)
-    return {"analytic": se3.pose_errors(pairs.T, analytic), "hybrid": se3.pose_errors(pairs.T, hybrid)}
+    """Errors of the URDF model (``analytic``), the parametric stage alone if any, and the hybrid model.
+
+    Position-only pairs have no orientation to compare with: their orientation errors are NaN.
+    """
+    models = {"analytic": model.fk(pairs.q, analytic=True)}
+    if model.has_parametric:
+        models["parametric"] = model.fk(pairs.q, nets=False)
+    models["hybrid"] = model.fk(pairs.q)
+    out = {name: se3.pose_errors(pairs.T, T) for name, T in models.items()}
+    if pairs.position_only:
+        out = {name: (pos, np.full_like(rot, np.nan)) for name, (pos, rot) in out.items()}
+    return out
 
 
 def evaluate(model: HybridModel, pairs: Pairs) -> dict[str, Any]:
-    """Statistics for both models, on all pairs and split by the calibrated joint range."""
+    """Statistics for each model, on all pairs and split by the calibrated joint range."""
     errors = pose_errors_of(model, pairs)
     inside = model.in_calibrated_range(pairs.q)
     report: dict[str, Any] = {"pairs": len(pairs), "inside_calibrated_range": int(inside.sum())}
@@ -42,6 +53,8 @@ def evaluate(model: HybridModel, pairs: Pairs) -> dict[str, Any]:
         report[f"{name}_outside_range"] = error_stats(pos[~inside], rot[~inside])
     if not model.has_orientation and model.nets:
         report["note"] = "no orientation net: orientation is the analytic model's, uncorrected"
+    if pairs.position_only:
+        report["note"] = "position-only pairs: orientation errors cannot be measured"
     return report
 
 

@@ -15,6 +15,8 @@ from hybrid_kinematics_ros.calibration.alignment import AlignOptions, AlignResul
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+from hybrid_kinematics_ros.calibration.parametric import identify
+from hybrid_kinematics_ros.calibration.referencing import Referencing, reference
 from hybrid_kinematics_ros.io.model_dir import save_model_dir
 from hybrid_kinematics_ros.io.pairs import (
     JOINTS_TOPIC,
@@ -26,6 +28,7 @@ from hybrid_kinematics_ros.io.pairs import (
 )
 from hybrid_kinematics_ros.io.raw_bag import RawRecording, read_raw
 from hybrid_kinematics_ros.kinematics.chain import Chain
+from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
 
 
 def align_raw(
@@ -40,11 +43,19 @@ def align_raw(
     return align(chain, rec, options, frame_id), rec
 
 
-def load_pairs(bags: Sequence[str | Path], chain: Chain, raw_frame_id: str | None = None) -> Pairs:
+def load_pairs(
+    bags: Sequence[str | Path],
+    chain: Chain,
+    raw_frame_id: str | None = None,
+    referencing: Referencing | None = None,
+    allow_tracker_frame: bool = False,
+) -> Pairs:
     """Pairs from pairs bags, or from raw recordings, which are aligned on the fly.
 
     ``raw_frame_id`` names the frame of raw recordings' pairs (e.g. the base link when the tracker frame
-    is the robot base, as in the simulated cell).
+    is the robot base, as in the simulated cell). Pairs in a tracker frame are moved into the base frame
+    with ``referencing``; without one they are an error unless ``allow_tracker_frame`` (training, which
+    references them itself).
     """
     parts = []
     for bag in bags:
@@ -54,10 +65,12 @@ def load_pairs(bags: Sequence[str | Path], chain: Chain, raw_frame_id: str | Non
         else:
             parts.append(read_pairs(bag, chain.joint_names))
     pairs = Pairs.concatenate(parts)
-    if pairs.frame_id != chain.base_link:
+    if pairs.frame_id != chain.base_link and referencing is not None and pairs.frame_id == referencing.frame_id:
+        return referencing.to_base(pairs, chain.base_link)
+    if pairs.frame_id != chain.base_link and not allow_tracker_frame:
         raise CalibrationError(
             f"the pairs are in frame '{pairs.frame_id}', not the base link '{chain.base_link}'; "
-            "reference them into the base frame first"
+            "train a model on them first (training references them) or evaluate with a model referenced to that frame"
         )
     return pairs
 
@@ -86,17 +99,45 @@ def fit(
     data_summary: dict[str, Any] | None = None,
     progress: Callable[[dict], None] | None = None,
     parallel: bool = True,
+    parametric: bool = False,
+    payload: tuple[float, np.ndarray] = (0.0, np.zeros(3)),
+    log: Callable[[str], None] = lambda _: None,
 ) -> tuple[HybridModel, dict[str, Any]]:
-    """Train both nets within ``max_minutes`` (wall clock, run side by side) and write the model directory."""
+    """Reference, identify, train both nets within ``max_minutes`` (side by side), write the model directory.
+
+    Pairs in a tracker frame are referenced first (:func:`referencing.reference`); with ``parametric``
+    the elasto-geometric stage is identified next, and the nets learn what it leaves. Position-only
+    pairs train the position net alone.
+    """
+    manifest: dict[str, Any] = {}
+    if train_pairs.frame_id != chain.base_link:
+        ref = reference(chain, train_pairs, seed=seed)
+        log(f"referenced frame '{ref.frame_id}': rms {ref.rms_position_mm:.4f} mm ({ref.outliers} outliers)")
+        manifest["referencing"] = ref.manifest()
+        train_pairs, val_pairs, test_pairs = (
+            ref.to_base(p, chain.base_link) for p in (train_pairs, val_pairs, test_pairs)
+        )
+    position_only = train_pairs.position_only
+    base = ElasticChain.rigid(chain)
+    if parametric:
+        start = time.perf_counter()
+        result = identify(chain, train_pairs.q, train_pairs.T, *payload, position_only=position_only, seed=seed)
+        base = result.model
+        manifest["parametric"] = {**result.manifest(), "seconds": round(time.perf_counter() - start, 1)}
+        log(
+            f"parametric stage: {int(result.identifiable.sum())} of {len(result.params)} parameters identifiable; "
+            f"rms {result.rms_before['position_mm']:.4f} -> {result.rms_after['position_mm']:.4f} mm"
+        )
     lower, upper = train_pairs.q.min(axis=0), train_pairs.q.max(axis=0)
     norm_lower, norm_upper = (chain.lower, chain.upper) if preset.full_range else (lower, upper)
     norm_lower = np.where(np.isfinite(norm_lower), norm_lower, lower)
     norm_upper = np.where(np.isfinite(norm_upper), norm_upper, upper)
-    y_train = train.residual_targets(chain, train_pairs.q, train_pairs.T)
-    y_val = train.residual_targets(chain, val_pairs.q, val_pairs.T)
+    y_train = train.residual_targets(base, train_pairs.q, train_pairs.T)
+    y_val = train.residual_targets(base, val_pairs.q, val_pairs.T)
     arch = arch or {}
+    kinds = ("position",) if position_only else train.KINDS
     jobs = {}
-    for seed_offset, kind in enumerate(train.KINDS):
+    for seed_offset, kind in enumerate(kinds):
         p = replace(preset, arch=arch.get(kind) or preset.arch)
         jobs[kind] = train.NetJob(
             kind,
@@ -114,31 +155,40 @@ def fit(
     start = time.perf_counter()
     nets, histories = train.train_pair(jobs, progress=progress, parallel=parallel)
     seconds = time.perf_counter() - start
-    model = HybridModel(chain, nets, {"trained_range": {"lower": lower.tolist(), "upper": upper.tolist()}})
+    manifest.update(
+        {
+            "base_link": chain.base_link,
+            "tip_link": chain.tip_link,
+            "joint_names": list(chain.joint_names),
+            "tool": chain.tool.tolist(),
+            "joint_limits": {"lower": chain.lower.tolist(), "upper": chain.upper.tolist()},
+            "trained_range": {"lower": lower.tolist(), "upper": upper.tolist()},
+            "position_only": position_only,
+        }
+    )
+    model = HybridModel(chain, nets, manifest)
     metrics = evaluate(model, test_pairs)  # eager nets here; the saved TorchScript is checked against them
-    manifest = {
-        "base_link": chain.base_link,
-        "tip_link": chain.tip_link,
-        "joint_names": list(chain.joint_names),
-        "tool": chain.tool.tolist(),
-        "joint_limits": {"lower": chain.lower.tolist(), "upper": chain.upper.tolist()},
-        "trained_range": {"lower": lower.tolist(), "upper": upper.tolist()},
-        "nets": {
-            kind: {"arch": job.preset.arch, "epochs": len(histories[kind]), **_best(histories[kind])}
-            for kind, job in jobs.items()
-        },
-        "preset": asdict(preset),
-        "seed": seed,
-        "training_seconds": round(seconds, 1),
-        "data": {
-            **(data_summary or {}),
-            "train": len(train_pairs),
-            "val": len(val_pairs),
-            "test": len(test_pairs),
-            "frame_id": train_pairs.frame_id,
-        },
-        "metrics": {"test": metrics},
-    }
+    manifest.update(
+        {
+            "nets": {
+                kind: {"arch": job.preset.arch, "epochs": len(histories[kind]), **_best(histories[kind])}
+                for kind, job in jobs.items()
+            },
+            "preset": asdict(preset),
+            "seed": seed,
+            "training_seconds": round(seconds, 1),
+            "data": {
+                **(data_summary or {}),
+                "train": len(train_pairs),
+                "val": len(val_pairs),
+                "test": len(test_pairs),
+                "frame_id": manifest.get("referencing", {}).get("frame_id", chain.base_link),
+            },
+            "metrics": {"test": metrics},
+        }
+    )
+    if position_only:
+        manifest["note"] = "position-only data: orientation is not corrected (no orientation net)"
     save_model_dir(out, manifest, chain.urdf_text, nets)
     return HybridModel.load(out), manifest
 

@@ -1,7 +1,12 @@
 """The hybrid model: analytic FK from the URDF, corrected by the residual nets of a model directory.
 
-``p = p_model + Δp(q)`` and ``R = exp(ω(q)) · R_model`` (paper Fig. 2). Without nets it is the analytic
-model, so nodes and IK use one type whether or not a calibration exists.
+``p = p_model + Δp(q)`` and ``R = exp(ω(q)) · R_model`` (paper Fig. 2). ``model`` is the URDF chain, or,
+when the model directory holds a parametric stage, the identified elasto-geometric chain. Without nets
+it is that model alone, so nodes and IK use one type whether or not a calibration exists.
+
+Outside the joint range the nets were trained on, ``range_policy`` decides: ``warn`` (use the nets;
+callers flag it), ``parametric`` (drop the nets there) or ``refuse`` (callers fail such requests; see
+:meth:`HybridModel.check_range`).
 """
 
 from __future__ import annotations
@@ -13,11 +18,18 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.nets import NumpyResidual
+from hybrid_kinematics_ros.calibration.parametric import model_from_manifest
+from hybrid_kinematics_ros.calibration.referencing import Referencing
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.io.model_dir import load_model_dir
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
+from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
+from hybrid_kinematics_ros.kinematics.se3 import exp_so3
+
+RANGE_POLICIES = ("warn", "parametric", "refuse")
 
 
 def _skew(w: np.ndarray) -> np.ndarray:
@@ -25,15 +37,6 @@ def _skew(w: np.ndarray) -> np.ndarray:
     out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
     out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
     return out
-
-
-def _exp_so3(w: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula for one rotation vector (scipy's batch machinery costs ~10 µs per call)."""
-    theta = float(np.sqrt(w @ w))
-    k = _skew(w)
-    if theta < 1e-8:
-        return np.eye(3) + k + 0.5 * (k @ k)
-    return np.eye(3) + (np.sin(theta) / theta) * k + ((1.0 - np.cos(theta)) / theta**2) * (k @ k)
 
 
 def left_jacobian_so3(w: np.ndarray) -> np.ndarray:
@@ -54,8 +57,10 @@ class HybridModel:
         nets: dict[str, torch.jit.ScriptModule] | None = None,
         manifest: dict[str, Any] | None = None,
         path: Path | None = None,
+        range_policy: str = "warn",
     ) -> None:
         self.chain = chain
+        self.range_policy = range_policy
         self.nets = dict(nets or {})
         self.manifest = dict(manifest or {})
         self.path = path
@@ -63,6 +68,51 @@ class HybridModel:
         rng = self.manifest.get("trained_range")
         self.trained_lower = np.asarray(rng["lower"], dtype=float) if rng else chain.lower
         self.trained_upper = np.asarray(rng["upper"], dtype=float) if rng else chain.upper
+        section = self.manifest.get("parametric")
+        self.base = model_from_manifest(chain, section) if section else ElasticChain.rigid(chain)
+        ref = self.manifest.get("referencing")
+        self.referencing = Referencing.from_manifest(ref) if ref else None
+
+    @property
+    def range_policy(self) -> str:
+        return self._range_policy
+
+    @range_policy.setter
+    def range_policy(self, value: str) -> None:
+        if value not in RANGE_POLICIES:
+            raise CalibrationError(f"range policy '{value}' is not one of {', '.join(RANGE_POLICIES)}")
+        self._range_policy = value
+
+    @property
+    def has_parametric(self) -> bool:
+        return "parametric" in self.manifest
+
+    def check_range(self, q: np.ndarray) -> None:
+        """Under the ``refuse`` policy, raise for configurations outside the trained range, naming them."""
+        if self.range_policy != "refuse" or not self.nets:
+            return
+        q = np.atleast_2d(q)
+        inside = self.in_calibrated_range(q)
+        if not inside.all():
+            row = int(np.flatnonzero(~inside)[0])
+            raise CalibrationError(
+                f"configuration {row} lies outside the calibrated joint range "
+                f"({self.describe_outside(q[row])}) and the range policy is 'refuse'"
+            )
+
+    def describe_outside(self, q: np.ndarray) -> str:
+        """The joints of one configuration outside the trained range, with the range, for messages."""
+        out = []
+        for name, v, lo, hi in zip(self.joint_names, q, self.trained_lower, self.trained_upper, strict=True):
+            if not lo - 1e-9 <= v <= hi + 1e-9:
+                out.append(f"{name} = {v:.4f} rad, trained on [{lo:.4f}, {hi:.4f}]")
+        return "; ".join(out)
+
+    def _nets_apply(self, q: np.ndarray) -> np.ndarray | bool:
+        """Where the nets correct: everywhere, or inside the trained range under the ``parametric`` policy."""
+        if self.range_policy != "parametric":
+            return True
+        return self.in_calibrated_range(q)
 
     @classmethod
     def load(
@@ -119,32 +169,39 @@ class HybridModel:
         return dp, w
 
     def correct(self, T: np.ndarray, dp: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """Apply the residuals ``(B, 3)`` to the model's poses ``(B, 4, 4)``."""
         out = np.array(T, dtype=float, copy=True)
         out[:, :3, 3] += dp
         if self.has_orientation:
             out[:, :3, :3] = Rotation.from_rotvec(w).as_matrix() @ out[:, :3, :3]
         return out
 
-    def fk(self, q: np.ndarray, analytic: bool = False) -> np.ndarray:
-        """Tip poses ``(B, 4, 4)``: hybrid, or the URDF model alone when ``analytic``."""
+    def fk(self, q: np.ndarray, analytic: bool = False, nets: bool = True) -> np.ndarray:
+        """Tip poses ``(B, 4, 4)``: hybrid; the URDF model alone when ``analytic``; no nets when not ``nets``."""
         q = fk.check_joints(self.chain, q)
-        T = fk.fk(self.chain, q)
-        if analytic or not self.nets:
+        if analytic:
+            return fk.fk(self.chain, q)
+        T = self.base.fk(q)
+        if not nets or not self.nets:
             return T
-        return self.correct(T, *self.residuals(q))
+        dp, w = self.residuals(q)
+        mask = np.asarray(self._nets_apply(q), dtype=float).reshape(-1, 1)
+        return self.correct(T, dp * mask, w * mask)
 
     def fk_single(self, q: np.ndarray, analytic: bool = False) -> np.ndarray:
         """One pose ``(4, 4)`` on the low-overhead path: numpy FK and, for MLP nets, numpy inference."""
         q = np.asarray(q, dtype=float)
-        T = fk.fk_single(self.chain, q)
-        if analytic or not self.nets:
+        if analytic:
+            return fk.fk_single(self.chain, q)
+        T = self.base.fk_single(q)
+        if not self.nets or not self._nets_apply(q[None]):
             return T
         if not all(self._fast.values()):
             return self.correct(T[None], *self.residuals(q[None]))[0]
         if "position" in self._fast:
             T[:3, 3] += self._fast["position"](q)
         if "orientation" in self._fast:
-            T[:3, :3] = _exp_so3(self._fast["orientation"](q)) @ T[:3, :3]
+            T[:3, :3] = exp_so3(self._fast["orientation"](q)) @ T[:3, :3]
         return T
 
     def fk_and_jacobian(self, q: np.ndarray, analytic: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -153,8 +210,10 @@ class HybridModel:
         The nets' part comes from autograd through the TorchScript modules.
         """
         q = fk.check_joints(self.chain, q)
-        T, J = fk.fk_and_jacobian(self.chain, q)
-        if analytic or not self.nets:
+        if analytic:
+            return fk.fk_and_jacobian(self.chain, q)
+        T, J = self.base.fk_and_jacobian(q)
+        if not self.nets:
             return T, J
         qt = torch.tensor(q, requires_grad=True)
         grads, values = {}, {}
@@ -165,6 +224,9 @@ class HybridModel:
             values[kind] = out.detach().numpy()
         zeros = np.zeros((len(q), 3))
         dp, w = values.get("position", zeros), values.get("orientation", zeros)
+        mask = np.asarray(self._nets_apply(q), dtype=float).reshape(-1, 1)
+        dp, w = dp * mask, w * mask
+        grads = {kind: g * mask[:, :, None] for kind, g in grads.items()}
         hybrid = self.correct(T, dp, w)
         J = J.copy()
         if "position" in grads:
@@ -178,8 +240,10 @@ class HybridModel:
     def fk_and_jacobian_single(self, q: np.ndarray, analytic: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """One configuration: pose ``(4, 4)`` and geometric Jacobian ``(6, n)``, numpy throughout for MLP nets."""
         q = np.asarray(q, dtype=float)
-        T, J = fk.fk_and_jacobian_single(self.chain, q)
-        if analytic or not self.nets:
+        if analytic:
+            return fk.fk_and_jacobian_single(self.chain, q)
+        T, J = self.base.fk_and_jacobian_single(q)
+        if not self.nets or not self._nets_apply(q[None]):
             return T, J
         if not all(self._fast.values()):
             T, J = self.fk_and_jacobian(q[None])
@@ -190,7 +254,7 @@ class HybridModel:
             J[:3] += ddp
         if "orientation" in self._fast:
             w, dw = self._fast["orientation"].value_and_jacobian(q)
-            r = _exp_so3(w)
+            r = exp_so3(w)
             T[:3, :3] = r @ T[:3, :3]
             J[3:] = r @ J[3:] + left_jacobian_so3(w) @ dw
         return T, J

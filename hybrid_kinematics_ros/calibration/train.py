@@ -20,8 +20,9 @@ import torch
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.nets import ResidualNet, to_joint1_frame
-from hybrid_kinematics_ros.kinematics import fk, se3
+from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.chain import Chain
+from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
 
 KINDS = ("position", "orientation")
 UNIT = {"position": ("mm", 1e3), "orientation": ("deg", 180.0 / math.pi)}
@@ -48,9 +49,9 @@ PRESETS = {
 }
 
 
-def residual_targets(chain: Chain, q: np.ndarray, T: np.ndarray) -> dict[str, np.ndarray]:
-    """Base-frame targets ``{"position": Δp (N, 3) m, "orientation": ω (N, 3) rad}``."""
-    model = fk.fk(chain, q)
+def residual_targets(base: ElasticChain, q: np.ndarray, T: np.ndarray) -> dict[str, np.ndarray]:
+    """Base-frame targets ``{"position": Δp (N, 3) m, "orientation": ω (N, 3) rad}`` against ``base``."""
+    model = base.fk(q)
     return {
         "position": T[:, :3, 3] - model[:, :3, 3],
         "orientation": se3.rotvec(T[:, :3, :3] @ np.swapaxes(model[:, :3, :3], 1, 2)),

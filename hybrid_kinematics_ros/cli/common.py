@@ -31,6 +31,15 @@ def chain_from_args(args: argparse.Namespace) -> Chain:
     return chain_from_urdf(Path(args.urdf), args.base_link, args.tip_link)
 
 
+def payload_from_args(args: argparse.Namespace) -> tuple[float, np.ndarray]:
+    """Payload mass (kg) and centre of mass (m, tip frame): the robot config's, else ``--payload-*``."""
+    if args.robot:
+        cfg = load_robot_config(args.robot)
+        return cfg.payload_mass, cfg.payload_com
+    com = np.zeros(3) if args.payload_com is None else np.asarray(args.payload_com, dtype=float)
+    return float(args.payload_mass or 0.0), com
+
+
 def read_csv(path: Path, columns: tuple[str, ...] | None = None) -> tuple[list[str], np.ndarray]:
     """Header and float rows of a CSV; ``columns`` picks and orders them. Errors name the file, row and column."""
     path = Path(path)

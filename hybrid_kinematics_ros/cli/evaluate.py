@@ -22,7 +22,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     model = HybridModel.load(args.model)
-    pairs = load_pairs(args.bag, model.chain)
+    pairs = load_pairs(args.bag, model.chain, referencing=model.referencing)
     report = {"model": str(args.model), "bags": [str(b) for b in args.bag], **evaluate(model, pairs)}
     if pairs.dropped:
         report["dropped"] = dict(pairs.dropped)

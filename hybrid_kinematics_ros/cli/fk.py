@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+from hybrid_kinematics_ros.calibration.hybrid import RANGE_POLICIES, HybridModel
 from hybrid_kinematics_ros.cli.common import POSE_COLUMNS, add_robot_args, chain_from_args, read_csv, write_csv
 from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
 
@@ -19,14 +20,28 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--joints", required=True, type=Path, help="CSV whose header names the joints (radians)")
     p.add_argument("--out", required=True, type=Path, help="poses CSV to write")
     p.add_argument("--analytic", action="store_true", help="uncorrected URDF kinematics")
+    p.add_argument(
+        "--out-of-range",
+        choices=RANGE_POLICIES,
+        default="warn",
+        help="outside the trained joint range: warn (default), parametric (no nets there) or refuse",
+    )
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     model = HybridModel.load(args.model) if args.model else HybridModel.analytic_only(chain_from_args(args))
+    model.range_policy = args.out_of_range
     _, q = read_csv(args.joints, model.joint_names)
+    if not args.analytic:
+        model.check_range(q)
     T = model.fk(q, analytic=args.analytic)
     position, quat = pose_from_matrix(T)
     write_csv(args.out, list(POSE_COLUMNS), np.hstack([position, quat]))
-    print(f"wrote {len(q)} poses to {args.out}")
+    outside = int(np.sum(~model.in_calibrated_range(q))) if model.nets and not args.analytic else 0
+    print(
+        f"wrote {len(q)} poses to {args.out}" + (f"; {outside} outside the calibrated joint range" if outside else "")
+    )
+    if outside and args.out_of_range == "warn":
+        print(f"warning: {outside} configuration(s) lie outside the calibrated joint range", file=sys.stderr)
     return 0

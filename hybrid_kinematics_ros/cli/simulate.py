@@ -29,6 +29,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--range-fraction", type=float, default=1.0, help="sample a reduced joint range about its middle")
     p.add_argument("--no-noise", action="store_true", help="noise-free tracker (the truth itself)")
+    p.add_argument("--position-only", action="store_true", help="a plain reflector: positions only (zero quaternions)")
     p.set_defaults(run=run)
 
 
@@ -59,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     with tqdm(total=args.samples, unit="pair", desc="simulate") as bar:
         for index, (name, count) in enumerate(parts.items()):
             path = args.out / name if name else args.out
-            with PairsWriter(path, cfg.chain.joint_names, cell.frame_id) as writer:
+            with PairsWriter(path, cfg.chain.joint_names, cell.frame_id, args.position_only) as writer:
                 for q, T in cell.samples(count, seed=args.seed * 10 + index, fraction=args.range_fraction):
                     stamps = STAMP_START_NS + STAMP_STEP_NS * (writer.count + np.arange(len(q)))
                     writer.write(q, T, stamps)

@@ -10,7 +10,7 @@ from tqdm import tqdm
 
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.fit import fit, load_pairs, split
-from hybrid_kinematics_ros.cli.common import add_robot_args, chain_from_args
+from hybrid_kinematics_ros.cli.common import add_robot_args, chain_from_args, payload_from_args
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -28,6 +28,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--raw-frame-id", help="raw recordings: frame of their pairs (the base link if the tracker frame is it)"
     )
+    p.add_argument(
+        "--parametric",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="identify the elasto-geometric stage before the nets (default on; --no-parametric: nets on the URDF)",
+    )
+    p.add_argument("--payload-mass", type=float, help="kg, with --urdf (a --robot config has its own)")
+    p.add_argument("--payload-com", type=float, nargs=3, metavar=("X", "Y", "Z"), help="m, in the tip frame")
     p.add_argument("--val-bag", nargs="+", help="separate validation bag(s); default: 10%% of --bag")
     p.add_argument("--test-bag", nargs="+", help="separate test bag(s); default: 10%% of --bag")
     p.set_defaults(run=run)
@@ -65,13 +73,13 @@ class Progress:
 
 def run(args: argparse.Namespace) -> int:
     chain = chain_from_args(args)
-    pairs = load_pairs(args.bag, chain, args.raw_frame_id)
+    pairs = load_pairs(args.bag, chain, args.raw_frame_id, allow_tracker_frame=True)
     if args.val_bag or args.test_bag:
         train_pairs, val_pairs, test_pairs = split(
             pairs, args.seed, (0.0 if args.val_bag else 0.1, 0.0 if args.test_bag else 0.1)
         )
-        val_pairs = load_pairs(args.val_bag, chain) if args.val_bag else val_pairs
-        test_pairs = load_pairs(args.test_bag, chain) if args.test_bag else test_pairs
+        val_pairs = load_pairs(args.val_bag, chain, allow_tracker_frame=True) if args.val_bag else val_pairs
+        test_pairs = load_pairs(args.test_bag, chain, allow_tracker_frame=True) if args.test_bag else test_pairs
     else:
         train_pairs, val_pairs, test_pairs = split(pairs, args.seed)
     print(
@@ -92,6 +100,9 @@ def run(args: argparse.Namespace) -> int:
             arch={"position": args.arch_position, "orientation": args.arch_orientation},
             data_summary={"bags": [str(b) for b in args.bag], "dropped": dict(pairs.dropped)},
             progress=progress,
+            parametric=args.parametric,
+            payload=payload_from_args(args),
+            log=tqdm.write,
         )
     finally:
         progress.close()
@@ -102,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
                 "model": str(args.out),
                 "training_seconds": manifest["training_seconds"],
                 "test_analytic": test["analytic"],
+                **({"test_parametric": test["parametric"]} if "parametric" in test else {}),
                 "test_hybrid": test["hybrid"],
             }
         )

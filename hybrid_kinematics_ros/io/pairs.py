@@ -3,6 +3,8 @@
 - ``/calibration/joint_states`` (``sensor_msgs/msg/JointState``): one message per sample, with joint names;
 - ``/calibration/tracker_pose`` (``geometry_msgs/msg/PoseStamped``): the measured pose, with the same
   ``header.stamp``; ``frame_id`` is the base link when in the base frame, else the tracker's frame.
+  A target without orientation (a plain reflector) writes the zero quaternion ``(0, 0, 0, 0)`` in
+  every sample: the bag is then position-only.
 
 This module is the only reader and writer of pairs. Alignment is on ``header.stamp``, never on bag time.
 """
@@ -11,7 +13,7 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -43,21 +45,27 @@ class Pairs:
     joint_names: tuple[str, ...]
     frame_id: str
     dropped: Counter = field(default_factory=Counter)
+    position_only: bool = False  # the target gives no orientation: rotations are identity placeholders
 
     def __len__(self) -> int:
         return len(self.q)
 
     def subset(self, index: np.ndarray) -> Pairs:
-        return Pairs(self.q[index], self.T[index], self.stamps[index], self.joint_names, self.frame_id, Counter())
+        return replace(self, q=self.q[index], T=self.T[index], stamps=self.stamps[index], dropped=Counter())
+
+    def with_poses(self, T: np.ndarray, frame_id: str) -> Pairs:
+        """The same samples with the poses expressed in another frame."""
+        return replace(self, T=T, frame_id=frame_id)
 
     @staticmethod
     def concatenate(parts: Sequence[Pairs]) -> Pairs:
         first = parts[0]
         for p in parts[1:]:
-            if p.joint_names != first.joint_names or p.frame_id != first.frame_id:
+            if (p.joint_names, p.frame_id, p.position_only) != (first.joint_names, first.frame_id, first.position_only):
                 raise DataError(
-                    f"bags disagree: joints {p.joint_names} in frame '{p.frame_id}' against "
-                    f"{first.joint_names} in frame '{first.frame_id}'"
+                    f"bags disagree: joints {p.joint_names} in frame '{p.frame_id}' "
+                    f"(position only: {p.position_only}) against {first.joint_names} in frame "
+                    f"'{first.frame_id}' (position only: {first.position_only})"
                 )
         dropped = sum((p.dropped for p in parts), Counter())
         return Pairs(
@@ -67,6 +75,7 @@ class Pairs:
             first.joint_names,
             first.frame_id,
             dropped,
+            first.position_only,
         )
 
 
@@ -92,8 +101,11 @@ def pose_stamped_msg(ns: int, frame_id: str, position: np.ndarray, quat_xyzw: np
 class PairsWriter:
     """Streams pairs into a new bag; use as a context manager so a crash still closes the file."""
 
-    def __init__(self, path: str | Path, joint_names: Sequence[str], frame_id: str) -> None:
+    def __init__(
+        self, path: str | Path, joint_names: Sequence[str], frame_id: str, position_only: bool = False
+    ) -> None:
         self.path = Path(path)
+        self.position_only = position_only
         if self.path.exists():
             raise DataError(f"{self.path} exists already, not overwriting")
         if not self.path.parent.is_dir():
@@ -114,6 +126,8 @@ class PairsWriter:
 
     def write(self, q: np.ndarray, T: np.ndarray, stamps: Iterable[int]) -> None:
         positions, quats = pose_from_matrix(T)
+        if self.position_only:
+            quats = np.zeros_like(quats)
         for qi, p, quat, ns in zip(q, positions, quats, stamps, strict=True):
             ns = int(ns)
             js = joint_state_msg(ns, self.joint_names, np.asarray(qi, dtype=float))
@@ -124,7 +138,7 @@ class PairsWriter:
 
 
 def write_pairs(path: str | Path, pairs: Pairs) -> None:
-    with PairsWriter(path, pairs.joint_names, pairs.frame_id) as writer:
+    with PairsWriter(path, pairs.joint_names, pairs.frame_id, pairs.position_only) as writer:
         writer.write(pairs.q, pairs.T, pairs.stamps)
 
 
@@ -234,6 +248,12 @@ def read_pairs(path: str | Path, joint_names: Sequence[str] | None = None) -> Pa
 
     finite = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(pos), axis=1) & np.all(np.isfinite(quat), axis=1)
     dropped["nan_or_inf"] += int(np.sum(~finite))
+    if np.all(quat[finite] == 0.0):  # a plain reflector: the contract's zero quaternion means "no orientation"
+        keep = finite
+        if not np.any(keep):
+            raise DataError(f"bag {path}: no usable pair left after dropping {dict(+dropped)}")
+        T = matrix_from_pose(pos[keep], np.tile([0.0, 0.0, 0.0, 1.0], (int(keep.sum()), 1)))
+        return Pairs(q[keep], T, stamps[keep], names, frames.pop(), +dropped, position_only=True)
     norms = np.linalg.norm(np.where(np.isfinite(quat), quat, 0.0), axis=1)
     unit = np.abs(norms - 1.0) <= QUAT_TOLERANCE
     dropped["non_unit_quaternion"] += int(np.sum(finite & ~unit))

@@ -58,8 +58,11 @@ class KinematicsNode(Node):
         topic = declare("joint_states_topic", "/joint_states", "joint states to turn into corrected poses")
         publish = declare("publish_corrected_pose", True, "publish ~/corrected_pose for each joint state")
         self.ik_timeout_ms = declare("ik_timeout_ms", 50.0, "time budget per IK solution")
-        self.require_range = declare(
-            "require_calibrated_range", False, "IK: fail solutions outside the calibrated joint range"
+        self.range_policy = declare(
+            "out_of_range_policy",
+            "warn",
+            "outside the joint range the nets were trained on: warn (use them, flag it), "
+            "parametric (drop the nets there) or refuse (fail such FK and IK requests)",
         )
 
         self._lock = threading.Lock()
@@ -107,14 +110,14 @@ class KinematicsNode(Node):
                         "give model_dir, or urdf_path (or robot_description) with base_link and tip_link"
                     )
                 model = HybridModel.analytic_only(chain_from_urdf(urdf, self.base_link, self.tip_link))
+            model.range_policy = self.range_policy
         except LOAD_ERRORS as exc:
             raise StartupError(str(exc)) from exc
         return model, self._solver(model)
 
     def _solver(self, model: HybridModel) -> IKSolver:
-        return IKSolver(
-            model, IKOptions(timeout_s=self.ik_timeout_ms / 1e3, require_calibrated_range=self.require_range)
-        )
+        options = IKOptions(timeout_s=self.ik_timeout_ms / 1e3, require_calibrated_range=self.range_policy == "refuse")
+        return IKSolver(model, options)
 
     # ------------------------------------------------------------------ callbacks
     def _on_joint_state(self, msg: JointState) -> None:
@@ -128,6 +131,12 @@ class KinematicsNode(Node):
             return
         self._latest = q
         if self.pose_pub is not None:
+            if model.range_policy == "refuse" and model.nets and not model.in_calibrated_range(q)[0]:
+                self.get_logger().warn(
+                    f"no corrected pose outside the calibrated range ({model.describe_outside(q)})",
+                    throttle_duration_sec=5.0,
+                )
+                return
             self.pose_pub.publish(pose_msg(model.fk_single(q), model.chain.base_link, msg.header.stamp))
 
     def _on_fk(self, request: ComputeFK.Request, response: ComputeFK.Response) -> ComputeFK.Response:
@@ -141,6 +150,8 @@ class KinematicsNode(Node):
                     for i, js in enumerate(request.joint_states)
                 ]
             )
+            if not request.analytic_only:
+                model.check_range(q)
             T = (
                 model.fk(q, analytic=request.analytic_only)
                 if len(q) > 1
@@ -151,12 +162,17 @@ class KinematicsNode(Node):
             response.poses = pose_msgs(T, model.chain.base_link, stamps)
             response.in_calibrated_range = [bool(v) for v in model.in_calibrated_range(q)]
             response.success = True
+            outside = {
+                "warn": "their correction is extrapolated",
+                "parametric": "they got the parametric model without the nets",
+                "refuse": "",
+            }[model.range_policy]
             response.message = (
                 "ok"
-                if all(response.in_calibrated_range)
-                else ("some configurations lie outside the calibrated joint range; their correction is extrapolated")
+                if all(response.in_calibrated_range) or not model.nets
+                else f"some configurations lie outside the calibrated joint range; {outside}"
             )
-        except (RequestError, KinematicsError) as exc:
+        except (RequestError, KinematicsError, CalibrationError) as exc:
             response.success, response.message = False, str(exc)
         return response
 

@@ -20,11 +20,9 @@ from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import Chain
+from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
 from hybrid_kinematics_ros.kinematics.robot_config import RobotConfig
 from hybrid_kinematics_ros.simulation.errors import SimulationError
-
-GRAVITY = np.array([0.0, 0.0, -9.81])
-CHUNK = 4096
 
 
 def _small_transforms(rng: np.random.Generator, count: int, translation_m: float, rotation_rad: float) -> np.ndarray:
@@ -57,20 +55,16 @@ def _per_joint(value: Any, n: int, field: str) -> np.ndarray:
 
 @dataclass(frozen=True)
 class TrueRobot:
-    """A seeded ground-truth robot. ``fk(q)`` maps commanded joints to the pose the robot really reaches."""
+    """A seeded ground-truth robot. ``fk(q)`` maps commanded joints to the pose the robot really reaches.
+
+    It is an :class:`ElasticChain` (perturbed geometry, zero offsets, stiffening compliance, bending) whose
+    joints also carry gear errors: the parametric calibration stage can model all but the last two.
+    """
 
     nominal: Chain
-    actual: Chain  # the nominal chain with perturbed joint origins and flange
-    zero_offset: np.ndarray  # (n,) rad
+    elastic: ElasticChain
     gear_amplitude: np.ndarray  # (n, 2) rad, harmonics 1 and 2
     gear_phase: np.ndarray  # (n, 2) rad
-    compliance: np.ndarray  # (n,) rad/Nm, zero where off
-    cubic_ratio: float
-    torque_ref: float
-    bending: np.ndarray  # (n,) rad/Nm
-    bending_axes: np.ndarray  # (n, 3) unit axes perpendicular to each joint axis
-    payload_mass: float
-    payload_com: np.ndarray  # (3,) in the tip frame
 
     @classmethod
     def from_config(
@@ -114,73 +108,38 @@ class TrueRobot:
         bending = _per_joint(bend.get("rad_per_nm", 1e-6), n, "truth.bending.rad_per_nm")
         if not on("bending"):
             bending = np.zeros(n)
+        bending_axes = np.array([_perpendicular(a) for a in chain.axes])
 
-        return cls(
-            nominal=chain,
-            actual=actual,
-            zero_offset=zero,
-            gear_amplitude=gear_amplitude,
-            gear_phase=gear_phase,
-            compliance=compliance,
+        elastic = ElasticChain(
+            actual,
+            zero,
+            compliance,
+            bending[:, None] * bending_axes,
+            cfg.payload_mass,
+            cfg.payload_com,
             cubic_ratio=float(comp.get("cubic_ratio", 0.0)),
             torque_ref=float(comp.get("torque_ref_nm", 100.0)),
-            bending=bending,
-            bending_axes=np.array([_perpendicular(a) for a in chain.axes]),
-            payload_mass=cfg.payload_mass,
-            payload_com=cfg.payload_com,
         )
+        return cls(nominal=chain, elastic=elastic, gear_amplitude=gear_amplitude, gear_phase=gear_phase)
+
+    @property
+    def actual(self) -> Chain:
+        """The nominal chain with the perturbed joint origins and flange."""
+        return self.elastic.chain
+
+    def gear_error(self, q: np.ndarray) -> np.ndarray:
+        harmonics = np.stack([q, 2.0 * q], axis=-1) + self.gear_phase
+        return np.sum(self.gear_amplitude * np.sin(harmonics), axis=-1)
 
     def gravity_torques(self, q: np.ndarray) -> np.ndarray:
-        """Torques ``(B, n)`` (Nm) that gravity exerts about each joint axis (force along prismatic axes)."""
-        frames = fk.joint_frames(self.actual, q)
-        n = self.actual.dof
-        com = np.einsum("bkij,kj->bki", frames[:, :n, :3, :3], self.actual.segment_com) + frames[:, :n, :3, 3]
-        masses = np.asarray(self.actual.segment_mass)
-        tip = frames[:, n]
-        payload = tip[:, :3, :3] @ self.payload_com + tip[:, :3, 3]
-        com = np.concatenate([com, payload[:, None]], axis=1)
-        masses = np.append(masses, self.payload_mass)
-        force = masses[:, None] * GRAVITY  # (n + 1, 3)
-        axes = np.einsum("bkij,kj->bki", frames[:, :n, :3, :3], self.actual.axes)
-        torques = np.empty((len(q), n))
-        for j in range(n):
-            lever = com[:, j:] - frames[:, j, None, :3, 3]
-            if self.actual.revolute[j]:
-                moment = np.cross(lever, force[j:]).sum(axis=1)
-                torques[:, j] = np.einsum("bi,bi->b", moment, axes[:, j])
-            else:
-                torques[:, j] = axes[:, j] @ force[j:].sum(axis=0)
-        return torques
+        return self.elastic.gravity_torques(q)
 
     def effective_joints(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Joint values the links really reach (offsets, gear errors, deflections) and the gravity torques."""
         q = fk.check_joints(self.nominal, q)
-        harmonics = np.stack([q, 2.0 * q], axis=-1) + self.gear_phase
-        q_eff = q + self.zero_offset + np.sum(self.gear_amplitude * np.sin(harmonics), axis=-1)
-        torque = self.gravity_torques(q_eff)
-        stiffening = 1.0 + self.cubic_ratio * (torque / self.torque_ref) ** 2
-        return q_eff + self.compliance * torque / stiffening, torque
+        return self.elastic.effective_joints(q + self.gear_error(q))
 
     def fk(self, q: np.ndarray) -> np.ndarray:
         """True tip poses ``(B, 4, 4)`` for commanded joints ``(B, n)``."""
         q = fk.check_joints(self.nominal, q)
-        out = np.empty((len(q), 4, 4))
-        for s in range(0, len(q), CHUNK):
-            out[s : s + CHUNK] = self._fk_block(q[s : s + CHUNK])
-        return out
-
-    def _fk_block(self, q: np.ndarray) -> np.ndarray:
-        q_eff, torque = self.effective_joints(q)
-        if not np.any(self.bending):
-            return fk.fk(self.actual, q_eff)
-        a, b = self.actual.coefficients(q_eff)
-        g = self.actual.generators
-        local = g[None, :, 0] + a[..., None, None] * g[None, :, 1] + b[..., None, None] * g[None, :, 2]
-        bend = np.tile(np.eye(4), (*q.shape, 1, 1))
-        rotvec = (self.bending * torque)[..., None] * self.bending_axes
-        bend[..., :3, :3] = Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_matrix().reshape(*q.shape, 3, 3)
-        local = local @ bend
-        t = local[:, 0]
-        for k in range(1, self.actual.dof):
-            t = t @ local[:, k]
-        return t @ self.actual.post
+        return self.elastic.fk(q + self.gear_error(q))

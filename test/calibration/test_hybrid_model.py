@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from hybrid_kinematics_ros.calibration import nets
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.io.errors import DataError
@@ -119,3 +120,23 @@ def test_mismatched_and_corrupt_models_are_refused(trained, tmp_path):
         HybridModel.load(broken(lambda p: (p / "model.json").write_text("{")))
     with pytest.raises(DataError, match=r"model\.json does not exist"):
         HybridModel.load(tmp_path)
+
+
+def test_range_policies(trained):
+    path, _, _, _ = trained
+    model = HybridModel.load(path)
+    q = np.array([[0.1, -1.0, 1.0, -1.0, 1.0, 0.0], [0.1, -1.0, model.trained_upper[2] + 0.05, -1.0, 1.0, 0.0]])
+    assert list(model.in_calibrated_range(q)) == [True, False]
+    warn = model.fk(q)
+    model.range_policy = "parametric"
+    fallback = model.fk(q)
+    np.testing.assert_array_equal(fallback[0], warn[0])
+    np.testing.assert_array_equal(fallback[1], model.fk(q[1:], nets=False)[0])
+    np.testing.assert_array_equal(model.fk_single(q[1]), fallback[1])
+    np.testing.assert_allclose(model.fk_and_jacobian(q)[0], fallback, atol=1e-12)
+    model.range_policy = "refuse"
+    model.check_range(q[:1])
+    with pytest.raises(CalibrationError, match=f"configuration 1 lies outside.*{model.joint_names[2]}"):
+        model.check_range(q)
+    with pytest.raises(CalibrationError, match="range policy 'sometimes' is not one of"):
+        model.range_policy = "sometimes"

@@ -93,3 +93,48 @@ def test_bad_inputs_get_one_line_errors(tmp_path):
     result = run("train", "--bag", str(tmp_path / "nobag"), "--robot", "ur10", "--out", str(tmp_path / "m"))
     assert result.returncode == 2 and "does not exist" in result.stderr
     assert result.stderr.count("\n") == 1
+
+
+def test_tracker_frame_position_only_workflow(tmp_path):
+    """A reflector without orientation, seen by a tracker in its own frame: referencing, the parametric
+    stage and the position net, then evaluation of a tracker-frame bag through the stored referencing."""
+    import shutil
+
+    import yaml
+
+    from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR
+
+    shutil.copy(CONFIG_DIR / "ur10.urdf", tmp_path / "ur10.urdf")
+    cfg = yaml.safe_load((CONFIG_DIR / "ur10.yaml").read_text())
+    cfg["tracker"]["base_to_tracker"] = {"xyz": [2.0, 0.5, -0.2], "rpy": [0.0, 0.01, 1.0]}
+    cfg["tracker"]["flange_to_target"] = {"xyz": [0.0, 0.05, 0.1], "rpy": [0.0, 0.0, 0.0]}
+    robot = tmp_path / "cell.yaml"
+    robot.write_text(yaml.safe_dump(cfg))
+    bag = tmp_path / "bag"
+    sim = run("simulate", "--robot", str(robot), "--samples", "1500", "--out", str(bag), "--position-only")
+    assert sim.returncode == 0, sim.stderr
+    model_dir = tmp_path / "model"
+    result = run(
+        "train",
+        "--bag",
+        str(bag),
+        "--robot",
+        str(robot),
+        "--out",
+        str(model_dir),
+        "--max-minutes",
+        "0.1",
+        "--arch-position",
+        "mlp:32x2",
+    )
+    assert result.returncode == 0, result.stderr
+    assert "referenced frame 'tracker'" in result.stderr and "parametric stage" in result.stderr
+    manifest = json.loads((model_dir / "model.json").read_text())
+    assert set(manifest["nets"]) == {"position"} and manifest["position_only"]
+    assert manifest["referencing"]["frame_id"] == "tracker"
+    assert "orientation is not corrected" in manifest["note"]
+    result = run("evaluate", "--model", str(model_dir), "--bag", str(bag))
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report["hybrid"]["position_mm_mean"] < report["parametric"]["position_mm_mean"] < 0.5
+    assert report["analytic"]["position_mm_mean"] > 1.0 and "orientation_deg_mean" not in report["hybrid"]

@@ -234,3 +234,35 @@ def test_in_process_node_with_defaults_file(ros):
     finally:
         client.close()
         node.destroy_node()
+
+
+@pytest.mark.parametrize("policy", ["refuse", "parametric"])
+def test_out_of_range_policy(ros, trained, policy):
+    """Outside the trained joint range the node refuses, or falls back to the model without the nets."""
+    from hybrid_kinematics_ros.nodes.kinematics_node import KinematicsNode
+
+    model = trained[1]
+    overrides = [
+        rclpy.parameter.Parameter("model_dir", value=str(trained[0])),
+        rclpy.parameter.Parameter("out_of_range_policy", value=policy),
+        rclpy.parameter.Parameter("publish_corrected_pose", value=False),
+    ]
+    node = KinematicsNode(f"range_{policy}", parameter_overrides=overrides)
+    client = Client(f"range_{policy}_client")
+    client.executor.add_node(node)
+    outside = np.array([0.1, -1.0, model.trained_upper[2] + 0.01, -1.0, 1.0, 0.0])
+    inside = np.array([0.1, -1.0, 1.0, -1.0, 1.0, 0.0])
+    try:
+        fk = client.service(ComputeFK, f"/range_{policy}/compute_fk")
+        resp = client.call(fk, fk_request([inside, outside], model.joint_names))
+        if policy == "refuse":
+            assert not resp.success and "outside the calibrated joint range" in resp.message
+            assert model.joint_names[2] in resp.message
+        else:
+            assert resp.success and list(resp.in_calibrated_range) == [True, False]
+            np.testing.assert_allclose(poses_of(resp)[1], model.fk(outside, nets=False)[0], atol=1e-12)
+            np.testing.assert_allclose(poses_of(resp)[0], model.fk(inside)[0], atol=1e-9)
+        assert client.call(fk, fk_request([inside], model.joint_names)).success
+    finally:
+        client.close()
+        node.destroy_node()

@@ -1,0 +1,269 @@
+"""Referencing: where the tracker stands relative to the robot base, and where the target sits on the flange.
+
+The tracker measures ``T_meas = T_base_tracker⁻¹ · T_tip(q) · T_flange_target``. Two ways to find both
+transforms:
+
+- :func:`reference` (ours): non-linear least squares over all calibration pairs with a robust loss,
+  started from a closed-form (Kabsch) fit of the measured positions to the nominal tip positions;
+- :func:`reference_by_circles` (the paper's): fit circles to the target's path while joints 1, 2, 5 and
+  6 move one at a time, and build the frames from the fitted axes.
+
+A position-only target (a plain reflector) has no orientation: only its offset from the flange is found.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
+from hybrid_kinematics_ros.io.pairs import Pairs
+from hybrid_kinematics_ros.kinematics import fk, se3
+from hybrid_kinematics_ros.kinematics.chain import Chain
+
+ROBUST_SCALE = 1e-3  # m: residuals well above this (a broken beam, a wrong reflector) are down-weighted
+OUTLIER_M = 0.01  # after the fit, pairs this far off are counted as outliers
+
+
+@dataclass(frozen=True)
+class Referencing:
+    frame_id: str  # the tracker's frame, as in the pairs
+    base_to_tracker: np.ndarray  # (4, 4): the tracker frame in the robot's base frame
+    flange_to_target: np.ndarray  # (4, 4): the target in the tip (flange) frame
+    position_only: bool
+    rms_position_mm: float = float("nan")
+    rms_orientation_deg: float = float("nan")
+    method: str = "least squares"
+    outliers: int = 0  # pairs more than OUTLIER_M off after the fit, left out of the rms
+
+    def to_base(self, pairs: Pairs, base_link: str) -> Pairs:
+        """The pairs with their poses turned into tip poses in the base frame."""
+        if pairs.frame_id != self.frame_id:
+            raise CalibrationError(
+                f"the pairs are in frame '{pairs.frame_id}', but the referencing is for '{self.frame_id}'"
+            )
+        T = self.base_to_tracker @ pairs.T @ se3.inverse(self.flange_to_target)
+        if pairs.position_only:
+            T[:, :3, :3] = np.eye(3)  # still no orientation
+        return pairs.with_poses(T, base_link)
+
+    def manifest(self) -> dict[str, Any]:
+        return {
+            "frame_id": self.frame_id,
+            "method": self.method,
+            "base_to_tracker": self.base_to_tracker.tolist(),
+            "flange_to_target": self.flange_to_target.tolist(),
+            "position_only": self.position_only,
+            "rms_position_mm": self.rms_position_mm,
+            "rms_orientation_deg": self.rms_orientation_deg,
+            "outliers": self.outliers,
+        }
+
+    @classmethod
+    def from_manifest(cls, section: dict[str, Any]) -> Referencing:
+        try:
+            return cls(
+                str(section["frame_id"]),
+                np.asarray(section["base_to_tracker"], dtype=float).reshape(4, 4),
+                np.asarray(section["flange_to_target"], dtype=float).reshape(4, 4),
+                bool(section["position_only"]),
+                float(section.get("rms_position_mm", float("nan"))),
+                float(section.get("rms_orientation_deg", float("nan"))),
+                str(section.get("method", "least squares")),
+                int(section.get("outliers", 0)),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CalibrationError(f"model.json: the referencing section is malformed ({exc!r})") from exc
+
+
+def _kabsch(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """The rigid transform ``(4, 4)`` that best maps points ``source`` onto ``target``."""
+    cs, ct = source.mean(axis=0), target.mean(axis=0)
+    rotation, _ = Rotation.align_vectors(target - ct, source - cs)
+    out = np.eye(4)
+    out[:3, :3] = rotation.as_matrix()
+    out[:3, 3] = ct - rotation.apply(cs)
+    return out
+
+
+def _transform(x: np.ndarray) -> np.ndarray:
+    return se3.from_rotvec(x[:3], x[3:6])[0]
+
+
+def reference(
+    chain: Chain, pairs: Pairs, tip: np.ndarray | None = None, max_pairs: int = 20_000, seed: int = 0
+) -> Referencing:
+    """Both transforms from the pairs, by robust non-linear least squares on the nominal model.
+
+    ``tip`` overrides the modelled tip poses (for example a parametric model's). Geometric errors of the
+    robot that look like a moved base or a moved target are absorbed here, which is harmless: the base
+    and flange transforms cannot be told apart from them by any measurement.
+    """
+    if len(pairs) < 10:
+        raise CalibrationError(f"only {len(pairs)} pairs: referencing needs at least 10")
+    pick = np.random.default_rng(seed).permutation(len(pairs))[:max_pairs]
+    q, meas = pairs.q[pick], pairs.T[pick]
+    model = fk.fk(chain, q) if tip is None else tip[pick]
+    p_tip = model[:, :3, 3]
+    if np.linalg.matrix_rank(p_tip - p_tip.mean(axis=0), tol=1e-3) < 3:
+        raise CalibrationError("the tip positions span less than 3 dimensions: referencing needs varied poses")
+    # Start: the target near the flange, the tracker from the point clouds; then the target offset.
+    base_tracker = _kabsch(meas[:, :3, 3], p_tip)
+    in_tip = se3.inverse(model) @ base_tracker @ meas
+    start_target = np.eye(4)
+    start_target[:3, 3] = np.median(in_tip[:, :3, 3], axis=0)
+    if not pairs.position_only:
+        start_target[:3, :3] = Rotation.from_matrix(in_tip[:, :3, :3]).mean().as_matrix()
+
+    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        b = base_tracker @ _transform(x[:6])
+        t = start_target.copy()
+        t[:3, 3] += x[6:9]
+        if not pairs.position_only:
+            t = t @ _transform(np.r_[0.0, 0.0, 0.0, x[9:12]])
+        return b, t
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        b, t = unpack(x)
+        pred = se3.inverse(b) @ model @ t
+        dp = meas[:, :3, 3] - pred[:, :3, 3]
+        if pairs.position_only:
+            return dp.ravel()
+        dw = se3.rotvec(meas[:, :3, :3] @ np.swapaxes(pred[:, :3, :3], 1, 2))
+        return np.concatenate([dp, dw], axis=1).ravel()
+
+    size = 9 if pairs.position_only else 12
+    fit = least_squares(residual, np.zeros(size), loss="soft_l1", f_scale=ROBUST_SCALE, x_scale="jac")
+    b, t = unpack(fit.x)
+    res = fit.fun.reshape(len(q), -1)
+    inlier = np.linalg.norm(res[:, :3], axis=1) < OUTLIER_M
+    res = res[inlier]
+    return Referencing(
+        pairs.frame_id,
+        b,
+        t,
+        pairs.position_only,
+        float(1e3 * np.sqrt(np.mean(np.sum(res[:, :3] ** 2, axis=1)))),
+        float("nan") if pairs.position_only else float(np.degrees(np.sqrt(np.mean(np.sum(res[:, 3:] ** 2, 1))))),
+        outliers=int(np.sum(~inlier)),
+    )
+
+
+def fit_circle(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Centre ``(3,)``, unit normal ``(3,)`` and radius of the circle best fitting 3-D ``points``.
+
+    The plane comes from an SVD, the circle in the plane from the algebraic (Kåsa) fit, refined by
+    geometric least squares.
+    """
+    centroid = points.mean(axis=0)
+    _, _, vt = np.linalg.svd(points - centroid)
+    u, v, normal = vt
+    xy = np.column_stack([(points - centroid) @ u, (points - centroid) @ v])
+    a = np.column_stack([2 * xy, np.ones(len(xy))])
+    sol = np.linalg.lstsq(a, np.sum(xy**2, axis=1), rcond=None)[0]
+    c0 = sol[:2]
+
+    def residual(c: np.ndarray) -> np.ndarray:
+        d = np.linalg.norm(xy - c, axis=1)
+        return d - d.mean()
+
+    c = least_squares(residual, c0).x
+    radius = float(np.linalg.norm(xy - c, axis=1).mean())
+    return centroid + c[0] * u + c[1] * v, normal, radius
+
+
+def _axis_frame(c1: np.ndarray, n1: np.ndarray, c2: np.ndarray, n2: np.ndarray) -> np.ndarray:
+    """A frame built from two skew or intersecting axes: origin on axis 1 at the common perpendicular's
+    foot, z along axis 1, x towards axis 2's direction made perpendicular to z."""
+    n1, n2 = n1 / np.linalg.norm(n1), n2 / np.linalg.norm(n2)
+    w = c1 - c2
+    b = n1 @ n2
+    denom = 1.0 - b**2
+    if denom < 1e-6:
+        raise CalibrationError("the two joint axes are parallel: they do not define a frame")
+    s = (b * (n2 @ w) - (n1 @ w)) / denom
+    origin = c1 + s * n1
+    x = n2 - b * n1
+    x /= np.linalg.norm(x)
+    out = np.eye(4)
+    out[:3, :3] = np.column_stack([x, np.cross(n1, x), n1])
+    out[:3, 3] = origin
+    return out
+
+
+def _joint_axis_world(chain: Chain, q: np.ndarray, joint: int) -> tuple[np.ndarray, np.ndarray]:
+    frames = fk.joint_frames(chain, q[None])[0]
+    return frames[joint, :3, 3], frames[joint, :3, :3] @ chain.axes[joint]
+
+
+def _orient(normal: np.ndarray, reference_direction: np.ndarray) -> np.ndarray:
+    """A fitted circle's normal has no sign: take the one that agrees with the model's axis."""
+    return normal if normal @ reference_direction >= 0 else -normal
+
+
+def circle_sweeps(chain: Chain, home: np.ndarray, joints: tuple[int, ...], span: float, count: int) -> np.ndarray:
+    """Joint configurations ``(len(joints) × count, n)``: each joint swept alone about ``home``."""
+    out = []
+    for j in joints:
+        lo = max(chain.lower[j], home[j] - span / 2) if np.isfinite(chain.lower[j]) else home[j] - span / 2
+        hi = min(chain.upper[j], home[j] + span / 2) if np.isfinite(chain.upper[j]) else home[j] + span / 2
+        for value in np.linspace(lo, hi, count):
+            qi = home.copy()
+            qi[j] = value
+            out.append(qi)
+    return np.array(out)
+
+
+def reference_by_circles(
+    chain: Chain, q: np.ndarray, meas: np.ndarray, home: np.ndarray, count: int, frame_id: str
+) -> Referencing:
+    """The paper's referencing from the sweeps of :func:`circle_sweeps` with joints ``(0, 1, n-2, n-1)``.
+
+    Base: the axes of joints 1 and 2, fitted in the tracker frame, define a frame whose pose in the base
+    frame the nominal model gives. Target: the axes of the last two joints, fitted and moved into the base
+    frame, locate the wrist; the target's mean pose over the sweeps relative to the nominal tip gives
+    the target transform.
+    """
+    n = chain.dof
+    sweeps = {j: slice(i * count, (i + 1) * count) for i, j in enumerate((0, 1, n - 2, n - 1))}
+    fitted = {}
+    for j, rows in sweeps.items():
+        centre, normal, _ = fit_circle(meas[rows, :3, 3])
+        origin, axis = _joint_axis_world(chain, home, j)
+        fitted[j] = (centre, normal, origin, axis)
+
+    # Base: frame from axes 1-2 in the tracker frame against the same construction on the nominal model.
+    # Circle normals have no sign; the model's axes fix it once the base rotation is roughly known.
+    rough = _kabsch(meas[:, :3, 3], fk.fk(chain, q)[:, :3, 3])
+    c1, n1, o1, a1 = fitted[0]
+    c2, n2, o2, a2 = fitted[1]
+    n1 = _orient(n1, rough[:3, :3].T @ a1)
+    n2 = _orient(n2, rough[:3, :3].T @ a2)
+    measured = _axis_frame(c1, n1, c2, n2)
+    nominal = _axis_frame(o1, a1, o2, a2)
+    base_tracker = nominal @ se3.inverse(measured)
+
+    # Target: the wrist frame from the last two axes, measured (now in the base frame) against nominal.
+    c5, n5, o5, a5 = fitted[n - 2]
+    c6, n6, o6, a6 = fitted[n - 1]
+    bt = base_tracker
+    c5, c6 = bt[:3, :3] @ c5 + bt[:3, 3], bt[:3, :3] @ c6 + bt[:3, 3]
+    n5, n6 = _orient(bt[:3, :3] @ n5, a5), _orient(bt[:3, :3] @ n6, a6)
+    wrist_measured = _axis_frame(c6, n6, c5, n5)
+    wrist_nominal = _axis_frame(o6, a6, o5, a5)
+    # The target in the measured wrist frame, averaged over the last two sweeps, then moved onto the
+    # nominal wrist and expressed in the nominal tip frame.
+    rows = np.r_[np.arange(sweeps[n - 2].start, sweeps[n - 2].stop), np.arange(sweeps[n - 1].start, sweeps[n - 1].stop)]
+    tip = fk.fk(chain, q[rows])
+    target_base = bt @ meas[rows]
+    # Each sample: the target relative to the nominal tip after correcting the wrist's measured placement.
+    correction = wrist_nominal @ se3.inverse(wrist_measured)
+    in_tip = se3.inverse(tip) @ correction @ target_base
+    flange_target = np.eye(4)
+    flange_target[:3, 3] = in_tip[:, :3, 3].mean(axis=0)
+    flange_target[:3, :3] = Rotation.from_matrix(in_tip[:, :3, :3]).mean().as_matrix()
+    return Referencing(frame_id, base_tracker, flange_target, False, method="circle fits (paper)")

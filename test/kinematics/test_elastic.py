@@ -1,0 +1,60 @@
+"""The elasto-geometric chain: rigid when its parameters are zero, one pose path equal to the batch path,
+and a Jacobian close to finite differences (it leaves out the torque derivative by design)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from hybrid_kinematics_ros.kinematics import fk, se3
+from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
+from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.simulation.truth import TrueRobot
+
+
+@pytest.fixture(scope="module", params=["ur10", "rx160"])
+def elastic(request) -> ElasticChain:
+    return TrueRobot.from_config(load_robot_config(request.param)).elastic
+
+
+def joints(chain, n, seed=0):
+    return np.random.default_rng(seed).uniform(chain.lower, chain.upper, (n, chain.dof))
+
+
+def test_exp_so3_matches_scipy_from_tiny_to_large_angles():
+    w = np.random.default_rng(0).normal(size=(200, 3)) * np.logspace(-14, 0.5, 200)[:, None]
+    np.testing.assert_allclose(se3.exp_so3(w), Rotation.from_rotvec(w).as_matrix(), atol=1e-15, rtol=0)
+
+
+def test_rigid_elastic_chain_is_the_plain_chain(elastic):
+    rigid = ElasticChain.rigid(elastic.chain, 3.0, np.array([0.0, 0.0, 0.1]))
+    q = joints(elastic.chain, 100)
+    np.testing.assert_array_equal(rigid.fk(q), fk.fk(elastic.chain, q))
+    assert rigid.is_rigid and not elastic.is_rigid
+
+
+def test_single_pose_paths_equal_the_batch(elastic):
+    q = joints(elastic.chain, 20, seed=1)
+    T, J = elastic.fk_and_jacobian(q)
+    np.testing.assert_allclose(elastic.fk(q), T, atol=1e-15)
+    for i in range(len(q)):
+        np.testing.assert_allclose(elastic.fk_single(q[i]), T[i], atol=1e-14, rtol=0)
+        Ts, Js = elastic.fk_and_jacobian_single(q[i])
+        np.testing.assert_allclose(Ts, T[i], atol=1e-14, rtol=0)
+        np.testing.assert_allclose(Js, J[i], atol=1e-12, rtol=0)
+
+
+def test_jacobian_is_within_the_stated_approximation(elastic):
+    q = joints(elastic.chain, 5, seed=2)
+    _, J = elastic.fk_and_jacobian(q)
+    eps = 1e-6
+    for j in range(elastic.dof):
+        dq = np.zeros(elastic.dof)
+        dq[j] = eps
+        plus, minus = elastic.fk(q + dq), elastic.fk(q - dq)
+        v = (plus[:, :3, 3] - minus[:, :3, 3]) / (2 * eps)
+        w = se3.rotvec(plus[:, :3, :3] @ np.swapaxes(minus[:, :3, :3], 1, 2)) / (2 * eps)
+        numeric = np.concatenate([v, w], axis=1)
+        # the left-out c·∂τ/∂q is a few 1e-3 of a column for these arms; a wrong axis would be O(1)
+        np.testing.assert_allclose(J[:, :, j], numeric, atol=1e-2 * np.abs(numeric).max() + 1e-9)
