@@ -104,6 +104,7 @@ class ParametricResult:
     model: ElasticChain
     params: list[Parameter]
     values: np.ndarray  # SI, zero where unidentifiable
+    rigid_values: np.ndarray  # the best fit without compliance and bending: what a URDF can carry
     identifiable: np.ndarray  # bool per parameter
     reasons: dict[str, str]  # unidentifiable parameter name -> why
     rms_before: dict[str, float]
@@ -125,19 +126,23 @@ class ParametricResult:
                     "component": p.component,
                     "unit": UNITS[p.kind],
                     "value": float(v),
+                    "rigid_value": float(r),
                     "identifiable": bool(ok),
                     **({"reason": self.reasons[p.name]} if p.name in self.reasons else {}),
                 }
-                for p, v, ok in zip(self.params, self.values, self.identifiable, strict=True)
+                for p, v, r, ok in zip(self.params, self.values, self.rigid_values, self.identifiable, strict=True)
             ],
         }
 
 
-def model_from_manifest(chain: Chain, section: dict[str, Any]) -> ElasticChain:
-    """Rebuild the identified elastic chain from ``model.json``'s ``parametric`` section."""
+def model_from_manifest(chain: Chain, section: dict[str, Any], rigid: bool = False) -> ElasticChain:
+    """Rebuild the identified elastic chain from ``model.json``'s ``parametric`` section.
+
+    ``rigid``: the geometry-only fit instead (zero offsets and joint origins; what a URDF can carry).
+    """
     try:
         params = [Parameter(p["name"], p["kind"], int(p["index"]), int(p["component"])) for p in section["parameters"]]
-        values = np.array([float(p["value"]) for p in section["parameters"]])
+        values = np.array([float(p["rigid_value" if rigid else "value"]) for p in section["parameters"]])
         payload = section["payload"]
         return build_model(chain, params, values, float(payload["mass"]), np.asarray(payload["com"], float))
     except (KeyError, TypeError, ValueError) as exc:
@@ -201,11 +206,25 @@ def identify(
     values = np.zeros(len(params))
     values[active] = fit.x * scale[active]
     model = build_model(chain, params, values, payload_mass, com)
+    # The same without compliance and bending, for a URDF export: the geometry then absorbs what it can.
+    geometric = active & np.array([p.kind not in ("compliance", "bending") for p in params])
+    rigid_fit = least_squares(
+        residual,
+        values[geometric] / scale[geometric],
+        args=(geometric,),
+        loss="soft_l1",
+        f_scale=ROBUST_SCALE,
+        x_scale="jac",
+        max_nfev=30,
+    )
+    rigid_values = np.zeros(len(params))
+    rigid_values[geometric] = rigid_fit.x * scale[geometric]
     width = 3 if position_only else 6
     return ParametricResult(
         model=model,
         params=params,
         values=values,
+        rigid_values=rigid_values,
         identifiable=active,
         reasons=reasons,
         rms_before=_rms(r0.reshape(-1, width)),

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from tqdm import tqdm
@@ -44,7 +45,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 class Progress:
     """One bar per net, advancing with training time; shows epoch, loss and validation error."""
 
-    def __init__(self, seconds: float) -> None:
+    def __init__(self, seconds: float, kinds: tuple[str, ...] = train.KINDS) -> None:
         self.bars = {
             kind: tqdm(
                 total=round(seconds),
@@ -54,7 +55,7 @@ class Progress:
                 leave=True,
                 bar_format="{desc} {bar} {n_fmt}/{total_fmt} s {postfix}",
             )
-            for i, kind in enumerate(train.KINDS)
+            for i, kind in enumerate(kinds)
         }
 
     def __call__(self, entry: dict) -> None:
@@ -86,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         f"pairs: {len(train_pairs)} train, {len(val_pairs)} validation, {len(test_pairs)} test"
         + (f"; dropped {dict(pairs.dropped)}" if pairs.dropped else "")
     )
-    progress = Progress(60.0 * args.max_minutes)
+    progress = Progress(60.0 * args.max_minutes, ("position",) if pairs.position_only else train.KINDS)
     try:
         _, manifest = fit(
             chain,
@@ -102,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
             progress=progress,
             parametric=args.parametric,
             payload=payload_from_args(args),
-            log=tqdm.write,
+            log=lambda line: tqdm.write(line, file=sys.stderr),
         )
     finally:
         progress.close()
