@@ -39,9 +39,8 @@ def run(args: argparse.Namespace) -> int:
     position, quat = pose_from_matrix(T)
     write_csv(args.out, list(POSE_COLUMNS), np.hstack([position, quat]))
     outside = int(np.sum(~model.in_calibrated_range(q))) if model.nets and not args.analytic else 0
-    print(
-        f"wrote {len(q)} poses to {args.out}" + (f"; {outside} outside the calibrated joint range" if outside else "")
-    )
-    if outside and args.out_of_range == "warn":
-        print(f"warning: {outside} configuration(s) lie outside the calibrated joint range", file=sys.stderr)
+    print(f"wrote {len(q)} poses to {args.out}")
+    if outside:
+        what = "extrapolated by the nets" if args.out_of_range == "warn" else "without the nets"
+        print(f"warning: {outside} configuration(s) outside the calibrated joint range, {what}", file=sys.stderr)
     return 0

@@ -76,6 +76,24 @@ def test_train_evaluate_fk_workflow(tmp_path, capsys):
         np.testing.assert_allclose(
             se3.matrix_from_pose(rows[:, :3], rows[:, 3:]), model.fk(q, analytic=analytic), atol=1e-12
         )
+    outside = np.zeros(6)
+    outside[2] = model.trained_upper[2] + 0.005
+    far = tmp_path / "far.csv"
+    far.write_text(",".join(model.joint_names) + "\n" + ",".join(repr(float(v)) for v in outside) + "\n")
+    out = str(tmp_path / "far_poses.csv")
+    refused = run("fk", "--model", str(model_dir), "--joints", str(far), "--out", out, "--out-of-range", "refuse")
+    assert refused.returncode == 2 and "outside the calibrated joint range" in refused.stderr
+    assert model.joint_names[2] in refused.stderr
+    warned = run("fk", "--model", str(model_dir), "--joints", str(far), "--out", out)
+    assert warned.returncode == 0 and "1 configuration(s) outside the calibrated joint range" in warned.stderr
+
+    urdf = tmp_path / "calibrated.urdf"
+    result = run("export-urdf", "--model", str(model_dir), "--out", str(urdf), "--bag", str(bag))
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report["exported_urdf"]["position_mm_mean"] < report["nominal_urdf"]["position_mm_mean"]
+    assert report["parametric"]["position_mm_mean"] < report["exported_urdf"]["position_mm_mean"]
+    assert "_calibrated" in urdf.read_text()
 
 
 def test_bad_inputs_get_one_line_errors(tmp_path):
