@@ -41,6 +41,19 @@ PY
   rm -f install/.build.sha
 fi
 
+# The report test renders the HTML report in a real browser: Debian's Chromium, headless.
+if ! command -v chromium >/dev/null 2>&1; then
+  if command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
+    mkdir -p log
+    say "installing Debian's chromium for the report test (once)"
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >log/apt.txt 2>&1 \
+      || { apt-get update -qq >/dev/null 2>&1 && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >log/apt.txt 2>&1; } \
+      || say "could not install chromium (see log/apt.txt); the browser test will fail"
+  else
+    say "chromium is missing and cannot be installed here (needs root and apt-get); the browser test will fail"
+  fi
+fi
+
 # Sources are symlinked (--symlink-install), so only metadata, interfaces and entry points need a rebuild.
 build_sum="$(digest package.xml setup.py setup.cfg resource/* hybrid_kinematics_interfaces/package.xml \
   hybrid_kinematics_interfaces/CMakeLists.txt hybrid_kinematics_interfaces/srv/* config/* "$venv/.requirements.sha")"

@@ -59,7 +59,7 @@ def evaluate(model: HybridModel, pairs: Pairs) -> dict[str, Any]:
 
 
 def plot_distributions(model: HybridModel, pairs: Pairs, out_dir: Path) -> list[Path]:
-    """The paper's Figs. 4 and 8: error distributions of the analytic against the hybrid model (PNG)."""
+    """The paper's Figs. 4 and 8: error distributions of each model, URDF to hybrid (PNG)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -67,12 +67,15 @@ def plot_distributions(model: HybridModel, pairs: Pairs, out_dir: Path) -> list[
 
     out_dir.mkdir(parents=True, exist_ok=True)
     errors = pose_errors_of(model, pairs)
+    colors = {"analytic": "tab:orange", "parametric": "tab:green", "hybrid": "tab:blue"}
     paths = []
     for index, (label, unit) in enumerate((("position", "mm"), ("orientation", "deg"))):
-        fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
-        for ax, name, color in zip(axes, ("analytic", "hybrid"), ("tab:orange", "tab:blue"), strict=True):
-            values = errors[name][index]
-            ax.hist(values, bins=60, color=color, alpha=0.85)
+        if pairs.position_only and label == "orientation":
+            continue
+        fig, axes = plt.subplots(1, len(errors), figsize=(5 * len(errors), 3.8))
+        for ax, (name, values) in zip(axes, errors.items(), strict=True):
+            values = values[index]
+            ax.hist(values, bins=60, color=colors[name], alpha=0.85)
             ax.set_title(f"{name}: mean {values.mean():.4g} {unit}")
             ax.set_xlabel(f"{label} error ({unit})")
             ax.set_ylabel("samples")

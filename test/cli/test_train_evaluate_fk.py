@@ -156,3 +156,9 @@ def test_tracker_frame_position_only_workflow(tmp_path):
     report = json.loads(result.stdout)
     assert report["hybrid"]["position_mm_mean"] < report["parametric"]["position_mm_mean"] < 0.5
     assert report["analytic"]["position_mm_mean"] > 1.0 and "orientation_deg_mean" not in report["hybrid"]
+    report_dir = tmp_path / "report"
+    result = run("report", "--model", str(model_dir), "--bag", str(bag), "--out", str(report_dir))
+    assert result.returncode == 0, result.stderr
+    page = (report_dir / "index.html").read_text()
+    assert "Method: least squares; frame 'tracker'" in page and "Not identifiable" in page
+    assert "position-only pairs" in page and not (report_dir / "orientation_error_distribution.png").exists()

@@ -1,0 +1,230 @@
+"""An accuracy report a calibration engineer can hand in: one HTML page with PNG plots.
+
+Sections: the errors of each model (URDF, parametric, hybrid) with their distributions; errors over the
+workspace; inside and outside the calibrated joint range; ISO 9283-style pose accuracy (AP) and
+repeatability (RP) where the test data repeats poses; the referencing; the parametric stage's
+parameters; and the data-amount curve when one is given.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from hybrid_kinematics_ros.calibration.evaluate import evaluate, plot_distributions, pose_errors_of
+from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+from hybrid_kinematics_ros.io.pairs import Pairs
+
+REPEAT_DECIMALS = 6  # joints equal to 1e-6 rad are the same commanded pose
+
+
+def iso9283(model: HybridModel, pairs: Pairs, min_repeats: int = 3) -> list[dict[str, Any]]:
+    """Pose accuracy and repeatability (ISO 9283, positions) for each commanded pose measured repeatedly.
+
+    AP is the distance from the barycentre of the measured positions to the commanded position (what the
+    model says the joints reach), for the URDF and the hybrid model; RP is ``l̄ + 3 s_l`` with ``l`` the
+    distances of the measurements to their barycentre, which no model changes.
+    """
+    keys = np.round(pairs.q, REPEAT_DECIMALS)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    out = []
+    for group in np.flatnonzero(counts >= min_repeats):
+        rows = np.flatnonzero(inverse.ravel() == group)
+        measured = pairs.T[rows, :3, 3]
+        centre = measured.mean(axis=0)
+        spread = np.linalg.norm(measured - centre, axis=1)
+        q = pairs.q[rows[:1]]
+        entry = {"pose": len(out) + 1, "repeats": len(rows), "joints_rad": q[0].round(4).tolist()}
+        for name, T in (("analytic", model.fk(q, analytic=True)), ("hybrid", model.fk(q))):
+            entry[f"AP_{name}_mm"] = float(1e3 * np.linalg.norm(centre - T[0, :3, 3]))
+        entry["RP_mm"] = float(1e3 * (spread.mean() + 3 * spread.std(ddof=1)))
+        out.append(entry)
+    return out
+
+
+def _workspace_plot(model: HybridModel, pairs: Pairs, path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    errors = pose_errors_of(model, pairs)
+    p = pairs.T[:, :3, 3]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
+    for ax, (i, j), label in zip(axes, ((0, 1), (0, 2)), ("top view (x, y)", "side view (x, z)"), strict=True):
+        pos = errors["hybrid"][0]
+        sc = ax.scatter(p[:, i], p[:, j], c=pos, s=4, cmap="viridis", vmax=np.percentile(pos, 99))
+        ax.set_title(label)
+        ax.set_xlabel(f"{'xyz'[i]} (m)")
+        ax.set_ylabel(f"{'xyz'[j]} (m)")
+        ax.set_aspect("equal")
+        fig.colorbar(sc, ax=ax, label="hybrid position error (mm)")
+    fig.suptitle("Hybrid model error over the workspace")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def _curve_plot(curve: list[dict[str, Any]], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    labels = sorted({row["label"] for row in curve})
+    for ax, key, unit in zip(axes, ("position_mm_mean", "orientation_deg_mean"), ("mm", "deg"), strict=True):
+        for label in labels:
+            rows = sorted((r for r in curve if r["label"] == label and key in r), key=lambda r: r["samples"])
+            ax.loglog([r["samples"] for r in rows], [r[key] for r in rows], "o-", label=label)
+        ax.set_xlabel("training samples")
+        ax.set_ylabel(f"mean test error ({unit})")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend()
+    fig.suptitle("Accuracy against the amount of training data")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def _table(head: list[str], rows: list[list[Any]]) -> str:
+    def cell(v: Any) -> str:
+        if isinstance(v, float):
+            return f"{v:.4g}"
+        return html.escape(str(v))
+
+    body = "".join("<tr>" + "".join(f"<td>{cell(v)}</td>" for v in row) + "</tr>" for row in rows)
+    return f"<table><tr>{''.join(f'<th>{html.escape(h)}</th>' for h in head)}</tr>{body}</table>"
+
+
+def _stats_rows(report: dict[str, Any], suffix: str = "") -> list[list[Any]]:
+    rows = []
+    for name in ("analytic", "parametric", "hybrid"):
+        stats = report.get(f"{name}{suffix}")
+        if not stats or not stats.get("count"):
+            continue
+        label = {"analytic": "URDF model", "parametric": "parametric stage", "hybrid": "hybrid model"}[name]
+        rows.append(
+            [
+                label,
+                stats["count"],
+                stats["position_mm_mean"],
+                stats["position_mm_p95"],
+                stats["position_mm_max"],
+                stats.get("orientation_deg_mean", "n/a"),
+                stats.get("orientation_deg_p95", "n/a"),
+                stats.get("orientation_deg_max", "n/a"),
+            ]
+        )
+    return rows
+
+
+STATS_HEAD = [
+    "model",
+    "pairs",
+    "position mean (mm)",
+    "position p95 (mm)",
+    "position max (mm)",
+    "orientation mean (deg)",
+    "orientation p95 (deg)",
+    "orientation max (deg)",
+]
+STYLE = """
+body { font-family: sans-serif; margin: 2em; max-width: 1150px; color: #222; }
+table { border-collapse: collapse; margin: 0.5em 0 1.5em; }
+th, td { border: 1px solid #bbb; padding: 3px 8px; text-align: right; }
+th { background: #eee; } td:first-child { text-align: left; }
+img { max-width: 100%; } .note { color: #a33; }
+"""
+
+
+def write_report(
+    model: HybridModel, pairs: Pairs, out_dir: Path, bags: list[str], curve: list[dict[str, Any]] | None = None
+) -> Path:
+    """Write ``index.html`` and its PNGs into ``out_dir``; return the page's path."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    report = evaluate(model, pairs)
+    m = model.manifest
+    parts = [
+        f"<h1>Accuracy report: {html.escape(str(model.path or 'model'))}</h1>",
+        f"<p>Robot chain {html.escape(model.chain.base_link)} → {html.escape(model.chain.tip_link)}, joints "
+        f"{html.escape(', '.join(model.joint_names))}. Test data: {html.escape(', '.join(bags))} "
+        f"({len(pairs)} pairs). Errors are measured against the tracker, in the robot's base frame.</p>",
+    ]
+    if report.get("note"):
+        parts.append(f"<p class='note'>{html.escape(report['note'])}</p>")
+    parts += ["<h2>Errors before and after calibration</h2>", _table(STATS_HEAD, _stats_rows(report))]
+    for path in plot_distributions(model, pairs, out_dir):
+        parts.append(f"<img src='{path.name}' alt='{path.stem}'>")
+    parts += [
+        "<h2>Errors over the workspace</h2>",
+        f"<img src='{_workspace_plot(model, pairs, out_dir / 'workspace.png').name}' alt='workspace'>",
+        "<h2>Inside and outside the calibrated joint range</h2>",
+        f"<p>{report['inside_calibrated_range']} of {len(pairs)} test pairs lie inside the joint range the nets "
+        "were trained on. Outside it the nets extrapolate, and their error grows.</p>",
+        "<h3>Inside</h3>",
+        _table(STATS_HEAD, _stats_rows(report, "_inside_range")),
+        "<h3>Outside</h3>",
+    ]
+    outside_rows = _stats_rows(report, "_outside_range")
+    parts.append(_table(STATS_HEAD, outside_rows) if outside_rows else "<p>No test pair lies outside.</p>")
+    iso = iso9283(model, pairs)
+    parts.append("<h2>ISO 9283 pose accuracy and repeatability</h2>")
+    if iso:
+        head = ["pose", "repeats", "AP, URDF model (mm)", "AP, hybrid model (mm)", "RP (mm)"]
+        rows = [[e["pose"], e["repeats"], e["AP_analytic_mm"], e["AP_hybrid_mm"], e["RP_mm"]] for e in iso]
+        parts.append(_table(head, rows))
+    else:
+        parts.append("<p>The test data repeats no pose (three or more measurements of one joint vector).</p>")
+    ref = m.get("referencing")
+    parts.append("<h2>Referencing</h2>")
+    if ref:
+        rows = []
+        for label, key in (
+            ("tracker in the base frame", "base_to_tracker"),
+            ("target on the flange", "flange_to_target"),
+        ):
+            t = np.asarray(ref[key])
+            rpy = np.degrees(Rotation.from_matrix(t[:3, :3]).as_euler("xyz"))
+            rows.append([label, *(1e3 * t[:3, 3]).tolist(), *rpy.tolist()])
+        head = ["transform", "x (mm)", "y (mm)", "z (mm)", "roll (deg)", "pitch (deg)", "yaw (deg)"]
+        parts += [
+            f"<p>Method: {html.escape(ref['method'])}; frame '{html.escape(ref['frame_id'])}'; residual rms "
+            f"{ref['rms_position_mm']:.4f} mm; {ref.get('outliers', 0)} outliers left out.</p>",
+            _table(head, rows),
+        ]
+    else:
+        parts.append("<p>The training data was in the base frame: no referencing was needed.</p>")
+    par = m.get("parametric")
+    parts.append("<h2>Parametric stage</h2>")
+    if par:
+        fitted = [p for p in par["parameters"] if p["identifiable"]]
+        free = [p for p in par["parameters"] if not p["identifiable"]]
+        parts += [
+            f"<p>{len(fitted)} of {len(par['parameters'])} parameters identified; rms position error "
+            f"{par['rms_before']['position_mm']:.4f} → {par['rms_after']['position_mm']:.4f} mm.</p>",
+            _table(["parameter", "value", "unit"], [[p["name"], p["value"], p["unit"]] for p in fitted]),
+            "<h3>Not identifiable</h3>",
+            _table(["parameter", "why"], [[p["name"], p.get("reason", "")] for p in free]),
+        ]
+    else:
+        parts.append("<p>No parametric stage: the nets correct the URDF model directly.</p>")
+    if curve:
+        parts += [
+            "<h2>Accuracy against the amount of data</h2>",
+            f"<img src='{_curve_plot(curve, out_dir / 'curve.png').name}' alt='curve'>",
+        ]
+    page = out_dir / "index.html"
+    page.write_text(
+        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>Accuracy report</title>"
+        f"<style>{STYLE}</style></head><body>{''.join(parts)}</body></html>\n"
+    )
+    (out_dir / "report.json").write_text(json.dumps({**report, "iso9283": iso}, indent=2) + "\n")
+    return page
