@@ -84,6 +84,11 @@ class HybridModel:
         self._range_policy = value
 
     @property
+    def is_corrected(self) -> bool:
+        """True when the model differs from the URDF: nets, a parametric stage, or both."""
+        return bool(self.nets) or not self.base.is_rigid
+
+    @property
     def has_parametric(self) -> bool:
         return "parametric" in self.manifest
 

@@ -270,12 +270,12 @@ class IKSolver:
             q0, _, _, attempts = self.classical(target, attempt_seed, deadline)
             stats["attempts"] += attempts
             q = q0
-            if not analytic and self.model.nets:
+            if not analytic and self.model.is_corrected:
                 q, info = self.refine(target, q0)
                 stats["refinements"] += 1
                 stats.update(info)
             result = self._result(q, target, analytic, start, dict(stats))
-            if not result.success and not analytic and self.model.nets:
+            if not result.success and not analytic and self.model.is_corrected:
                 # near a singularity the bounded boxes crawl; damped LM on the hybrid model does not
                 q, *_ = lm_solve(
                     self.model.fk_and_jacobian_single,
@@ -344,7 +344,7 @@ class IKSolver:
         found.sort(key=lambda q: float(np.linalg.norm(q - seed)))
         results = []
         for q0 in found[:max_solutions]:
-            q, stats = (q0, {}) if analytic or not self.model.nets else self.refine(target, q0)
+            q, stats = (q0, {}) if analytic or not self.model.is_corrected else self.refine(target, q0)
             result = self._result(q, target, analytic, start, stats)
             if result.success:
                 results.append(result)

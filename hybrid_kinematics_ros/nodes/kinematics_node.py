@@ -81,7 +81,7 @@ class KinematicsNode(Node):
         joint_qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.BEST_EFFORT)
         self.create_subscription(JointState, topic, self._on_joint_state, joint_qos, callback_group=fk_group)
         m = self.model
-        kind = f"hybrid model {self.model_dir}" if m.nets else "analytic URDF model (no model_dir)"
+        kind = f"calibrated model {self.model_dir}" if m.is_corrected else "analytic URDF model (no model_dir)"
         self.get_logger().info(
             f"serving {kind}: {m.chain.base_link} -> {m.chain.tip_link}, joints {', '.join(m.joint_names)}"
         )

@@ -91,3 +91,24 @@ def test_exported_urdf_carries_the_geometry_and_zero_offsets(cell, identified):
     nominal_pos, _ = se3.pose_errors(T, fk.fk(cfg.chain, q))
     # on this compliant UR10 the geometry alone halves the error; compliance is the rest
     assert urdf_pos.mean() < nominal_pos.mean() / 1.5
+
+
+def test_ik_through_the_parametric_model(cell, identified):
+    """IK refines through the identified elastic model (its Jacobian holds the deflections fixed)."""
+    from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+    from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
+
+    cfg, _, _, _ = cell
+    model = HybridModel(cfg.chain, manifest={"parametric": identified.manifest()})
+    solver = IKSolver(model, IKOptions(timeout_s=0.5))
+    rng = np.random.default_rng(5)
+    q_true = rng.uniform(cfg.chain.lower * 0.8, cfg.chain.upper * 0.8, (30, cfg.chain.dof))
+    solved = 0
+    for q in q_true:
+        target = model.fk_single(q)
+        result = solver.solve(target, q + rng.normal(0, 0.05, cfg.chain.dof))
+        if result.success:
+            solved += 1
+            pos, rot = se3.pose_errors(model.fk_single(result.q)[None], target[None])
+            assert pos[0] < 1e-4 and rot[0] < 1e-4
+    assert solved >= 29
