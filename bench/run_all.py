@@ -12,7 +12,8 @@ STEPS = [
     ["bench.bench_ik"],
     ["bench.bench_nodes"],
     ["bench.bench_hybrid", "table1", "noise", "paper", "--minutes", "10"],
-    ["bench.bench_hybrid", "curve", "--minutes", "3"],
+    ["bench.bench_hybrid", "curve", "--minutes", "8"],
+    ["bench.bench_parametric", "referencing", "range", "table1", "--minutes", "10"],
 ]
 
 if __name__ == "__main__":
