@@ -1,4 +1,4 @@
-"""Every benchmark, in sequence (about 90 minutes on 2 cores); each writes its section of BENCHMARKS.md."""
+"""Every benchmark, in sequence (about 3 hours on 2 cores); each writes its section of BENCHMARKS.md."""
 
 from __future__ import annotations
 

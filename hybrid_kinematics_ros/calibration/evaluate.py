@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import se3
@@ -27,11 +28,25 @@ def error_stats(pos_mm: np.ndarray, rot_deg: np.ndarray) -> dict[str, float]:
     return out
 
 
+def in_base_frame(model: HybridModel, pairs: Pairs) -> Pairs:
+    base = model.chain.base_link
+    if pairs.frame_id == base:
+        return pairs
+    if model.referencing is not None and pairs.frame_id == model.referencing.frame_id:
+        return model.referencing.to_base(pairs, base)
+    raise CalibrationError(
+        f"the pairs are in frame '{pairs.frame_id}', the model works in '{base}'"
+        + (f" and was referenced to '{model.referencing.frame_id}'" if model.referencing else " and has no referencing")
+    )
+
+
 def pose_errors_of(model: HybridModel, pairs: Pairs) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Errors of the URDF model (``analytic``), the parametric stage alone if any, and the hybrid model.
 
-    Position-only pairs have no orientation to compare with: their orientation errors are NaN.
+    Position-only pairs have no orientation to compare with: their orientation errors are NaN. Pairs in
+    the tracker frame the model was referenced to are moved into the base frame first.
     """
+    pairs = in_base_frame(model, pairs)
     models = {"analytic": model.fk(pairs.q, analytic=True)}
     if model.has_parametric:
         models["parametric"] = model.fk(pairs.q, nets=False)

@@ -16,7 +16,7 @@ from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.calibration.parametric import identify
-from hybrid_kinematics_ros.calibration.referencing import Referencing, reference
+from hybrid_kinematics_ros.calibration.referencing import Referencing, anchor_base, reference
 from hybrid_kinematics_ros.io.model_dir import save_model_dir
 from hybrid_kinematics_ros.io.pairs import (
     JOINTS_TOPIC,
@@ -110,24 +110,28 @@ def fit(
     pairs train the position net alone.
     """
     manifest: dict[str, Any] = {}
+    ref = None
+    raw = train_pairs, val_pairs, test_pairs
     if train_pairs.frame_id != chain.base_link:
         ref = reference(chain, train_pairs, seed=seed)
         log(f"referenced frame '{ref.frame_id}': rms {ref.rms_position_mm:.4f} mm ({ref.outliers} outliers)")
-        manifest["referencing"] = ref.manifest()
-        train_pairs, val_pairs, test_pairs = (
-            ref.to_base(p, chain.base_link) for p in (train_pairs, val_pairs, test_pairs)
-        )
+        train_pairs, val_pairs, test_pairs = (ref.to_base(p, chain.base_link) for p in raw)
     position_only = train_pairs.position_only
     base = ElasticChain.rigid(chain)
     if parametric:
         start = time.perf_counter()
         result = identify(chain, train_pairs.q, train_pairs.T, *payload, position_only=position_only, seed=seed)
+        if ref is not None:
+            ref, result = anchor_base(chain, ref, result)
+            train_pairs, val_pairs, test_pairs = (ref.to_base(p, chain.base_link) for p in raw)
         base = result.model
         manifest["parametric"] = {**result.manifest(), "seconds": round(time.perf_counter() - start, 1)}
         log(
             f"parametric stage: {int(result.identifiable.sum())} of {len(result.params)} parameters identifiable; "
             f"rms {result.rms_before['position_mm']:.4f} -> {result.rms_after['position_mm']:.4f} mm"
         )
+    if ref is not None:
+        manifest["referencing"] = ref.manifest()
     lower, upper = train_pairs.q.min(axis=0), train_pairs.q.max(axis=0)
     norm_lower, norm_upper = (chain.lower, chain.upper) if preset.full_range else (lower, upper)
     norm_lower = np.where(np.isfinite(norm_lower), norm_lower, lower)

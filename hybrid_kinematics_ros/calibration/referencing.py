@@ -13,7 +13,7 @@ A position-only target (a plain reflector) has no orientation: only its offset f
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -21,6 +21,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
+from hybrid_kinematics_ros.calibration.parametric import ParametricResult, build_model
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.chain import Chain
@@ -78,6 +79,41 @@ class Referencing:
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise CalibrationError(f"model.json: the referencing section is malformed ({exc!r})") from exc
+
+
+def anchor_base(chain: Chain, ref: Referencing, result: ParametricResult) -> tuple[Referencing, ParametricResult]:
+    """Define the base frame by the robot's first joint, as its URDF places it and as its encoder counts.
+
+    Least squares on the nominal model puts the base wherever the robot's errors fit best, and the
+    parametric stage then corrects the first joint's origin (and zero offset) to match. Both are equally
+    good in the tracker frame, but in the robot's base frame only one is right: the frame in which the
+    first joint sits where the URDF says, and turns by what its encoder reads (a zero offset of the first
+    joint cannot be told from a turn of the base; this is the paper's circle-fit convention too). So the
+    first joint origin's correction and its zero offset move into ``base_to_tracker``,
+    ``B' = X⁻¹ · B`` with ``X = pre₀' · pre₀⁻¹ · local₀(z₀) · pre₀⁻¹``, and the model keeps the nominal ones.
+    """
+    first = np.array(
+        [
+            (p.kind in ("translation", "rotation") and p.index == 0) or (p.kind == "zero" and p.index == 0)
+            for p in result.params
+        ]
+    )
+    if not np.any(result.values[first]):
+        return ref, result
+    m = result.model
+    z0 = m.zero_offset[0]
+    a, b = chain.coefficients(np.full(chain.dof, z0))
+    g = chain.generators[0]
+    local = g[0] + a[0] * g[1] + b[0] * g[2]  # pre₀ · M₀(z₀)
+    inv_pre = se3.inverse(chain.pre[0])
+    x = m.chain.pre[0] @ inv_pre @ local @ inv_pre
+    values = result.values.copy()
+    values[first] = 0.0
+    rigid = result.rigid_values.copy()
+    rigid[first] -= result.values[first]  # first order: the URDF fit's first joint, relative to the new base
+    anchored = build_model(chain, result.params, values, m.payload_mass, m.payload_com)
+    base = se3.inverse(x) @ ref.base_to_tracker
+    return replace(ref, base_to_tracker=base), replace(result, model=anchored, values=values, rigid_values=rigid)
 
 
 def _kabsch(source: np.ndarray, target: np.ndarray) -> np.ndarray:
