@@ -172,6 +172,8 @@ td,th{{padding:4px 10px;border-bottom:1px solid #ddd}}</style>
 <p>Recording: {meta["pairs"]} aligned pairs, tracker clock offset {meta["offset_ms"]:.3f} ms.
 Test set: {evaluation["pairs"]} separate virtual-cell samples with tracker noise.</p>
 <table><tr><th>error</th><th>URDF model</th><th>hybrid model</th></tr>{rows}</table>
+<p>The full accuracy report (workspace, calibrated range, parametric stage):
+<a href="accuracy_report/index.html">accuracy_report/index.html</a>.</p>
 <h2>Kinematics node</h2><pre>{json.dumps(ros, indent=2)}</pre>
 <h2>Error distributions (paper Figs. 4 and 8)</h2>{plots}</body></html>"""
     path = out / "report.html"
@@ -265,6 +267,8 @@ def main() -> int:
             )
         )
 
+        cli("report", "--model", str(model), "--bag", str(test), "--out", str(out / "accuracy_report"))
+
         say("4/5 kinematics node serving the model; a client calls FK and IK")
         node = launch("kinematics_node", "-p", f"model_dir:={model}", log=out / "kinematics_node.log")
         ros = client_round_trip(model, out)
@@ -272,12 +276,16 @@ def main() -> int:
 
         say("5/5 report")
         report = html_report(out, evaluation, ros, info)
-        a, h = evaluation["analytic"], evaluation["hybrid"]
-        print(f"\n{'':28s}{'URDF model':>14s}{'hybrid model':>16s}")
-        print(f"{'position mean (mm)':28s}{a['position_mm_mean']:14.4f}{h['position_mm_mean']:16.5f}")
-        print(f"{'position p95 (mm)':28s}{a['position_mm_p95']:14.4f}{h['position_mm_p95']:16.5f}")
-        print(f"{'orientation mean (deg)':28s}{a['orientation_deg_mean']:14.4f}{h['orientation_deg_mean']:16.5f}")
-        print(f"{'orientation p95 (deg)':28s}{a['orientation_deg_p95']:14.4f}{h['orientation_deg_p95']:16.5f}")
+        columns = [("URDF model", "analytic"), ("parametric stage", "parametric"), ("hybrid model", "hybrid")]
+        columns = [(label, evaluation[key]) for label, key in columns if key in evaluation]
+        print("\n" + f"{'':28s}" + "".join(f"{label:>18s}" for label, _ in columns))
+        for label, key in (
+            ("position mean (mm)", "position_mm_mean"),
+            ("position p95 (mm)", "position_mm_p95"),
+            ("orientation mean (deg)", "orientation_deg_mean"),
+            ("orientation p95 (deg)", "orientation_deg_p95"),
+        ):
+            print(f"{label:28s}" + "".join(f"{stats[key]:18.5f}" for _, stats in columns))
         print(
             f"\nIK via the node: {ros['ik_solved']}/{ros['ik_requests']} solved, round-trip error "
             f"{ros['ik_position_error_mm_mean']:.2e} mm / {ros['ik_orientation_error_deg_mean']:.2e} deg, "
@@ -285,7 +293,7 @@ def main() -> int:
             "8-solution request"
         )
         print(f"recording: {bag}  ({info['pairs']} pairs, clock offset {info['offset_ms']:.3f} ms)")
-        print(f"report:    {report}")
+        print(f"report:    {report}  (accuracy report: {out / 'accuracy_report' / 'index.html'})")
         return 0
     finally:
         for proc in PROCS:

@@ -49,6 +49,9 @@ class SimCellNode(Node):
         noise = declare("noise", True, "tracker noise on")
         seed = declare("seed", 1, "seed of waypoints, noise and beam breaks")
         self.tracker_frame = declare("tracker_frame", "tracker", "frame_id of the tracker poses")
+        self.wait_s = declare(
+            "wait_for_subscribers_s", 10.0, "wait up to this long for a subscriber on both topics before publishing"
+        )
 
         cfg = load_robot_config(robot)
         self.cell = VirtualCell.from_config(cfg, noise=noise)
@@ -90,6 +93,13 @@ class SimCellNode(Node):
         return t[(t >= t0) & (t < t0 + BLOCK_S)], int(k[-1])
 
     def _run(self) -> None:
+        # Messages published before discovery has matched a subscriber are lost to it: wait for one.
+        give_up = time.perf_counter() + self.wait_s
+        while time.perf_counter() < give_up and not self._stop.is_set():
+            if self.joint_pub.get_subscription_count() and self.pose_pub.get_subscription_count():
+                time.sleep(0.5)  # the other endpoints of the subscriber's participant match moments later
+                break
+            time.sleep(0.05)
         start_ns = self.get_clock().now().nanoseconds
         start = time.perf_counter()
         jk = tk = 0
