@@ -194,31 +194,20 @@ def identify(
         z[i] = step
         jac[:, i] = (residual(z, everything) - r0) / step
     active, reasons = _identifiable(jac, params, position_only)
-    fit = least_squares(
-        residual,
-        np.zeros(int(active.sum())),
-        args=(active,),
-        loss="soft_l1",
-        f_scale=ROBUST_SCALE,
-        x_scale="jac",
-        max_nfev=30,
-    )
+
+    def solve(subset: np.ndarray, start: np.ndarray):
+        return least_squares(
+            residual, start, args=(subset,), loss="soft_l1", f_scale=ROBUST_SCALE, x_scale="jac", max_nfev=30
+        )
+
+    fit = solve(active, np.zeros(int(active.sum())))
     values = np.zeros(len(params))
     values[active] = fit.x * scale[active]
     model = build_model(chain, params, values, payload_mass, com)
     # The same without compliance and bending, for a URDF export: the geometry then absorbs what it can.
     geometric = active & np.array([p.kind not in ("compliance", "bending") for p in params])
-    rigid_fit = least_squares(
-        residual,
-        values[geometric] / scale[geometric],
-        args=(geometric,),
-        loss="soft_l1",
-        f_scale=ROBUST_SCALE,
-        x_scale="jac",
-        max_nfev=30,
-    )
     rigid_values = np.zeros(len(params))
-    rigid_values[geometric] = rigid_fit.x * scale[geometric]
+    rigid_values[geometric] = solve(geometric, values[geometric] / scale[geometric]).x * scale[geometric]
     width = 3 if position_only else 6
     return ParametricResult(
         model=model,
