@@ -53,6 +53,9 @@ def client(calls: int, batch: int = 1, kind: str = "fk") -> dict:
         srv = node.create_client(ComputeFK, "/kinematics_node/compute_fk")
         req = ComputeFK.Request(joint_states=[joint_state_msg(qi, names, stamp) for qi in q])
     assert srv.wait_for_service(timeout_sec=60)
+    # wait_for_service sees the server's request reader; its reply writer can match this client's reader a
+    # moment later, and a reply sent before that is lost (a known rmw race). Let discovery settle first.
+    time.sleep(1.0)
     times, failures, lost = [], 0, 0
     for _ in range(calls):
         start = time.perf_counter()
