@@ -1,8 +1,9 @@
 """Inverse kinematics through the hybrid model (paper section 3, Fig. 3), and past it.
 
 1. A classical iterative IK on the analytic chain (Levenberg-Marquardt with the analytic Jacobian, joint
-   limits enforced) from a seed; the seed decides which solution is found. Random restarts follow within
-   the time budget if the seed fails.
+   limits enforced) from a seed; the seed decides which solution is found. If the seed fails, restarts
+   follow within the time budget from a table of configurations whose poses lie nearest the target (a
+   k-d tree over 4,096 quasi-random configurations, built once), then from random ones.
 2. The hybrid refinement: scipy ``least_squares`` with the joints bounded to a small box around the
    classical answer ``q0``; the cost compares the target with the **hybrid** FK. Either the paper's eq. 2
    (12 matrix elements, translation in mm) or a 6-vector (position in mm, rotation vector scaled to mm).
@@ -20,11 +21,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
 from scipy.stats import qmc
 
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.ik.errors import IKError
-from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics import fk, se3
 
 FkJac = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -39,6 +41,8 @@ class IKOptions:
     max_iterations: int = 100  # classical stage, per seed
     timeout_s: float = 0.05  # per solution, restarts included
     restarts: bool = True
+    seed_table: bool = True  # restart from the configurations whose poses lie nearest the target
+    refine: str = "lm+scipy"  # box refinement: projected LM first, scipy's least_squares if it misses; or "scipy"
     require_calibrated_range: bool = False  # True: a solution outside the trained range fails
 
 
@@ -78,6 +82,16 @@ def project(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, revolute: np.nd
     q = np.where(revolute & (q > upper) & (q - two_pi >= lower), q - two_pi, q)
     q = np.where(revolute & (q < lower) & (q + two_pi <= upper), q + two_pi, q)
     return np.clip(q, lower, upper)
+
+
+TABLE_SIZE = 4096
+TABLE_RESTARTS = 16
+ROTATION_LENGTH = 0.3  # m: weight of the rotation matrix entries against the position in the table metric
+
+
+def _pose_features(T: np.ndarray) -> np.ndarray:
+    """``(B, 12)``: position and scaled rotation entries; Euclidean distance ~ pose distance."""
+    return np.concatenate([T[:, :3, 3], ROTATION_LENGTH * T[:, :3, :3].reshape(-1, 9)], axis=1)
 
 
 STALL_ITERATIONS = 12  # LM converges in a handful of steps from a good basin; a slow run is stuck
@@ -142,9 +156,11 @@ class IKSolver:
         self.limits = (self.lower, self.upper, chain.revolute)
         self._analytic = lambda q: model.fk_and_jacobian_single(q, analytic=True)
         self._rng = np.random.default_rng(0)
-        # deterministic spread seeds for several solutions
+        # deterministic spread seeds for several solutions, and the restart table
         sampler = qmc.Halton(d=chain.dof, seed=0)
         self.spread = qmc.scale(sampler.random(64), self.lower, self.upper)
+        self.table = qmc.scale(sampler.random(TABLE_SIZE), self.lower, self.upper)
+        self._tree = cKDTree(_pose_features(fk.fk(chain, self.table)))
 
     # ------------------------------------------------------------------ checks
     def _check(self, target: np.ndarray, seed: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -173,6 +189,7 @@ class IKSolver:
         best = None
         attempt_seed = seed
         attempts = 0
+        nearest = iter(self.nearest_seeds(target, TABLE_RESTARTS) if o.seed_table else ())
         while True:
             attempts += 1
             q, ep, er, _ = lm_solve(
@@ -184,8 +201,15 @@ class IKSolver:
                 break
             if not o.restarts or time.perf_counter() > deadline:
                 break
-            attempt_seed = self._rng.uniform(self.lower, self.upper)
+            attempt_seed = next(nearest, None)
+            if attempt_seed is None:
+                attempt_seed = self._rng.uniform(self.lower, self.upper)
         return best[0], best[1], best[2], attempts
+
+    def nearest_seeds(self, target: np.ndarray, k: int) -> np.ndarray:
+        """The ``k`` table configurations whose (analytic) poses lie nearest ``target``."""
+        _, index = self._tree.query(_pose_features(target[None])[0], k=k)
+        return self.table[np.atleast_1d(index)]
 
     def refine(self, target: np.ndarray, q0: np.ndarray, recentre: int = 1) -> tuple[np.ndarray, dict]:
         """Stage 2: bounded least squares through the hybrid FK in a box around ``q0``.
@@ -210,10 +234,32 @@ class IKSolver:
         return q, info
 
     def _refine_box(self, target: np.ndarray, q0: np.ndarray) -> tuple[np.ndarray, dict]:
+        """One bounded solve in the box around ``q0``.
+
+        The same bounded problem is first handed to our projected Levenberg-Marquardt (about 10× less
+        overhead per step than scipy's trust-region reflective); scipy's ``least_squares`` takes over when
+        that misses the tolerance, so the paper's solver stays the reference.
+        """
         o = self.options
         q0 = np.clip(q0, self.lower, self.upper)
         lo = np.maximum(self.lower, q0 - o.refine_width_rad)
         hi = np.minimum(self.upper, q0 + o.refine_width_rad)
+        if o.refine == "lm+scipy" and o.cost == "pose6":
+            tol_m, tol_rad = 1e-3 * o.position_tolerance_mm * 1e-3, np.radians(o.orientation_tolerance_deg) * 1e-3
+            box = (lo, hi, np.zeros(len(q0), dtype=bool))  # clip to the box, never wrap by 2π
+            q, ep, er, it = lm_solve(
+                self.model.fk_and_jacobian_single,
+                target,
+                q0,
+                box,
+                tol_m,
+                tol_rad,
+                12,  # Gauss-Newton steps converge in a handful from the classical answer; else it is stuck
+                time.perf_counter() + 0.25 * o.timeout_s,
+            )
+            if ep <= tol_m and er <= tol_rad:
+                return q, {"nfev": it, "status": 0, "method": "lm"}
+            q0 = q  # scipy goes on from there
         model = self.model
         scale = np.array([1e3, 1e3, 1e3, o.rotation_scale_mm, o.rotation_scale_mm, o.rotation_scale_mm])
         mm = np.ones((3, 4))
@@ -266,6 +312,10 @@ class IKSolver:
         stats = {"attempts": 0, "refinements": 0}
         best = None
         attempt_seed = seed
+        # other branches: from the far end of the nearest-seed list (the classical stage uses its front)
+        others = iter(
+            self.nearest_seeds(target, 2 * TABLE_RESTARTS)[TABLE_RESTARTS:] if self.options.seed_table else ()
+        )
         while True:
             q0, _, _, attempts = self.classical(target, attempt_seed, deadline)
             stats["attempts"] += attempts
@@ -293,7 +343,9 @@ class IKSolver:
                 best = result
             if result.success or not self.options.restarts or time.perf_counter() > deadline:
                 break
-            attempt_seed = self._rng.uniform(self.lower, self.upper)
+            attempt_seed = next(others, None)
+            if attempt_seed is None:
+                attempt_seed = self._rng.uniform(self.lower, self.upper)
         best.seconds = time.perf_counter() - start
         return best
 
