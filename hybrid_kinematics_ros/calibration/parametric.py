@@ -25,7 +25,7 @@ from scipy.optimize import least_squares
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.chain import Chain
-from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
+from hybrid_kinematics_ros.kinematics.elastic import ElasticChain, bending_basis
 
 ORIENTATION_LENGTH = 1.0  # m per rad: weighs orientation residuals against position residuals
 RANK_TOLERANCE = 1e-6  # pivots below this fraction of the largest are unidentifiable
@@ -53,17 +53,6 @@ def parameter_list(chain: Chain) -> list[Parameter]:
     for k, frame in enumerate(frames):
         out += [Parameter(f"{frame} {c}", "translation", k, i) for i, c in enumerate("xyz")]
         out += [Parameter(f"{frame} r{c}", "rotation", k, i) for i, c in enumerate("xyz")]
-    return out
-
-
-def bending_basis(chain: Chain) -> np.ndarray:
-    """``(n, 2, 3)``: two unit axes perpendicular to each joint axis (the ``u`` and ``v`` of bending)."""
-    out = np.empty((chain.dof, 2, 3))
-    for k, axis in enumerate(chain.axes):
-        helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-        u = np.cross(axis, helper)
-        u /= np.linalg.norm(u)
-        out[k] = u, np.cross(axis, u)
     return out
 
 

@@ -201,6 +201,18 @@ class ElasticChain:
         return np.concatenate([linear, angular], axis=2).transpose(0, 2, 1)
 
 
+def bending_basis(chain: Chain) -> np.ndarray:
+    """``(n, 2, 3)``: two unit axes perpendicular to each joint axis, in its frame (the ``u`` and ``v`` of
+    bending). The truth bends about ``u``; the parametric stage fits both."""
+    out = np.empty((chain.dof, 2, 3))
+    for k, axis in enumerate(chain.axes):
+        helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        u = np.cross(axis, helper)
+        u /= np.linalg.norm(u)
+        out[k] = u, np.cross(axis, u)
+    return out
+
+
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise cross product of ``(k, 3)`` arrays; ``np.cross`` costs ~20 µs on arrays this small."""
     return np.column_stack(

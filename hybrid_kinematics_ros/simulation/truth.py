@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import Chain
-from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
+from hybrid_kinematics_ros.kinematics.elastic import ElasticChain, bending_basis
 from hybrid_kinematics_ros.kinematics.robot_config import RobotConfig
 from hybrid_kinematics_ros.simulation.errors import SimulationError
 
@@ -31,12 +31,6 @@ def _small_transforms(rng: np.random.Generator, count: int, translation_m: float
     out[:, :3, 3] = rng.normal(0.0, translation_m / np.sqrt(3.0), (count, 3))
     out[:, :3, :3] = Rotation.from_rotvec(rng.normal(0.0, rotation_rad / np.sqrt(3.0), (count, 3))).as_matrix()
     return out
-
-
-def _perpendicular(axis: np.ndarray) -> np.ndarray:
-    helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    perp = np.cross(axis, helper)
-    return perp / np.linalg.norm(perp)
 
 
 def _section(truth: dict[str, Any], name: str) -> dict[str, Any]:
@@ -108,7 +102,7 @@ class TrueRobot:
         bending = _per_joint(bend.get("rad_per_nm", 1e-6), n, "truth.bending.rad_per_nm")
         if not on("bending"):
             bending = np.zeros(n)
-        bending_axes = np.array([_perpendicular(a) for a in chain.axes])
+        bending_axes = bending_basis(chain)[:, 0]
 
         elastic = ElasticChain(
             actual,
