@@ -4,7 +4,9 @@ Usage: python -m bench.bench_recorder [--minutes M]
 
 Both nodes run as the executables ``ros2 run`` would start. The sim logs what it published and how late
 (its publish jitter); the bag tells what the recorder kept. Dropped = published − recorded. CPU and
-resident memory of both processes are sampled from /proc every few seconds.
+resident memory of both processes are sampled from /proc every few seconds. The tracker runs without noise
+here, so the aligned pairs against the virtual robot's true poses measure what alignment alone costs
+(interpolation, the estimated clock offset).
 """
 
 from __future__ import annotations
@@ -19,10 +21,14 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from bench.report import table, write_section
-from hybrid_kinematics_ros.io.pairs import RAW_JOINTS_TOPIC, RAW_POSE_TOPIC
+from hybrid_kinematics_ros.io.pairs import RAW_JOINTS_TOPIC, RAW_POSE_TOPIC, read_pairs
 from hybrid_kinematics_ros.io.raw_bag import read_raw
+from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.simulation.truth import TrueRobot
 
 ROOT = Path(__file__).resolve().parents[1]
 LIB = ROOT / "install" / "hybrid_kinematics_ros" / "lib" / "hybrid_kinematics_ros"
@@ -72,7 +78,8 @@ def main() -> None:
             *("-p", f"output_dir:={out}", "-p", "bag_name:=throughput", "-p", "pairs_frame_id:=base_link"),
         )
         time.sleep(3.0)  # discovery before the first message
-        sim = start("sim_cell_node", out / "sim.log", "--params-file", str(ROOT / "config" / "sim_cell.yaml"))
+        sim_config = ROOT / "config" / "sim_cell.yaml"
+        sim = start("sim_cell_node", out / "sim.log", "--params-file", str(sim_config), "-p", "noise:=false")
         samples = {"sim": [], "recorder": []}
         t_start = time.perf_counter()
         cpu0 = {"sim": cpu_seconds(sim.pid), "recorder": cpu_seconds(recorder.pid)}
@@ -94,6 +101,13 @@ def main() -> None:
         published = re.findall(r"published (\d+) joint states, (\d+) tracker poses \((\d+) lost", sim_log)[-1]
         late = re.findall(r"lateness p50 (\d+) µs, p99 (\d+) µs", sim_log)[-1]
         rec = read_raw(out / "throughput", RAW_JOINTS_TOPIC, RAW_POSE_TOPIC)
+        meta = yaml.safe_load((out / "throughput" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        sim_params = yaml.safe_load(sim_config.read_text())["sim_cell_node"]["ros__parameters"]
+        cfg = load_robot_config(sim_params["robot"])
+        pairs = read_pairs(out / "throughput", cfg.chain.joint_names)
+        pos_err, rot_err = se3.pose_errors(pairs.T, TrueRobot.from_config(cfg).fk(pairs.q))
+        offset_ms = 1e3 * float(meta["custom_data"]["clock_offset_s"])
+        rejected = {k[len("rejected_") :]: v for k, v in meta["custom_data"].items() if k.startswith("rejected_")}
     joints_pub, poses_pub, beam = (int(x) for x in published)
     rows = [
         ["joint states (110 Hz)", joints_pub, len(rec.joint_stamps), joints_pub - len(rec.joint_stamps)],
@@ -104,7 +118,7 @@ def main() -> None:
     body = (
         f"The simulated cell (`config/sim_cell.yaml`: joints at 110 Hz, tracker at 3 kHz with beam breaks) "
         f"published into the recorder for {elapsed / 60:.1f} min; both nodes ran as installed executables on "
-        f"this 2-core machine. Recorder exit code {code} after SIGINT; finalising (aligning "
+        f"this 2-core machine, the tracker without noise. Recorder exit code {code} after SIGINT; finalising (aligning "
         f"{len(rec.joint_stamps):,} joint states against {len(rec.pose_stamps):,} tracker poses and writing the "
         f"pairs) took {finalise_s:.1f} s. {beam:,} tracker samples fell into simulated beam breaks and were "
         "never published.\n\n"
@@ -118,6 +132,20 @@ def main() -> None:
                 ["sim publish lateness p50 (µs)", float(late[0])],
                 ["sim publish lateness p99 (µs)", float(late[1])],
                 ["sim CPU (cores)", cpu["sim"]],
+                ["aligned pairs", len(pairs)],
+                ["pairs rejected, by reason", ", ".join(f"{k} {v}" for k, v in rejected.items()) or "none"],
+                [
+                    "clock offset, estimated / true (ms)",
+                    f"{offset_ms:.3f} / {1e3 * sim_params['tracker_clock_offset_s']:.3f}",
+                ],
+                [
+                    "alignment position error, mean / p99 (µm)",
+                    f"{1e3 * pos_err.mean():.2f} / {1e3 * np.percentile(pos_err, 99):.2f}",
+                ],
+                [
+                    "alignment orientation error, mean / p99 (µdeg)",
+                    f"{1e6 * rot_err.mean():.1f} / {1e6 * np.percentile(rot_err, 99):.1f}",
+                ],
                 ["recorder CPU (cores)", cpu["recorder"]],
                 ["sim resident memory, start / end (MB)", f"{samples['sim'][0]:.0f} / {samples['sim'][-1]:.0f}"],
                 [

@@ -9,6 +9,7 @@ tail, so a bag left by SIGKILL reads back all its complete chunks.
 from __future__ import annotations
 
 import os
+import struct
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +36,24 @@ from hybrid_kinematics_ros.io.pairs import (
 from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
 
 CHUNK_BYTES = 256 * 1024  # about 1 s of 3 kHz poses: what a SIGKILL can cost
+_STAMP_AND_FRAME_LEN = struct.Struct("<iII")
+_POSE = struct.Struct("<7d")
+
+
+def decode_pose_stamped(data: bytes) -> tuple[int, str, tuple[float, ...]]:
+    """``(stamp_ns, frame_id, (x, y, z, qx, qy, qz, qw))`` from a little-endian CDR PoseStamped.
+
+    At 3 kHz the generic deserialisers (about 20 µs a message) cost more than everything else the
+    recorder does; the layout is fixed apart from the frame_id, so a struct read does it in about 1 µs.
+    """
+    if len(data) < 16 or data[1] != 1:  # encapsulation CDR_LE; ROS 2 publishers on x86 and ARM use it
+        raise DataError(f"not a little-endian CDR PoseStamped ({len(data)} bytes, header {bytes(data[:4]).hex()})")
+    sec, nanosec, n = _STAMP_AND_FRAME_LEN.unpack_from(data, 4)
+    start = 4 + ((12 + n + 7) & ~7)  # the doubles are 8-aligned relative to the CDR body after the 4-byte header
+    if n == 0 or start + _POSE.size > len(data):
+        raise DataError(f"truncated CDR PoseStamped ({len(data)} bytes, frame_id of {n} bytes)")
+    frame = bytes(data[16 : 16 + n - 1]).decode()
+    return sec * 1_000_000_000 + nanosec, frame, _POSE.unpack_from(data, start)
 
 
 class BagWriter:
@@ -208,7 +227,7 @@ def iter_messages(path: str | Path):
 
 def read_raw(path: str | Path, joints_topic: str, pose_topic: str) -> RawRecording:
     joint_t, q, names = [], [], None
-    pose_t, pos, quat, frames = [], [], [], set()
+    pose_t, pose, frames = [], [], set()
     counts: Counter = Counter()
     truncated = False
     for topic, msgtype, _, data in iter_messages(path):
@@ -231,12 +250,10 @@ def read_raw(path: str | Path, joints_topic: str, pose_topic: str) -> RawRecordi
             joint_t.append(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
             q.append(np.asarray(position, dtype=float))
         elif topic == pose_topic and msgtype == POSE_STAMPED:
-            msg = TYPESTORE.deserialize_cdr(data, msgtype)
-            pose_t.append(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
-            p, o = msg.pose.position, msg.pose.orientation
-            pos.append((p.x, p.y, p.z))
-            quat.append((o.x, o.y, o.z, o.w))
-            frames.add(msg.header.frame_id)
+            stamp, frame, values = decode_pose_stamped(data)
+            pose_t.append(stamp)
+            pose.append(values)
+            frames.add(frame)
     if not joint_t or not pose_t:
         raise DataError(
             f"bag {path}: needs messages on {joints_topic} and {pose_topic}; found {dict(counts) or 'none'}"
@@ -245,8 +262,9 @@ def read_raw(path: str | Path, joints_topic: str, pose_topic: str) -> RawRecordi
         raise DataError(f"bag {path}: {pose_topic} comes in several frames {sorted(frames)}")
     jt, pt = np.array(joint_t, dtype=np.int64), np.array(pose_t, dtype=np.int64)
     jo, po = np.argsort(jt, kind="stable"), np.argsort(pt, kind="stable")
+    pose_values = np.array(pose)[po]
     return RawRecording(
-        jt[jo], names, np.array(q)[jo], pt[po], frames.pop(), np.array(pos)[po], np.array(quat)[po], truncated, counts
+        jt[jo], names, np.array(q)[jo], pt[po], frames.pop(), pose_values[:, :3], pose_values[:, 3:], truncated, counts
     )
 
 

@@ -10,8 +10,10 @@ Subscriptions run on the EventsExecutor: the only executor here that keeps up wi
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import sys
+import threading
 import time
 from collections import Counter
 from datetime import UTC, datetime
@@ -21,6 +23,7 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
@@ -31,7 +34,7 @@ from hybrid_kinematics_ros.calibration.alignment import AlignOptions, align, est
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.io.pairs import JOINT_STATE, POSE_STAMPED
-from hybrid_kinematics_ros.io.raw_bag import BagWriter, RawRecording, write_pairs_into
+from hybrid_kinematics_ros.io.raw_bag import BagWriter, RawRecording, decode_pose_stamped, write_pairs_into
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.nodes.runtime import StartupError, read_only_parameter, run_node
@@ -83,8 +86,13 @@ class RecorderNode(Node):
         except KinematicsError as exc:
             raise StartupError(f"parameter robot: {exc}") from exc
         qos = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
-        self.create_subscription(JointState, self.joints_topic, self._on_joints, qos, raw=True)
-        self.create_subscription(PoseStamped, self.pose_topic, self._on_pose, qos, raw=True)
+        self.lost: Counter = Counter()  # what the middleware reports as lost before it reached us
+        for msgtype, topic, callback in (
+            (JointState, self.joints_topic, self._on_joints),
+            (PoseStamped, self.pose_topic, self._on_pose),
+        ):
+            events = SubscriptionEventCallbacks(message_lost=lambda info, t=topic: self._on_lost(t, info))
+            self.create_subscription(msgtype, topic, callback, qos, raw=True, event_callbacks=events)
         self.create_service(Trigger, "~/start", self._on_start)
         self.create_service(Trigger, "~/stop", self._on_stop)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -93,6 +101,8 @@ class RecorderNode(Node):
         self.last_offset: float | None = None
         self.last_rejected: Counter = Counter()
         self.last_pairs = 0
+        self._offset_worker: threading.Thread | None = None
+        self._next_offset = 0.0
         if autostart:
             try:
                 self.start(self.bag_name or None)
@@ -150,9 +160,14 @@ class RecorderNode(Node):
         self.get_logger().info(message)
         return message
 
-    def _recording(self) -> RawRecording:
+    def _recording(self, last_s: float | None = None) -> RawRecording:
+        """Everything recorded so far, or about the last ``last_s`` seconds of it (a copy either way)."""
         jt, q = self.joints.view()
         pt, p = self.poses.view()
+        if last_s is not None:
+            elapsed = max(time.monotonic() - self.started, 1e-3)
+            kj, kp = (int(1.5 * last_s * len(x) / elapsed) + 2 for x in (jt, pt))
+            jt, q, pt, p = jt[-kj:], q[-kj:], pt[-kp:], p[-kp:]
         if not len(jt) or not len(pt):
             raise DataError(f"nothing to align: {len(jt)} joint states and {len(pt)} tracker poses")
         jo, po = np.argsort(jt, kind="stable"), np.argsort(pt, kind="stable")
@@ -190,13 +205,18 @@ class RecorderNode(Node):
         if self.writer is None:
             return
         self.writer.write(self.pose_topic, time.time_ns(), raw)
-        msg = deserialize_message(raw, PoseStamped)
         self.received["tracker_poses"] += 1
-        self.frame = msg.header.frame_id
-        p, o = msg.pose.position, msg.pose.orientation
-        self.poses.append(
-            msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec, (p.x, p.y, p.z, o.x, o.y, o.z, o.w)
-        )
+        try:
+            stamp, self.frame, values = decode_pose_stamped(raw)
+        except DataError:  # a big-endian publisher: the slow, general path
+            msg = deserialize_message(raw, PoseStamped)
+            p, o = msg.pose.position, msg.pose.orientation
+            stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            self.frame, values = msg.header.frame_id, (p.x, p.y, p.z, o.x, o.y, o.z, o.w)
+        self.poses.append(stamp, values)
+
+    def _on_lost(self, topic: str, info) -> None:
+        self.lost[topic] = info.total_count
 
     def _on_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         try:
@@ -214,6 +234,27 @@ class RecorderNode(Node):
             response.success, response.message = False, str(exc)
         return response
 
+    def _start_offset_estimate(self) -> None:
+        """Every 5 s, estimate the clock offset over the last 10 s in a worker thread.
+
+        The estimate takes a few hundred ms; on the executor thread it would stall the 3 kHz stream for
+        that long, and the publisher's queue would overflow.
+        """
+        busy = self._offset_worker is not None and self._offset_worker.is_alive()
+        if self.options.offset_s is not None or busy or time.monotonic() < self._next_offset:
+            return
+        if self.joints.n < 500 or self.poses.n < 5000:
+            return
+        self._next_offset = time.monotonic() + 5.0
+        recent = self._recording(last_s=10.0)
+
+        def estimate() -> None:
+            with contextlib.suppress(CalibrationError, DataError, ValueError):  # too little motion: keep the last
+                self.last_offset = estimate_offset(self.chain, recent, self.options.max_offset_s)
+
+        self._offset_worker = threading.Thread(target=estimate, name="offset_estimate", daemon=True)
+        self._offset_worker.start()
+
     def _diagnostics(self) -> None:
         status = DiagnosticStatus(name="recorder_node", hardware_id="laser_tracker")
         values = {"recording": str(self.writer is not None)}
@@ -228,25 +269,8 @@ class RecorderNode(Node):
                     "tracker_rate_hz": f"{self.received['tracker_poses'] / elapsed:.1f}",
                 }
             )
-            if self.options.offset_s is None and self.joints.n > 500 and self.poses.n > 5000:
-                try:
-                    rec = self._recording()
-                    keep_j = rec.joint_stamps >= rec.joint_stamps[-1] - 10_000_000_000
-                    keep_p = rec.pose_stamps >= rec.pose_stamps[-1] - 10_000_000_000
-                    recent = RawRecording(
-                        rec.joint_stamps[keep_j],
-                        rec.joint_names,
-                        rec.q[keep_j],
-                        rec.pose_stamps[keep_p],
-                        rec.pose_frame,
-                        rec.positions[keep_p],
-                        rec.quats[keep_p],
-                        False,
-                        Counter(),
-                    )
-                    self.last_offset = estimate_offset(self.chain, recent, self.options.max_offset_s)
-                except (CalibrationError, DataError, ValueError):
-                    pass
+            values.update({f"lost_{t}": str(n) for t, n in self.lost.items()})
+            self._start_offset_estimate()
         if self.last_offset is not None:
             values["clock_offset_ms"] = f"{self.last_offset * 1e3:.3f}"
         values.update({f"rejected_{k}": str(v) for k, v in self.last_rejected.items()})

@@ -1,8 +1,12 @@
 """The simulated cell: the virtual robot's joints at 110 Hz and laser-tracker poses at 3 kHz.
 
-Samples are computed in vectorised blocks and published from a ``perf_counter`` pacing loop (a ROS timer
-reaches only about 2.9 kHz here). The tracker has its own clock (offset and drift against the robot's),
-noise, and beam breaks during which nothing is published.
+Samples are computed in vectorised blocks of 10 ms and published from a loop that sleeps until each
+sample is due (a ROS timer reaches only about 2.9 kHz here; busy-waiting holds the time a few µs closer
+but takes a whole core from the recorder on a 2-core machine). Stamps are the scheduled times, so
+lateness moves delivery, never the data. Computing a block makes the samples right after it up to about
+1 ms late; a producer thread does not help, because the computation holds the GIL. The tracker has its
+own clock (offset and drift against the robot's), noise, and beam breaks during which nothing is
+published.
 """
 
 from __future__ import annotations
@@ -25,7 +29,8 @@ from hybrid_kinematics_ros.nodes.runtime import read_only_parameter, run_node
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from hybrid_kinematics_ros.simulation.trajectory import cube_waypoints, random_waypoints, through
 
-BLOCK_S = 0.05
+BLOCK_S = 0.01
+LATENESS_SAMPLES = 2_000_000
 
 
 class SimCellNode(Node):
@@ -71,7 +76,9 @@ class SimCellNode(Node):
         qos = QoSProfile(depth=1000)
         self.joint_pub = self.create_publisher(JointState, "/joint_states", qos)
         self.pose_pub = self.create_publisher(PoseStamped, "/tracker/pose", qos)
-        self.stats = {"joint_states": 0, "tracker_poses": 0, "dropped_by_beam_break": 0, "late_us": []}
+        self.stats = {"joint_states": 0, "tracker_poses": 0, "dropped_by_beam_break": 0}
+        self.late_us = np.zeros(LATENESS_SAMPLES, dtype=np.float32)  # a ring: the last 10 min at 3.1 kHz
+        self.events = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -93,6 +100,13 @@ class SimCellNode(Node):
         return t[(t >= t0) & (t < t0 + BLOCK_S)], int(k[-1])
 
     def _run(self) -> None:
+        try:
+            self._publish_loop()
+        except Exception:  # rclpy raises RCLError once SIGINT has shut the context down mid-publish
+            if rclpy.ok() and not self._stop.is_set():
+                raise
+
+    def _publish_loop(self) -> None:
         # Messages published before discovery has matched a subscriber are lost to it: wait for one.
         give_up = time.perf_counter() + self.wait_s
         while time.perf_counter() < give_up and not self._stop.is_set():
@@ -118,10 +132,8 @@ class SimCellNode(Node):
             events.sort()
             for t, kind, i in events:
                 delay = start + t - time.perf_counter()
-                if delay > 0.0015:
-                    time.sleep(delay - 0.001)
-                while time.perf_counter() < start + t:
-                    pass
+                if delay > 0.0:
+                    time.sleep(delay)
                 late = time.perf_counter() - (start + t)
                 robot_ns = start_ns + round(t * 1e9)
                 if kind == 0:
@@ -131,8 +143,8 @@ class SimCellNode(Node):
                 else:
                     tracker_ns = robot_ns + round((self.offset_s + self.drift * t) * 1e9)
                     self._publish_pose(tracker_ns, positions[i], quats[i])
-                if len(self.stats["late_us"]) < 100_000:
-                    self.stats["late_us"].append(late * 1e6)
+                self.late_us[self.events % LATENESS_SAMPLES] = late * 1e6
+                self.events += 1
                 if self._stop.is_set():
                     return
             t0 += BLOCK_S
@@ -156,7 +168,7 @@ class SimCellNode(Node):
         self.stats["tracker_poses"] += 1
 
     def _report(self) -> None:
-        late = np.array(self.stats["late_us"] or [0.0])
+        late = self.late_us[: max(1, min(self.events, LATENESS_SAMPLES))]
         self.get_logger().info(
             f"published {self.stats['joint_states']} joint states, {self.stats['tracker_poses']} "
             f"tracker poses ({self.stats['dropped_by_beam_break']} lost to beam breaks); "

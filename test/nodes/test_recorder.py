@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import signal
 import subprocess
 import time
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 import rclpy
 import yaml
+from geometry_msgs.msg import PoseStamped
 from std_srvs.srv import Trigger
 
 from hybrid_kinematics_ros.calibration.alignment import AlignOptions, align
@@ -37,6 +39,14 @@ def cell(tmp_path_factory):
         log=log,
     )
     client = Client("recorder_test_client")
+    # the sim publishes once it sees a subscriber: make it one, and wait for its first poses
+    poses = []
+    sub = client.node.create_subscription(PoseStamped, "/tracker/pose", poses.append, 100)
+    deadline = time.monotonic() + 60.0
+    while not poses and time.monotonic() < deadline:
+        client.spin_for(0.1)
+    client.node.destroy_subscription(sub)
+    assert poses, log.read_text()
     yield client, log
     client.close()
     assert stop(sim) == 0, log.read_text()
@@ -70,7 +80,38 @@ def test_thirty_seconds_recorded_and_aligned(cell, tmp_path):
     assert len(raw.pose_stamps) > 15 * 3000 and not raw.truncated
 
 
+def test_start_stop_services_split_recordings(cell, tmp_path):
+    client, _ = cell
+    proc = recorder(tmp_path, "split", "-p", "autostart:=false", "-p", f"clock_offset_s:={OFFSET}")
+    try:
+        start_srv = client.service(Trigger, "/recorder_split/start")
+        stop_srv = client.service(Trigger, "/recorder_split/stop")
+        assert not client.call(stop_srv, Trigger.Request()).success  # not recording yet
+        for _ in range(2):
+            assert client.call(start_srv, Trigger.Request()).success
+            time.sleep(4.0)
+            answer = client.call(stop_srv, Trigger.Request(), timeout=60)
+            assert answer.success and re.search(r"with \d+ pairs", answer.message), answer.message
+    finally:
+        stop(proc)
+    bags = sorted(p for p in tmp_path.iterdir() if p.is_dir())
+    assert len(bags) == 2
+    for bag in bags:
+        assert len(read_pairs(bag)) > 200
+
+
+def test_unwritable_output_is_one_clear_line(tmp_path):
+    proc = start(
+        "recorder_node", "-r", "__node:=recorder_bad", "-p", "output_dir:=/proc/no_such_dir", log=tmp_path / "bad.log"
+    )
+    assert proc.wait(60) == 1
+    lines = [line for line in (tmp_path / "bad.log").read_text().splitlines() if line.strip()]
+    assert len(lines) == 1 and "FATAL" in lines[0] and "output_dir" in lines[0]
+
+
 def test_sigkill_keeps_what_was_written_and_align_recovers_it(cell, tmp_path):
+    # Last in this module: a SIGKILLed subscriber stalls the sim's publishers for seconds (Fast DDS's
+    # shared-memory transport waits on the dead reader's full port until discovery drops it).
     client, _ = cell
     proc = recorder(tmp_path, "killed", "-p", "bag_name:=killed")
     client.service(Trigger, "/recorder_killed/stop")
@@ -99,32 +140,3 @@ def test_sigkill_keeps_what_was_written_and_align_recovers_it(cell, tmp_path):
     cli = subprocess.run(command, capture_output=True, text=True, check=False)
     assert cli.returncode == 0, cli.stderr
     assert len(read_pairs(tmp_path / "pairs")) == len(result.pairs)
-
-
-def test_start_stop_services_split_recordings(cell, tmp_path):
-    client, _ = cell
-    proc = recorder(tmp_path, "split", "-p", "autostart:=false", "-p", f"clock_offset_s:={OFFSET}")
-    try:
-        start_srv = client.service(Trigger, "/recorder_split/start")
-        stop_srv = client.service(Trigger, "/recorder_split/stop")
-        assert not client.call(stop_srv, Trigger.Request()).success  # not recording yet
-        for _ in range(2):
-            assert client.call(start_srv, Trigger.Request()).success
-            time.sleep(4.0)
-            answer = client.call(stop_srv, Trigger.Request(), timeout=60)
-            assert answer.success and "pairs" in answer.message, answer.message
-    finally:
-        stop(proc)
-    bags = sorted(p for p in tmp_path.iterdir() if p.is_dir())
-    assert len(bags) == 2
-    for bag in bags:
-        assert len(read_pairs(bag)) > 200
-
-
-def test_unwritable_output_is_one_clear_line(tmp_path):
-    proc = start(
-        "recorder_node", "-r", "__node:=recorder_bad", "-p", "output_dir:=/proc/no_such_dir", log=tmp_path / "bad.log"
-    )
-    assert proc.wait(60) == 1
-    lines = [line for line in (tmp_path / "bad.log").read_text().splitlines() if line.strip()]
-    assert len(lines) == 1 and "FATAL" in lines[0] and "output_dir" in lines[0]
