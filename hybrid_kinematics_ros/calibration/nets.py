@@ -13,11 +13,13 @@ Architectures are named: the paper's ``D1``, ``D4``, ``D4w``, ``D4W`` (ReLU MLPs
 from __future__ import annotations
 
 import itertools
+import math
 import re
 from typing import ClassVar
 
 import numpy as np
 import torch
+from scipy.special import expit
 from torch import nn
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
@@ -157,7 +159,7 @@ def to_joint1_frame(r: np.ndarray, q1: np.ndarray, axis: np.ndarray | None) -> n
 
 
 def _silu_grad(x: np.ndarray) -> np.ndarray:
-    sig = 0.5 + 0.5 * np.tanh(0.5 * x)
+    sig = expit(x)
     return sig * (1.0 + x * (1.0 - sig))
 
 
@@ -171,7 +173,7 @@ class NumpyResidual:
 
     _ACT: ClassVar[dict] = {
         "ReLU": (lambda x: np.maximum(x, 0.0), lambda x: (x > 0).astype(x.dtype)),
-        "SiLU": (lambda x: x * (0.5 + 0.5 * np.tanh(0.5 * x)), lambda x: _silu_grad(x)),
+        "SiLU": (lambda x: x * expit(x), lambda x: _silu_grad(x)),
         "Tanh": (np.tanh, lambda x: 1.0 - np.tanh(x) ** 2),
     }
 
@@ -214,7 +216,7 @@ class NumpyResidual:
         return self._to_base(x.astype(np.float64) * self.scale + self.mean, q)
 
     def _rotation(self, q1: float) -> np.ndarray:
-        c, s = np.cos(q1), np.sin(q1)
+        c, s = math.cos(q1), math.sin(q1)
         return c * np.eye(3) + s * self.kx + (1.0 - c) * self.kk
 
     def _to_base(self, r: np.ndarray, q: np.ndarray) -> np.ndarray:

@@ -4,9 +4,13 @@
    limits enforced) from a seed; the seed decides which solution is found. If the seed fails, restarts
    follow within the time budget from a table of configurations whose poses lie nearest the target (a
    k-d tree over 4,096 quasi-random configurations, built once), then from random ones.
-2. The hybrid refinement: scipy ``least_squares`` with the joints bounded to a small box around the
-   classical answer ``q0``; the cost compares the target with the **hybrid** FK. Either the paper's eq. 2
-   (12 matrix elements, translation in mm) or a 6-vector (position in mm, rotation vector scaled to mm).
+2. The hybrid refinement: bounded least squares with the joints in a small box around the classical
+   answer ``q0``; the cost compares the target with the **hybrid** FK. By default a projected
+   Levenberg-Marquardt solves it with Newton's chord method (the hybrid pose, the URDF Jacobian: one
+   hybrid FK per step), then with the hybrid Jacobian; ``refine="scipy"`` is the paper's scipy
+   ``least_squares``, with either the paper's eq. 2 (12 matrix elements, translation in mm) or a 6-vector
+   (position in mm, rotation vector scaled to mm). Near a singularity the hybrid answer can lie beyond
+   the box; damped LM on the hybrid model over the whole joint range then finishes.
 
 Several solutions come from several seeds, deduplicated modulo 2π on revolute joints (keeping the
 representative nearest the seed) and ordered by distance to the seed. Every result says whether it
@@ -42,7 +46,9 @@ class IKOptions:
     timeout_s: float = 0.05  # per solution, restarts included
     restarts: bool = True
     seed_table: bool = True  # restart from the configurations whose poses lie nearest the target
-    refine: str = "lm+scipy"  # box refinement: projected LM first, scipy's least_squares if it misses; or "scipy"
+    # box refinement: "lm" (projected LM, chord then exact Jacobian), "lm+scipy" (then scipy's least_squares
+    # if LM misses inside the box), or "scipy" (the paper's bounded least squares alone)
+    refine: str = "lm"
     require_calibrated_range: bool = False  # True: a solution outside the trained range fails
 
 
@@ -107,6 +113,7 @@ def lm_solve(
     tol_rad: float,
     max_iterations: int,
     deadline: float,
+    damping: float = 1e-3,
 ) -> tuple[np.ndarray, float, float, int]:
     """Levenberg-Marquardt on the pose error, projected onto the joint limits.
 
@@ -118,7 +125,7 @@ def lm_solve(
     T, J = fk_jac(q)
     e = _error6(target, T)
     cost = e @ e
-    lam = 1e-3
+    lam = damping
     iterations = 0
     while iterations < max_iterations:
         if np.sqrt(e[:3] @ e[:3]) <= tol_m and np.sqrt(e[3:] @ e[3:]) <= tol_rad:
@@ -150,6 +157,8 @@ class IKSolver:
         self.options = options or IKOptions()
         if self.options.cost not in ("pose6", "eq2"):
             raise IKError(f"cost must be 'pose6' or 'eq2', got '{self.options.cost}'")
+        if self.options.refine not in ("lm", "lm+scipy", "scipy"):
+            raise IKError(f"refine must be 'lm', 'lm+scipy' or 'scipy', got '{self.options.refine}'")
         chain = model.chain
         self.lower = np.where(np.isfinite(chain.lower), chain.lower, -2 * np.pi)
         self.upper = np.where(np.isfinite(chain.upper), chain.upper, 2 * np.pi)
@@ -186,7 +195,7 @@ class IKSolver:
 
     # ------------------------------------------------------------------ stages
     def classical(self, target: np.ndarray, seed: np.ndarray, deadline: float):
-        """Stage 1 from one seed, then random restarts while time remains (if enabled)."""
+        """Stage 1 from one seed, then restarts while time remains (if enabled)."""
         o = self.options
         fk_jac = self._analytic
         tol_m, tol_rad = 1e-3 * o.position_tolerance_mm * 0.1, np.radians(o.orientation_tolerance_deg) * 0.1
@@ -223,7 +232,7 @@ class IKSolver:
         """
         q, info = self._refine_box(target, q0)
         boxes = 1
-        while boxes <= recentre:
+        while boxes <= recentre and "errors" not in info:
             pos, rot = self.errors(q, target)
             on_edge = np.abs(q - q0).max() >= self.options.refine_width_rad * 0.999
             if not on_edge or (
@@ -241,28 +250,39 @@ class IKSolver:
         """One bounded solve in the box around ``q0``.
 
         The same bounded problem is first handed to our projected Levenberg-Marquardt (about 10× less
-        overhead per step than scipy's trust-region reflective); scipy's ``least_squares`` takes over when
-        that misses the tolerance, so the paper's solver stays the reference.
+        overhead per step than scipy's trust-region reflective): with the chord Jacobian, then, near a
+        singularity where the chord's approximation is too coarse, with the hybrid model's own. scipy's
+        ``least_squares`` takes over when both miss the tolerance, so the paper's solver stays the reference.
         """
         o = self.options
         q0 = np.clip(q0, self.lower, self.upper)
         lo = np.maximum(self.lower, q0 - o.refine_width_rad)
         hi = np.minimum(self.upper, q0 + o.refine_width_rad)
-        if o.refine == "lm+scipy" and o.cost == "pose6":
+        if o.refine in ("lm", "lm+scipy") and o.cost == "pose6":
             tol_m, tol_rad = 1e-3 * o.position_tolerance_mm * 1e-3, np.radians(o.orientation_tolerance_deg) * 1e-3
             box = (lo, hi, np.zeros(len(q0), dtype=bool))  # clip to the box, never wrap by 2π
-            q, ep, er, it = lm_solve(
-                self._chord,
-                target,
-                q0,
-                box,
-                tol_m,
-                tol_rad,
-                12,  # Gauss-Newton steps converge in a handful from the classical answer; else it is stuck
-                time.perf_counter() + 0.25 * o.timeout_s,
-            )
-            if ep <= tol_m and er <= tol_rad:
-                return q, {"nfev": it, "status": 0, "method": "lm"}
+            used = 0
+            for fk_jac in (self._chord, self.model.fk_and_jacobian_single):
+                q, ep, er, it = lm_solve(
+                    fk_jac,
+                    target,
+                    q0,
+                    box,
+                    tol_m,
+                    tol_rad,
+                    12,  # Gauss-Newton steps converge in a handful from the classical answer; else it is stuck
+                    time.perf_counter() + 0.25 * o.timeout_s,
+                    damping=1e-9,  # q0 is close: Gauss-Newton steps from the start
+                )
+                used += it
+                if ep <= tol_m and er <= tol_rad:
+                    errors = (1e3 * ep, float(np.degrees(er)))
+                    return q, {"nfev": used, "status": 0, "method": "lm", "errors": errors}
+                q0 = q
+            if o.refine == "lm" or np.any((q <= lo + 1e-12) | (q >= hi - 1e-12)):
+                # scipy costs up to 60 hybrid Jacobians here; the answer beyond the box (near a
+                # singularity) it cannot reach in the same box anyway; the caller's unbounded LM can
+                return q, {"nfev": used, "status": 3, "method": "lm"}
             q0 = q  # scipy goes on from there
         model = self.model
         scale = np.array([1e3, 1e3, 1e3, o.rotation_scale_mm, o.rotation_scale_mm, o.rotation_scale_mm])
@@ -321,14 +341,18 @@ class IKSolver:
             self.nearest_seeds(target, 2 * TABLE_RESTARTS)[TABLE_RESTARTS:] if self.options.seed_table else ()
         )
         while True:
-            q0, _, _, attempts = self.classical(target, attempt_seed, deadline)
+            # half of what is left at most: a target the URDF model cannot reach exactly (near the edge of
+            # its workspace) makes every classical attempt fail, yet the hybrid stages solve it from there
+            now = time.perf_counter()
+            q0, _, _, attempts = self.classical(target, attempt_seed, now + 0.5 * max(deadline - now, 0.0))
             stats["attempts"] += attempts
-            q = q0
+            q, errors = q0, None
             if not analytic and self.model.is_corrected:
                 q, info = self.refine(target, q0)
+                errors = info.pop("errors", None)
                 stats["refinements"] += 1
                 stats.update(info)
-            result = self._result(q, target, analytic, start, dict(stats))
+            result = self._result(q, target, analytic, start, dict(stats), errors)
             if not result.success and not analytic and self.model.is_corrected:
                 # near a singularity the bounded boxes crawl; damped LM on the hybrid model does not
                 q, *_ = lm_solve(
@@ -353,9 +377,18 @@ class IKSolver:
         best.seconds = time.perf_counter() - start
         return best
 
-    def _result(self, q: np.ndarray, target: np.ndarray, analytic: bool, start: float, stats: dict) -> IKResult:
+    def _result(
+        self,
+        q: np.ndarray,
+        target: np.ndarray,
+        analytic: bool,
+        start: float,
+        stats: dict,
+        errors: tuple[float, float] | None = None,
+    ) -> IKResult:
+        """``errors`` (mm, deg) when the solver has just evaluated them at ``q`` with the same model."""
         o = self.options
-        pos, rot = self.errors(q, target, analytic)
+        pos, rot = errors if errors is not None else self.errors(q, target, analytic)
         inside = bool(self.model.in_calibrated_range(q)[0])
         ok = pos <= o.position_tolerance_mm and rot <= o.orientation_tolerance_deg
         if ok and not inside and o.require_calibrated_range and not analytic:
@@ -401,7 +434,7 @@ class IKSolver:
         results = []
         for q0 in found[:max_solutions]:
             q, stats = (q0, {}) if analytic or not self.model.is_corrected else self.refine(target, q0)
-            result = self._result(q, target, analytic, start, stats)
+            result = self._result(q, target, analytic, start, stats, stats.pop("errors", None))
             if result.success:
                 results.append(result)
         return results
@@ -439,8 +472,11 @@ class IKSolver:
                 result = self.solve(target)
             else:
                 target, _ = self._check(target, prev)
-                q, _, _, it = lm_solve(hybrid, target, prev, self.limits, tol_m, tol_rad, 30, start + o.timeout_s)
-                result = self._result(q, target, False, start, {"iterations": it})
+                q, ep, er, it = lm_solve(
+                    hybrid, target, prev, self.limits, tol_m, tol_rad, 30, start + o.timeout_s, damping=1e-9
+                )
+                errors = (1e3 * ep, float(np.degrees(er)))
+                result = self._result(q, target, False, start, {"iterations": it}, errors)
                 if not result.success:
                     result = self.solve(target, prev)
             results.append(result)

@@ -15,6 +15,7 @@ With all of them zero it is the rigid chain, and every method takes the plain FK
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -55,7 +56,7 @@ class ElasticChain:
     def is_rigid(self) -> bool:
         return not (np.any(self.zero_offset) or self.is_elastic)
 
-    @property
+    @cached_property
     def is_elastic(self) -> bool:
         return bool(np.any(self.compliance) or np.any(self.bending))
 
@@ -136,25 +137,35 @@ class ElasticChain:
             jac[3:, prismatic] = 0.0
         return tip, jac
 
+    @cached_property
+    def _loads(self) -> tuple[np.ndarray, np.ndarray]:
+        """Masses of the segments and the payload ``(n + 1,)``, and the mass beyond each joint ``(n,)``."""
+        mass = np.append(self.chain.segment_mass, self.payload_mass)
+        return mass, np.cumsum(mass[::-1])[::-1][:-1]
+
     def _single(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Frames after bending ``(n, 4, 4)``, the tip and the bends ``(n, 3, 3)`` of one configuration.
 
-        The batch code with a batch of one costs ~300 µs in numpy overhead; this costs a fifth of that.
+        The batch code with a batch of one costs ~300 µs in numpy overhead. Here gravity along −z turns
+        the moments' cross products into two sums, and the constant loads are cached.
         """
         chain = self.chain
         q_eff = q + self.zero_offset
         frames = self._rigid_frames(q_eff)
         tip = frames[-1] @ chain.post
-        com = np.einsum("kij,kj->ki", frames[:, :3, :3], chain.segment_com) + frames[:, :3, 3]
-        com = np.vstack([com, tip[:3, :3] @ self.payload_com + tip[:3, 3]])
-        force = np.append(chain.segment_mass, self.payload_mass)[:, None] * GRAVITY
-        moments = np.cumsum(_cross(com, force)[::-1], axis=0)[::-1][:-1]
-        totals = np.cumsum(force[::-1], axis=0)[::-1][:-1]
-        axes = np.einsum("kij,kj->ki", frames[:, :3, :3], chain.axes)
-        origins = frames[:, :3, 3]
-        torque = np.sum((moments - _cross(origins, totals)) * axes, axis=1)
+        rot, origins = frames[:, :3, :3], frames[:, :3, 3]
+        com = np.empty((self.dof + 1, 3))
+        com[:-1] = (rot @ chain.segment_com[:, :, None])[:, :, 0] + origins
+        com[-1] = tip[:3, :3] @ self.payload_com + tip[:3, 3]
+        mass, beyond = self._loads
+        # moment about joint j of the loads beyond it, for g = (0, 0, −g): g · (−Σ m_i y_i, Σ m_i x_i, 0)
+        # taken about the joint origin: Σ_i≥j m_i (c_i − o_j)
+        first = np.cumsum((mass[:, None] * com[:, :2])[::-1], axis=0)[::-1][:-1] - beyond[:, None] * origins[:, :2]
+        axes = (rot @ chain.axes[:, :, None])[:, :, 0]
+        g = -GRAVITY[2]
+        torque = g * (first[:, 0] * axes[:, 1] - first[:, 1] * axes[:, 0])
         if not chain.revolute.all():
-            torque = np.where(chain.revolute, torque, np.sum(axes * totals, axis=1))
+            torque = np.where(chain.revolute, torque, -g * beyond * axes[:, 2])
         q_eff = q_eff + self.compliance * torque / (1.0 + self.cubic_ratio * (torque / self.torque_ref) ** 2)
         bend = exp_so3(torque[:, None] * self.bending)
         frames = self._rigid_frames(q_eff, bend)

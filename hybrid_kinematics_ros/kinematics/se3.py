@@ -75,8 +75,11 @@ def exp_so3(w: np.ndarray) -> np.ndarray:
     """
     w = np.asarray(w, dtype=float)
     theta = np.sqrt(np.sum(w * w, axis=-1))[..., None, None]
-    a = np.sinc(theta / np.pi)  # sin θ / θ, 1 at θ = 0
-    b = 0.5 * np.sinc(theta / (2.0 * np.pi)) ** 2  # (1 − cos θ) / θ² = 2 sin²(θ/2) / θ²
+    moving = theta > 0.0
+    safe = np.where(moving, theta, 1.0)
+    a = np.where(moving, np.sin(safe) / safe, 1.0)  # sin θ / θ
+    half = np.sin(0.5 * safe) / safe
+    b = np.where(moving, 2.0 * half * half, 0.5)  # (1 − cos θ) / θ² = 2 sin²(θ/2) / θ², without cancellation
     k = np.zeros((*w.shape[:-1], 3, 3))
     k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
     k[..., 1, 0], k[..., 2, 0], k[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
