@@ -34,7 +34,7 @@ def paper_protocol(model: HybridModel, n: int, options: IKOptions) -> tuple[list
     targets = model.fk(q)
     rows = []
     for label, run in (
-        ("ours (LM + bounded least squares on the hybrid FK)", solver.solve),
+        ("ours (LM, then bounded LM on the hybrid FK)", solver.solve),
         ("Wang et al. [26] baseline (compensated target, analytic IK)", solver.wang_baseline),
     ):
         results = [run(t) for t in targets]
