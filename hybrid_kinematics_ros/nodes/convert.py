@@ -22,7 +22,9 @@ class RequestError(ValueError):
 def joints_from_msg(msg: JointState, names: Sequence[str], what: str = "joint state") -> np.ndarray:
     """Joint values in the model's order. Empty names mean the model's order."""
     position = list(msg.position)
-    if not msg.name:
+    if len(msg.name) == len(names) == len(position) and tuple(msg.name) == tuple(names):
+        q = np.asarray(position, dtype=float)  # the common case, in the model's order already
+    elif not msg.name:
         if len(position) != len(names):
             raise RequestError(
                 f"{what} has {len(position)} positions and no names; the model has {len(names)} "
