@@ -37,6 +37,10 @@ def client(calls: int, batch: int = 1, kind: str = "fk") -> dict:
     names = [f"joint_{i}" for i in range(1, 7)]
     if kind == "trigger":
         srv, req = node.create_client(Trigger, "/recorder_node/stop"), Trigger.Request()
+    elif kind in ("fk_empty", "fk_pose"):  # the same request to a server that computes nothing
+        stamp = node.get_clock().now().to_msg()
+        srv = node.create_client(ComputeFK, f"/bench_trivial_fk/{kind[3:]}")
+        req = ComputeFK.Request(joint_states=[joint_state_msg(np.zeros(6), names, stamp)])
     elif kind.startswith("ik"):
         from hybrid_kinematics_ros.kinematics import fk
         from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
@@ -68,7 +72,7 @@ def client(calls: int, batch: int = 1, kind: str = "fk") -> dict:
             lost += 1
             continue
         times.append(time.perf_counter() - start)
-        failures += not getattr(future.result(), "success", True) and kind != "trigger"
+        failures += not getattr(future.result(), "success", True) and kind not in ("trigger", "fk_empty")
     node.destroy_node()
     rclpy.shutdown()
     return {"times": times, "failures": failures, "lost": lost}
@@ -112,10 +116,13 @@ def main() -> None:
         stdout=subprocess.DEVNULL,
         stderr=subprocess.STDOUT,
     )
+    trivial = subprocess.Popen([sys.executable, "-m", "bench.bench_nodes", "--serve-trivial"], cwd=ROOT)
     try:
         time.sleep(3)
         fk1 = np.array(result_of(run_client(2000))["times"]) * 1e3
         trig = np.array(result_of(run_client(2000, kind="trigger"))["times"]) * 1e3
+        empty = np.array(result_of(run_client(2000, kind="fk_empty"))["times"]) * 1e3
+        one_pose = np.array(result_of(run_client(2000, kind="fk_pose"))["times"]) * 1e3
         fk1000 = np.array(result_of(run_client(50, batch=1000))["times"]) * 1e3
         ik1 = np.array(result_of(run_client(100, kind="ik1"))["times"]) * 1e3
         ik8 = np.array(result_of(run_client(30, kind="ik8"))["times"]) * 1e3
@@ -130,7 +137,7 @@ def main() -> None:
         lag = json.loads(pub.communicate(timeout=300)[0].strip().splitlines()[-1])
         rss_after = rss_mb(node.pid)
     finally:
-        for proc in (node, trigger):
+        for proc in (node, trigger, trivial):
             proc.terminate()
             proc.wait(30)
     all_load = np.concatenate([np.array(r["times"]) for r in loads]) * 1e3
@@ -141,6 +148,8 @@ def main() -> None:
     rows = [
         ["FK, one configuration (2,000 calls)", *stats(fk1)],
         ["std_srvs/Trigger, the rclpy floor (2,000 calls)", *stats(trig)],
+        ["ComputeFK to a server that answers at once, empty response (2,000 calls)", *stats(empty)],
+        ["ComputeFK to a server that answers at once with one prebuilt pose (2,000 calls)", *stats(one_pose)],
         ["FK, 1,000 configurations per request (50 calls)", *stats(fk1000)],
         ["IK, one solution (100 calls)", *stats(ik1)],
         ["IK, up to 8 solutions (30 calls)", *stats(ik8)],
@@ -151,13 +160,40 @@ def main() -> None:
         f"kinematics_node serving {model}; each client is a separate process waiting with a spin_once loop.\n\n"
         + table(["request", "median (ms)", "p95 (ms)", "p99 (ms)"], rows)
         + f"\n\nFK round trip against the Trigger floor: **{np.median(fk1) / np.median(trig):.2f}×** median "
-        f"(target ≤ 1.5×). FK of 1,000 configurations: {np.median(fk1000) / 1000 * 1e3:.1f} µs per configuration. "
+        f"(target ≤ 1.5×). The same request answered without any work costs {np.median(empty) / np.median(trig):.2f}× "
+        f"(empty response) and {np.median(one_pose) / np.median(trig):.2f}× (one prebuilt pose): that much is "
+        "rclpy's message handling for this service type. "
+        f"FK of 1,000 configurations: {np.median(fk1000) / 1000 * 1e3:.1f} µs per configuration. "
         f"Under load: {sum(r['failures'] for r in loads)} failed and {sum(r['lost'] for r in loads)} unanswered "
         f"(10 s) calls of {8 * 500}; corrected-pose lag p99 "
         f"{lag['lag_p99_ms']:.2f} ms ({lag['received']} of {lag['sent']} poses received); node memory "
         f"{rss_before:.0f} MB before and {rss_after:.0f} MB after."
     )
     write_section("nodes", "Kinematics node: latency, batch FK, IK and load", body)
+
+
+def serve_trivial() -> None:
+    """ComputeFK services that answer at once: the cost of the message types alone, for comparison."""
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.experimental import EventsExecutor
+
+    from hybrid_kinematics_interfaces.srv import ComputeFK
+
+    rclpy.init()
+    node = rclpy.create_node("bench_trivial_fk")
+    prebuilt = [PoseStamped()]
+
+    def one_pose(request, response):
+        response.poses, response.in_calibrated_range, response.success = prebuilt, [True], True
+        return response
+
+    node.create_service(ComputeFK, "~/empty", lambda request, response: response)
+    node.create_service(ComputeFK, "~/pose", one_pose)
+    executor = EventsExecutor()
+    executor.add_node(node)
+    while rclpy.ok():
+        executor.spin_once(timeout_sec=0.1)
 
 
 def publish(seconds: float) -> dict:
@@ -205,8 +241,11 @@ if __name__ == "__main__":
     parser.add_argument("--batch", type=int, default=1)
     parser.add_argument("--kind", default="fk")
     parser.add_argument("--publish", type=float)
+    parser.add_argument("--serve-trivial", action="store_true")
     args = parser.parse_args()
-    if args.client:
+    if args.serve_trivial:
+        serve_trivial()
+    elif args.client:
         print(json.dumps(client(args.client, args.batch, args.kind)))
     elif args.publish:
         print(json.dumps(publish(args.publish)))
