@@ -235,18 +235,19 @@ class RecorderNode(Node):
         return response
 
     def _start_offset_estimate(self) -> None:
-        """Every 5 s, estimate the clock offset over the last 10 s in a worker thread.
+        """Every 10 s, estimate the clock offset over the last 30 s in a worker thread.
 
-        The estimate takes a few hundred ms; on the executor thread it would stall the 3 kHz stream for
-        that long, and the publisher's queue would overflow.
+        Shorter windows of slow motion give estimates milliseconds off. The estimate takes about a
+        second; on the executor thread it would stall the 3 kHz stream for that long, and the
+        publisher's queue would overflow.
         """
         busy = self._offset_worker is not None and self._offset_worker.is_alive()
         if self.options.offset_s is not None or busy or time.monotonic() < self._next_offset:
             return
-        if self.joints.n < 500 or self.poses.n < 5000:
+        if time.monotonic() - self.started < 20.0 or self.poses.n < 5000:
             return
-        self._next_offset = time.monotonic() + 5.0
-        recent = self._recording(last_s=10.0)
+        self._next_offset = time.monotonic() + 10.0
+        recent = self._recording(last_s=30.0)
 
         def estimate() -> None:
             with contextlib.suppress(CalibrationError, DataError, ValueError):  # too little motion: keep the last
@@ -256,7 +257,7 @@ class RecorderNode(Node):
         self._offset_worker.start()
 
     def _diagnostics(self) -> None:
-        status = DiagnosticStatus(name="recorder_node", hardware_id="laser_tracker")
+        status = DiagnosticStatus(name=self.get_name(), hardware_id="laser_tracker")
         values = {"recording": str(self.writer is not None)}
         if self.writer is not None:
             elapsed = max(time.monotonic() - self.started, 1e-9)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import rclpy
 import yaml
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from std_srvs.srv import Trigger
 
@@ -63,8 +64,19 @@ def test_thirty_seconds_recorded_and_aligned(cell, tmp_path):
     client, _ = cell
     proc = recorder(tmp_path, "run", "-p", "bag_name:=run")
     client.service(Trigger, "/recorder_run/stop")  # up and recording
-    time.sleep(30.0)
+    diagnostics = []
+    client.node.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
+    client.spin_for(30.0)
     assert stop(proc, signal.SIGINT, timeout=60) == 0
+    ours = [
+        {kv.key: kv.value for kv in status.values}
+        for msg in diagnostics
+        for status in msg.status
+        if status.name == "recorder_run" and status.message == "recording"
+    ]
+    assert len(ours) >= 20 and float(ours[-1]["tracker_rate_hz"]) > 2500, ours[-1:]
+    live = [float(d["clock_offset_ms"]) for d in ours if "clock_offset_ms" in d]
+    assert live and abs(live[-1] - 1e3 * OFFSET) < 0.5, live  # the running estimate over the last 30 s
     log = (tmp_path / "run.log").read_text()
     meta = yaml.safe_load((tmp_path / "run" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     offset = float(meta["custom_data"]["clock_offset_s"])
