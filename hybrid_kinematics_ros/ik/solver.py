@@ -476,6 +476,8 @@ class IKSolver:
         n = len(targets)
         q = np.empty((n, self.model.chain.dof))
         prev = None if seed is None else np.asarray(seed, dtype=float)
+        if prev is None and n:  # no seed: the first pose's full solve picks the branch for the path
+            prev = self.solve(targets[0]).q
         for i, target in enumerate(targets):
             target, from_q = self._check(target, prev)
             # the path's own extrapolation saves a step or two; the previous answer if that goes astray
