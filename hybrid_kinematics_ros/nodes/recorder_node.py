@@ -32,32 +32,13 @@ from std_srvs.srv import Trigger
 
 from hybrid_kinematics_ros.calibration.alignment import AlignOptions, align, estimate_offset
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
+from hybrid_kinematics_ros.io.columns import Columns
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.io.pairs import JOINT_STATE, POSE_STAMPED
 from hybrid_kinematics_ros.io.raw_bag import BagWriter, RawRecording, decode_pose_stamped, write_pairs_into
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.nodes.runtime import StartupError, read_only_parameter, run_node
-
-
-class _Columns:
-    """Growable numpy storage: appends are O(1) amortised, no Python objects per sample."""
-
-    def __init__(self, width: int) -> None:
-        self.data = np.empty((4096, width))
-        self.stamps = np.empty(4096, dtype=np.int64)
-        self.n = 0
-
-    def append(self, stamp: int, values) -> None:
-        if self.n == len(self.stamps):
-            self.data = np.concatenate([self.data, np.empty_like(self.data)])
-            self.stamps = np.concatenate([self.stamps, np.empty_like(self.stamps)])
-        self.stamps[self.n] = stamp
-        self.data[self.n] = values
-        self.n += 1
-
-    def view(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.stamps[: self.n], self.data[: self.n]
 
 
 class RecorderNode(Node):
@@ -121,8 +102,8 @@ class RecorderNode(Node):
         writer = BagWriter(self.output_dir / name)
         writer.add_topic(self.joints_topic, JOINT_STATE)
         writer.add_topic(self.pose_topic, POSE_STAMPED)
-        self.joints = _Columns(self.chain.dof)
-        self.poses = _Columns(7)
+        self.joints = Columns(self.chain.dof)
+        self.poses = Columns(7)
         self.names: list[str] | None = None
         self.frame = ""
         self.received = Counter()
@@ -162,12 +143,11 @@ class RecorderNode(Node):
 
     def _recording(self, last_s: float | None = None) -> RawRecording:
         """Everything recorded so far, or about the last ``last_s`` seconds of it (a copy either way)."""
-        jt, q = self.joints.view()
-        pt, p = self.poses.view()
-        if last_s is not None:
+        if last_s is None:
+            (jt, q), (pt, p) = self.joints.view(), self.poses.view()
+        else:
             elapsed = max(time.monotonic() - self.started, 1e-3)
-            kj, kp = (int(1.5 * last_s * len(x) / elapsed) + 2 for x in (jt, pt))
-            jt, q, pt, p = jt[-kj:], q[-kj:], pt[-kp:], p[-kp:]
+            (jt, q), (pt, p) = (c.view(int(1.5 * last_s * c.n / elapsed) + 2) for c in (self.joints, self.poses))
         if not len(jt) or not len(pt):
             raise DataError(f"nothing to align: {len(jt)} joint states and {len(pt)} tracker poses")
         jo, po = np.argsort(jt, kind="stable"), np.argsort(pt, kind="stable")
