@@ -127,7 +127,19 @@ def test_sigkill_keeps_what_was_written_and_align_recovers_it(cell, tmp_path):
     client, _ = cell
     proc = recorder(tmp_path, "killed", "-p", "bag_name:=killed")
     client.service(Trigger, "/recorder_killed/stop")
-    time.sleep(8.0)
+    # kill once it has taken in 7 s of poses (its /diagnostics say so), however slowly it started
+    received = [0]
+
+    def count(msg):
+        for status in msg.status:
+            if status.name == "recorder_killed" and status.message == "recording":
+                received[0] = max(received[0], int({kv.key: kv.value for kv in status.values}["tracker_poses"]))
+
+    client.node.create_subscription(DiagnosticArray, "/diagnostics", count, 10)
+    deadline = time.monotonic() + 90.0
+    while received[0] < 7 * 3000 and time.monotonic() < deadline:
+        client.spin_for(0.2)
+    assert received[0] >= 7 * 3000, received
     stop(proc, signal.SIGKILL)
     raw = read_raw(tmp_path / "killed", "/joint_states", "/tracker/pose")
     assert len(raw.joint_stamps) > 5 * 110 * 0.8  # everything but the chunk in progress
