@@ -172,8 +172,7 @@ class KinematicsNode(Node):
                 now = self.get_clock().now().to_msg()
                 stamps = [now if stamp_is_zero(stamp) else stamp for stamp in stamps]
             response.poses = pose_msgs(T, model.chain.base_link, stamps)
-            inside = model.in_calibrated_range(q) if model.nets else np.ones(len(q), dtype=bool)
-            response.in_calibrated_range = inside.tolist()
+            response.in_calibrated_range = model.in_calibrated_range(q).tolist()
             response.success = True
             outside = {
                 "warn": "their correction is extrapolated",

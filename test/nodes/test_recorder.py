@@ -60,20 +60,26 @@ def recorder(tmp_path, name, *extra):
     return start("recorder_node", *args, *extra, log=tmp_path / f"{name}.log")
 
 
+def recording_status(diagnostics: list, name: str) -> list[dict]:
+    """The key-value pairs recorder ``name`` published in each DiagnosticArray while it recorded."""
+    return [
+        {kv.key: kv.value for kv in status.values}
+        for msg in diagnostics
+        for status in msg.status
+        if status.name == name and status.message == "recording"
+    ]
+
+
 def test_thirty_seconds_recorded_and_aligned(cell, tmp_path):
     client, _ = cell
     proc = recorder(tmp_path, "run", "-p", "bag_name:=run")
     client.service(Trigger, "/recorder_run/stop")  # up and recording
     diagnostics = []
-    client.node.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
+    sub = client.node.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
     client.spin_for(30.0)
+    client.node.destroy_subscription(sub)
     assert stop(proc, signal.SIGINT, timeout=60) == 0
-    ours = [
-        {kv.key: kv.value for kv in status.values}
-        for msg in diagnostics
-        for status in msg.status
-        if status.name == "recorder_run" and status.message == "recording"
-    ]
+    ours = recording_status(diagnostics, "recorder_run")
     assert len(ours) >= 20 and float(ours[-1]["tracker_rate_hz"]) > 2500, ours[-1:]
     live = [float(d["clock_offset_ms"]) for d in ours if "clock_offset_ms" in d]
     assert live and abs(live[-1] - 1e3 * OFFSET) < 0.5, live  # the running estimate over the last 30 s
@@ -128,18 +134,17 @@ def test_sigkill_keeps_what_was_written_and_align_recovers_it(cell, tmp_path):
     proc = recorder(tmp_path, "killed", "-p", "bag_name:=killed")
     client.service(Trigger, "/recorder_killed/stop")
     # kill once it has taken in 7 s of poses (its /diagnostics say so), however slowly it started
-    received = [0]
+    diagnostics = []
+    sub = client.node.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
 
-    def count(msg):
-        for status in msg.status:
-            if status.name == "recorder_killed" and status.message == "recording":
-                received[0] = max(received[0], int({kv.key: kv.value for kv in status.values}["tracker_poses"]))
+    def received() -> int:
+        return max((int(d["tracker_poses"]) for d in recording_status(diagnostics, "recorder_killed")), default=0)
 
-    client.node.create_subscription(DiagnosticArray, "/diagnostics", count, 10)
     deadline = time.monotonic() + 90.0
-    while received[0] < 7 * 3000 and time.monotonic() < deadline:
+    while received() < 7 * 3000 and time.monotonic() < deadline:
         client.spin_for(0.2)
-    assert received[0] >= 7 * 3000, received
+    client.node.destroy_subscription(sub)
+    assert received() >= 7 * 3000, received()
     stop(proc, signal.SIGKILL)
     raw = read_raw(tmp_path / "killed", "/joint_states", "/tracker/pose")
     assert len(raw.joint_stamps) > 5 * 110 * 0.8  # everything but the chunk in progress
