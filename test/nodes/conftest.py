@@ -1,4 +1,5 @@
-"""Whatever a test started is stopped when it ends, even when it fails half-way."""
+"""Whatever a test started is stopped when it ends, even when it fails half-way; when a test fails, the
+logs of the processes it started are printed with the failure (a CI run leaves nothing else behind)."""
 
 from __future__ import annotations
 
@@ -6,12 +7,27 @@ import signal
 
 import pytest
 
-from test.nodes.rosutil import STARTED, stop
+from test.nodes.rosutil import LOGS, STARTED, stop
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    report = outcome.get_result()
+    if report.when == "call":
+        item.failed_call = report.failed
 
 
 @pytest.fixture(autouse=True)
-def no_leftover_processes():
+def no_leftover_processes(request):
     before = len(STARTED)
     yield
     for proc in STARTED[before:]:
         stop(proc, signal.SIGKILL, timeout=5.0)
+    if getattr(request.node, "failed_call", False):
+        running = [proc for proc in STARTED[:before] if proc.poll() is None]  # e.g. the module's simulated cell
+        for proc in running + STARTED[before:]:
+            log = LOGS.get(proc.pid)
+            if log is not None and log.is_file():
+                tail = log.read_text(errors="replace").splitlines()[-40:]
+                print(f"----- {proc.args[0]} (pid {proc.pid}, exit {proc.returncode}), {log}:", *tail, sep="\n")

@@ -15,6 +15,7 @@ from rclpy.executors import SingleThreadedExecutor
 ROOT = Path(__file__).resolve().parents[2]
 LIB = ROOT / "install" / "hybrid_kinematics_ros" / "lib" / "hybrid_kinematics_ros"
 STARTED: list[subprocess.Popen] = []  # every process a test started; conftest stops leftovers after each test
+LOGS: dict[int, Path] = {}  # pid -> log file, shown when a test fails
 
 
 def executable(name: str) -> Path:
@@ -36,6 +37,8 @@ def start(name: str, *ros_args: str, log: Path | None = None) -> subprocess.Pope
         env=os.environ.copy(),
     )
     STARTED.append(proc)
+    if log:
+        LOGS[proc.pid] = log
     return proc
 
 
@@ -64,12 +67,13 @@ class Client:
             raise TimeoutError(f"service {name} did not appear within {timeout} s")
         return client
 
-    def call(self, client, request, timeout: float = 30.0, first_timeout: float = 5.0):
-        """Call, and resend once if the first request goes unanswered: with Fast DDS a client's first
-        request can be lost while its response reader is still matching (the services here are idempotent)."""
-        for wait in (min(first_timeout, timeout), timeout):
+    def call(self, client, request, timeout: float = 30.0, resend_after: float = 5.0):
+        """Call, and resend every ``resend_after`` seconds while unanswered: with Fast DDS a reply can be
+        lost while the client's response reader is still matching (the services here are idempotent)."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
             future = client.call_async(request)
-            deadline = time.monotonic() + wait
+            deadline = min(end, time.monotonic() + resend_after)
             while not future.done() and time.monotonic() < deadline:
                 self.executor.spin_once(timeout_sec=0.05)
             if future.done():

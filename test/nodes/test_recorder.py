@@ -108,7 +108,7 @@ def test_start_stop_services_split_recordings(cell, tmp_path):
         for _ in range(2):
             assert client.call(start_srv, Trigger.Request()).success
             time.sleep(4.0)
-            answer = client.call(stop_srv, Trigger.Request(), timeout=60)
+            answer = client.call(stop_srv, Trigger.Request(), timeout=60, resend_after=60)  # not idempotent
             assert answer.success and re.search(r"with \d+ pairs", answer.message), answer.message
     finally:
         stop(proc)
