@@ -20,6 +20,8 @@ from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 
+LONG_BUDGET_S = 0.3  # the hard targets (near singularities) need several branches; the median does not change
+
 
 def trained_model(robot: str, tmp: Path, minutes: float) -> HybridModel:
     cfg = load_robot_config(robot)
@@ -30,11 +32,13 @@ def trained_model(robot: str, tmp: Path, minutes: float) -> HybridModel:
 
 def paper_protocol(model: HybridModel, n: int, options: IKOptions) -> tuple[list, list]:
     solver = IKSolver(model, options)
+    patient = IKSolver(model, replace(options, timeout_s=LONG_BUDGET_S))
     q = np.random.default_rng(11).uniform(model.chain.lower, model.chain.upper, (n, model.chain.dof))
     targets = model.fk(q)
     rows = []
     for label, run in (
-        ("ours (LM, then bounded LM on the hybrid FK)", solver.solve),
+        (f"ours (LM, then bounded LM on the hybrid FK), {1e3 * options.timeout_s:.0f} ms budget", solver.solve),
+        (f"ours, {1e3 * LONG_BUDGET_S:.0f} ms budget", patient.solve),
         ("Wang et al. [26] baseline (compensated target, analytic IK)", solver.wang_baseline),
     ):
         results = [run(t) for t in targets]
@@ -122,9 +126,9 @@ def main() -> None:
         t_single = (time.perf_counter() - start) / 200
     body = (
         f"Paper protocol (Tables IV and V): {args.targets} random configurations within the working range, "
-        "targets from the hybrid FK, solved from a mid-limits seed (50 ms budget per target), error of the "
-        "answer measured with the hybrid FK. Paper (virtual): 6.02e-6 mm and 4.85e-4° mean. Targets: success "
-        "≥ 99.9 %, mean ≤ 1e-6 mm and ≤ 1e-6°, median ≤ 5 ms.\n\n"
+        "targets from the hybrid FK, solved from a mid-limits seed (the budget per target is in each row), "
+        "error of the answer measured with the hybrid FK. Paper (virtual): 6.02e-6 mm and 4.85e-4° mean. "
+        "Targets: success ≥ 99.9 %, mean ≤ 1e-6 mm and ≤ 1e-6°, median ≤ 5 ms.\n\n"
         + table(head, rows)
         + "\n\nCost of the refinement (UR10, 500 targets): the 6-vector residual (position in mm, rotation vector"
         " scaled to mm per rad) against the paper's eq. 2, both with scipy's bounded least squares as in the paper"

@@ -68,6 +68,7 @@ class HybridModel:
         rng = self.manifest.get("trained_range")
         self.trained_lower = np.asarray(rng["lower"], dtype=float) if rng else chain.lower
         self.trained_upper = np.asarray(rng["upper"], dtype=float) if rng else chain.upper
+        self._range = (self.trained_lower - 1e-9, self.trained_upper + 1e-9)
         section = self.manifest.get("parametric")
         self.base = model_from_manifest(chain, section) if section else ElasticChain.rigid(chain)
         ref = self.manifest.get("referencing")
@@ -161,8 +162,9 @@ class HybridModel:
 
     def in_calibrated_range(self, q: np.ndarray) -> np.ndarray:
         """``(B,)`` True where every joint lies inside the range the nets were trained on."""
+        lower, upper = self._range
         q = np.atleast_2d(q)
-        return np.all((q >= self.trained_lower - 1e-9) & (q <= self.trained_upper + 1e-9), axis=1)
+        return ((q >= lower) & (q <= upper)).all(axis=1)
 
     def residuals(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(Δp, ω)``, each ``(B, 3)`` in m and rad; zeros where a net is absent."""

@@ -11,6 +11,11 @@
    ``least_squares``, with either the paper's eq. 2 (12 matrix elements, translation in mm) or a 6-vector
    (position in mm, rotation vector scaled to mm). Near a singularity the hybrid answer can lie beyond
    the box; damped LM on the hybrid model over the whole joint range then finishes.
+3. When the seed's branch has no hybrid solution near it (near a singularity the nets' tenths of a
+   millimetre move the solution by tenths of a radian, or the target lies just beyond the URDF model's
+   reach), the other analytic branches follow: classical answers from the table's nearest
+   configurations, each finished by unbounded LM on the hybrid model, until one reaches the target or
+   the budget ends.
 
 Several solutions come from several seeds, deduplicated modulo 2π on revolute joints (keeping the
 representative nearest the seed) and ordered by distance to the seed. Every result says whether it
@@ -19,6 +24,7 @@ reached the target; a miss is never returned as a success.
 
 from __future__ import annotations
 
+import itertools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -103,6 +109,10 @@ def _pose_features(T: np.ndarray) -> np.ndarray:
 NEAR_M, NEAR_RAD = 5e-3, 1e-2  # a URDF-model answer this close to a hybrid target is the hybrid one's basin
 STALL_ITERATIONS = 12  # LM converges in a handful of steps from a good basin; a slow run is stuck
 STALL_COST = 1e-6  # (m or rad)²: still this far after STALL_ITERATIONS means another seed is cheaper
+FLOOR_RATIO, FLOOR_STEPS = 0.98, 3  # steps gaining under 2 % each, this many in a row: a floor
+BRANCH_RAD = 1e-2  # classical answers closer than this on every joint are one branch
+CLASSICAL_SHARE = 0.5  # of the budget, for the seed's classical stage; the other branches get the rest
+HYBRID_LM_ITERATIONS = 30  # at ~0.27 ms per hybrid Jacobian; a branch that needs more is a local minimum
 
 
 def lm_solve(
@@ -119,7 +129,8 @@ def lm_solve(
     """Levenberg-Marquardt on the pose error, projected onto the joint limits.
 
     ``limits`` is ``(lower, upper, revolute)``. Returns the joints, the position (m) and rotation (rad)
-    errors, and the iterations used. Gives up early when it stalls far from the target.
+    errors, and the iterations used. Gives up early when it stalls far from the target, or when the cost
+    settles on a floor above the tolerance (within a millimetre, a few steps that each gain under 2 %).
     """
     lower, upper, revolute = limits
     q = project(seed, lower, upper, revolute)
@@ -127,7 +138,7 @@ def lm_solve(
     e = _error6(target, T)
     cost = e @ e
     lam = damping
-    iterations = 0
+    iterations = slow = 0
     while iterations < max_iterations:
         if np.sqrt(e[:3] @ e[:3]) <= tol_m and np.sqrt(e[3:] @ e[3:]) <= tol_rad:
             break
@@ -141,8 +152,12 @@ def lm_solve(
         e_new = _error6(target, T_new)
         cost_new = e_new @ e_new
         if cost_new < cost:
+            # a floor, not a solution: the target lies beyond this model's reach here, or in a local minimum
+            slow = slow + 1 if cost_new > FLOOR_RATIO * cost and cost_new < STALL_COST else 0
             q, T, J, e, cost = q_new, T_new, J_new, e_new, cost_new
             lam = max(lam / 5.0, 1e-12)
+            if slow >= FLOOR_STEPS:
+                break
         else:
             lam = lam * 8.0
             if lam >= 1e8:
@@ -329,54 +344,88 @@ class IKSolver:
 
     # ------------------------------------------------------------------ API
     def solve(self, target: np.ndarray, seed: np.ndarray | None = None, analytic: bool = False) -> IKResult:
-        """One solution, the one the seed leads to; if that branch fails (for instance its hybrid solution
-        lies beyond a joint limit), other seeds are tried while the time budget lasts."""
+        """One solution, the one the seed leads to. If that branch has no hybrid solution near it, the other
+        analytic branches follow, from the restart table's configurations nearest the target, while the time
+        budget lasts."""
         start = time.perf_counter()
         target, seed = self._check(target, seed)
-        deadline = start + self.options.timeout_s
+        o = self.options
+        deadline = start + o.timeout_s
         stats = {"attempts": 0, "refinements": 0}
-        best = None
-        attempt_seed = seed
-        # other branches: from the far end of the nearest-seed list (the classical stage uses its front)
-        others = iter(
-            self.nearest_seeds(target, 2 * TABLE_RESTARTS)[TABLE_RESTARTS:] if self.options.seed_table else ()
-        )
-        while True:
-            # half of what is left at most: a target the URDF model cannot reach exactly (near the edge of
-            # its workspace) makes every classical attempt fail, yet the hybrid stages solve it from there
-            now = time.perf_counter()
-            q0, _, _, attempts = self.classical(target, attempt_seed, now + 0.5 * max(deadline - now, 0.0))
-            stats["attempts"] += attempts
-            q, errors = q0, None
-            if not analytic and self.model.is_corrected:
-                q, info = self.refine(target, q0)
-                errors = info.pop("errors", None)
-                stats["refinements"] += 1
-                stats.update(info)
-            result = self._result(q, target, analytic, start, dict(stats), errors)
-            if not result.success and not analytic and self.model.is_corrected:
-                # near a singularity the bounded boxes crawl; damped LM on the hybrid model does not
-                q, *_ = lm_solve(
-                    self.model.fk_and_jacobian_single,
-                    target,
-                    q,
-                    self.limits,
-                    1e-4 * self.options.position_tolerance_mm,
-                    np.radians(self.options.orientation_tolerance_deg) * 0.1,
-                    50,
-                    deadline,
-                )
-                stats["hybrid_lm"] = True
-                result = self._result(q, target, analytic, start, dict(stats))
-            if best is None or result.position_error_mm < best.position_error_mm:
-                best = result
-            if result.success or not self.options.restarts or time.perf_counter() > deadline:
+        # a share of the budget: a target the URDF model cannot reach exactly (near the edge of its
+        # workspace) makes every classical attempt fail, yet the hybrid stages solve it from there
+        q0, _, _, attempts = self.classical(target, seed, start + CLASSICAL_SHARE * o.timeout_s)
+        stats["attempts"] += attempts
+        best = self._from_branch(target, q0, analytic, start, deadline, stats)
+        if best.success or not o.restarts:
+            return best
+        # Near a singularity the nets' tenths of a millimetre move the solution by tenths of a radian, and the
+        # seed's branch may have none; a branch shifted by 2π on a joint is another hybrid problem (the nets
+        # see raw joint values), so branches count as different unless their joints are equal.
+        tried = [q0]
+        tol_m, tol_rad = 1e-3 * o.position_tolerance_mm * 0.1, np.radians(o.orientation_tolerance_deg) * 0.1
+        seeds = self.nearest_seeds(target, 2 * TABLE_RESTARTS) if o.seed_table else np.empty((0, len(seed)))
+        for i in itertools.count():
+            if time.perf_counter() > deadline:
                 break
-            attempt_seed = next(others, None)
-            if attempt_seed is None:
-                attempt_seed = self._rng.uniform(self.lower, self.upper)
+            s = seeds[i] if i < len(seeds) else self._rng.uniform(self.lower, self.upper)
+            q0, ep, er, _ = lm_solve(self._analytic, target, s, self.limits, tol_m, tol_rad, o.max_iterations, deadline)
+            stats["attempts"] += 1
+            if ep > NEAR_M or er > NEAR_RAD or any(np.abs(q0 - t).max() < BRANCH_RAD for t in tried):
+                continue
+            tried.append(q0)
+            result = self._other_branch(target, q0, analytic, start, deadline, stats)
+            if result.position_error_mm < best.position_error_mm:
+                best = result
+            if result.success:
+                break
+        best.stats["branches"] = len(tried)
         best.seconds = time.perf_counter() - start
         return best
+
+    def _other_branch(
+        self, target: np.ndarray, q0: np.ndarray, analytic: bool, start: float, deadline: float, stats: dict
+    ) -> IKResult:
+        """A cheaper :meth:`_from_branch` for the fallback branches: unbounded LM with the chord Jacobian
+        (one hybrid FK per step), then with the hybrid one, a dozen steps each."""
+        if analytic or not self.model.is_corrected:
+            return self._result(q0, target, analytic, start, dict(stats))
+        o = self.options
+        tol_m, tol_rad = 1e-4 * o.position_tolerance_mm, np.radians(o.orientation_tolerance_deg) * 0.1
+        q = q0
+        for fk_jac in (self._chord, self.model.fk_and_jacobian_single):
+            q, ep, er, _ = lm_solve(fk_jac, target, q, self.limits, tol_m, tol_rad, 12, deadline, damping=1e-6)
+            if ep <= tol_m and er <= tol_rad:
+                break
+        return self._result(q, target, analytic, start, dict(stats))
+
+    def _from_branch(
+        self, target: np.ndarray, q0: np.ndarray, analytic: bool, start: float, deadline: float, stats: dict
+    ) -> IKResult:
+        """The hybrid solution near the classical answer ``q0``: the box refinement, then, if that misses,
+        damped LM on the hybrid model over the whole joint range (the bounded boxes crawl near a singularity)."""
+        q, errors = q0, None
+        corrected = not analytic and self.model.is_corrected
+        if corrected:
+            q, info = self.refine(target, q0)
+            errors = info.pop("errors", None)
+            stats["refinements"] += 1
+            stats.update(info)
+        result = self._result(q, target, analytic, start, dict(stats), errors)
+        if not result.success and corrected:
+            q, *_ = lm_solve(
+                self.model.fk_and_jacobian_single,
+                target,
+                q,
+                self.limits,
+                1e-4 * self.options.position_tolerance_mm,
+                np.radians(self.options.orientation_tolerance_deg) * 0.1,
+                HYBRID_LM_ITERATIONS,
+                deadline,
+            )
+            stats["hybrid_lm"] = stats.get("hybrid_lm", 0) + 1
+            result = self._result(q, target, analytic, start, dict(stats))
+        return result
 
     def _result(
         self,

@@ -5,6 +5,8 @@ Rotations go through scipy's ``Rotation``; only the tiny operations on hot paths
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -37,25 +39,25 @@ def pose_from_matrix(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def quat_from_rotation(r: np.ndarray) -> np.ndarray:
     """xyzw quaternion (scalar part non-negative) of one rotation matrix, by Shepperd's method.
 
-    scipy's ``Rotation`` costs ~50 µs per call at batch size 1; this path serves single poses in nodes.
-    Tested against scipy.
+    scipy's ``Rotation`` costs ~50 µs per call at batch size 1; this path serves single poses in nodes, in
+    Python floats (each numpy call on a scalar costs more than the arithmetic). Tested against scipy.
     """
-    m00, m11, m22 = r[0, 0], r[1, 1], r[2, 2]
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = np.asarray(r, dtype=float)[:3, :3].tolist()
     trace = m00 + m11 + m22
     if trace > 0.0:
-        s = 2.0 * np.sqrt(1.0 + trace)
-        q = np.array([(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, 0.25 * s])
+        s = 2.0 * math.sqrt(1.0 + trace)
+        q = ((m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s, 0.25 * s)
     elif m00 > m11 and m00 > m22:
-        s = 2.0 * np.sqrt(1.0 + m00 - m11 - m22)
-        q = np.array([0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s])
+        s = 2.0 * math.sqrt(1.0 + m00 - m11 - m22)
+        q = (0.25 * s, (m01 + m10) / s, (m02 + m20) / s, (m21 - m12) / s)
     elif m11 > m22:
-        s = 2.0 * np.sqrt(1.0 + m11 - m00 - m22)
-        q = np.array([(r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s])
+        s = 2.0 * math.sqrt(1.0 + m11 - m00 - m22)
+        q = ((m01 + m10) / s, 0.25 * s, (m12 + m21) / s, (m02 - m20) / s)
     else:
-        s = 2.0 * np.sqrt(1.0 + m22 - m00 - m11)
-        q = np.array([(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s, (r[1, 0] - r[0, 1]) / s])
-    q /= np.sqrt(q @ q)
-    return -q if q[3] < 0 else q
+        s = 2.0 * math.sqrt(1.0 + m22 - m00 - m11)
+        q = ((m02 + m20) / s, (m12 + m21) / s, 0.25 * s, (m10 - m01) / s)
+    scale = (-1.0 if q[3] < 0.0 else 1.0) / math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return np.array([scale * q[0], scale * q[1], scale * q[2], scale * q[3]])
 
 
 def from_rotvec(position: np.ndarray, rotvec: np.ndarray) -> np.ndarray:

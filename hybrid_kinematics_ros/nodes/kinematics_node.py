@@ -154,12 +154,8 @@ class KinematicsNode(Node):
         try:
             if not request.joint_states:
                 raise RequestError("joint_states is empty; send at least one configuration")
-            q = np.array(
-                [
-                    joints_from_msg(js, model.joint_names, f"joint_states[{i}]")
-                    for i, js in enumerate(request.joint_states)
-                ]
-            )
+            states, names = request.joint_states, model.joint_names
+            q = np.array([joints_from_msg(js, names, f"joint_states[{i}]") for i, js in enumerate(states)])
             if not request.analytic_only:
                 model.check_range(q)
             T = (

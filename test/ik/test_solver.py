@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.ik.errors import IKError
-from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
-from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, lm_solve
+from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
 from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR, load_robot_config
 
@@ -51,6 +53,22 @@ def test_near_elbow_singularity(trained):
     q = np.array([0.3, -1.2, 1e-3, -1.0, 1.2, 0.4])
     r = solver.solve(model.fk(q)[0], seed=q + 0.05)
     assert r.success, r.message
+
+
+def test_lm_stops_on_a_floor_beyond_reach():
+    """A target 0.3 mm beyond the stretched arm's reach: LM settles on the nearest pose and says so within
+    a few steps, instead of creeping through its whole iteration budget (the solver then tries other branches)."""
+    chain = load_robot_config("ur10").chain
+    solver = IKSolver(HybridModel.analytic_only(chain))
+    q = np.array([0.3, -0.8, 0.0, -1.0, 1.2, 0.4])  # elbow straight
+    frames = fk.joint_frames(chain, q[None])[0]
+    outward = frames[3, :3, 3] - frames[1, :3, 3]  # shoulder to wrist
+    target = fk.fk_single(chain, q)
+    target[:3, 3] += 3e-4 * outward / np.linalg.norm(outward)
+    for seed in (q + 0.05, q - 0.05):
+        deadline = time.perf_counter() + 60
+        _, pos, _, iterations = lm_solve(solver._analytic, target, seed, solver.limits, 1e-9, 1e-9, 100, deadline)
+        assert pos == pytest.approx(3e-4, rel=1e-3) and iterations < 20
 
 
 def test_ur10_distinct_branches():
