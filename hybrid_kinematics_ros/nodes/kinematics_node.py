@@ -47,6 +47,7 @@ from hybrid_kinematics_ros.nodes.runtime import StartupError, read_only_paramete
 
 LOAD_ERRORS = (DataError, KinematicsError, CalibrationError, OSError)
 MAX_SOLUTIONS = 16
+SERVICE_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 
 class KinematicsNode(Node):
@@ -75,11 +76,13 @@ class KinematicsNode(Node):
         self.model, self.solver = self._load()
         self._latest: np.ndarray | None = None
 
-        self.create_service(ComputeFK, "~/compute_fk", self._on_fk)
+        # Replies share one writer; with the default depth of 10, a burst from many clients can overwrite a
+        # reply before a slow client has taken it, and that call is never answered.
+        self.create_service(ComputeFK, "~/compute_fk", self._on_fk, qos_profile=SERVICE_QOS)
         # the slow services live on a companion node, spun by its own executor thread (see main)
         self.ik_node = Node(f"{self.get_name()}_ik", namespace=self.get_namespace(), context=self.context)
         own = self.get_fully_qualified_name()
-        self.ik_node.create_service(ComputeIK, f"{own}/compute_ik", self._on_ik)
+        self.ik_node.create_service(ComputeIK, f"{own}/compute_ik", self._on_ik, qos_profile=SERVICE_QOS)
         self.ik_node.create_service(Trigger, f"{own}/reload", self._on_reload)
         self.pose_node = Node(f"{self.get_name()}_pose", namespace=self.get_namespace(), context=self.context)
         self.pose_pub = (
