@@ -112,6 +112,8 @@ STALL_COST = 1e-6  # (m or rad)²: still this far after STALL_ITERATIONS means a
 FLOOR_RATIO, FLOOR_STEPS = 0.98, 3  # steps gaining under 2 % each, this many in a row: a floor
 BRANCH_RAD = 1e-2  # classical answers closer than this on every joint are one branch
 CLASSICAL_SHARE = 0.5  # of the budget, for the seed's classical stage; the other branches get the rest
+VALLEY_MM, VALLEY_SINGULAR = 0.1, 1e-2  # a near miss (mm) at a near-singular Jacobian (smallest singular value)
+VALLEY_STEPS_RAD = (-0.7, 0.7, -1.2, 1.2)  # along the weak direction; a local minimum there is this far off
 HYBRID_LM_ITERATIONS = 40  # at ~0.27 ms per hybrid Jacobian; enough to halve the error 40 times
 
 
@@ -365,16 +367,25 @@ class IKSolver:
         tried = [q0]
         tol_m, tol_rad = 1e-3 * o.position_tolerance_mm * 0.1, np.radians(o.orientation_tolerance_deg) * 0.1
         seeds = self.nearest_seeds(target, 2 * TABLE_RESTARTS) if o.seed_table else np.empty((0, len(seed)))
+        valley = self._valley_seeds(best) if not analytic else []
         for i in itertools.count():
             if time.perf_counter() > deadline:
                 break
-            s = seeds[i] if i < len(seeds) else self._rng.uniform(self.lower, self.upper)
-            q0, ep, er, _ = lm_solve(self._analytic, target, s, self.limits, tol_m, tol_rad, o.max_iterations, deadline)
-            stats["attempts"] += 1
-            if ep > NEAR_M or er > NEAR_RAD or any(np.abs(q0 - t).max() < BRANCH_RAD for t in tried):
-                continue
-            tried.append(q0)
-            result = self._other_branch(target, q0, analytic, start, deadline, stats)
+            if valley:  # straight to the hybrid LM: these start next to a hybrid near-solution
+                result = self._other_branch(target, valley.pop(0), analytic, start, deadline, stats)
+                stats["valley"] = stats.get("valley", 0) + 1
+            else:
+                s = seeds[i] if i < len(seeds) else self._rng.uniform(self.lower, self.upper)
+                q0, ep, er, _ = lm_solve(
+                    self._analytic, target, s, self.limits, tol_m, tol_rad, o.max_iterations, deadline
+                )
+                stats["attempts"] += 1
+                if ep > NEAR_M or er > NEAR_RAD or any(np.abs(q0 - t).max() < BRANCH_RAD for t in tried):
+                    continue
+                tried.append(q0)
+                result = self._other_branch(target, q0, analytic, start, deadline, stats)
+                if not analytic:
+                    valley = self._valley_seeds(result)
             if result.position_error_mm < best.position_error_mm:
                 best = result
             if result.success:
@@ -382,6 +393,17 @@ class IKSolver:
         best.stats["branches"] = len(tried)
         best.seconds = time.perf_counter() - start
         return best
+
+    def _valley_seeds(self, result: IKResult) -> list[np.ndarray]:
+        """Restarts along the weak direction of the hybrid Jacobian from a near miss at a near-singular
+        configuration. There the hybrid near-solutions form a valley (at a wrist singularity, joints 4 and 6
+        trade off), and LM settles in a local minimum of it tenths of a radian from the solution."""
+        if result.q is None or result.position_error_mm > VALLEY_MM:
+            return []
+        _, sv, vt = np.linalg.svd(self.model.fk_and_jacobian_single(result.q)[1])
+        if sv[-1] > VALLEY_SINGULAR:
+            return []
+        return [project(result.q + step * vt[-1], *self.limits) for step in VALLEY_STEPS_RAD]
 
     def _other_branch(
         self, target: np.ndarray, q0: np.ndarray, analytic: bool, start: float, deadline: float, stats: dict
