@@ -15,7 +15,8 @@
    millimetre move the solution by tenths of a radian, or the target lies just beyond the URDF model's
    reach), the other analytic branches follow: classical answers from the table's nearest
    configurations, each finished by unbounded LM on the hybrid model, until one reaches the target or
-   the budget ends.
+   the budget ends. A near miss at a near-singular configuration first restarts along the Jacobian's
+   weak direction, where the hybrid near-solutions form a valley with local minima.
 
 Several solutions come from several seeds, deduplicated modulo 2π on revolute joints (keeping the
 representative nearest the seed) and ordered by distance to the seed. Every result says whether it
