@@ -9,7 +9,7 @@ import pytest
 
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.ik.errors import IKError
-from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, lm_solve
+from hybrid_kinematics_ros.ik.solver import VALLEY_STEPS_RAD, IKOptions, IKResult, IKSolver, lm_solve
 from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
 from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR, load_robot_config
@@ -69,6 +69,25 @@ def test_lm_stops_on_a_floor_beyond_reach():
         deadline = time.perf_counter() + 60
         _, pos, _, iterations = lm_solve(solver._analytic, target, seed, solver.limits, 1e-9, 1e-9, 100, deadline)
         assert pos == pytest.approx(3e-4, rel=1e-3) and iterations < 20
+
+
+def test_near_misses_at_a_wrist_singularity_restart_along_the_valley():
+    """At joint_5 = 0 the UR10's wrist joints 4 and 6 trade off; a near miss there restarts along that
+    direction (the Jacobian's weak one), and nowhere else."""
+    chain = load_robot_config("ur10").chain
+    solver = IKSolver(HybridModel.analytic_only(chain))
+    singular = np.array([0.3, -1.2, 1.3, -0.9, 1e-5, 0.2])
+    seeds = solver._valley_seeds(IKResult(False, singular, 0.01, 0.0))
+    assert len(seeds) == len(VALLEY_STEPS_RAD)
+    _, J = solver.model.fk_and_jacobian_single(singular, analytic=True)
+    for seed, step in zip(seeds, VALLEY_STEPS_RAD, strict=True):
+        move = seed - singular
+        assert np.linalg.norm(move) == pytest.approx(abs(step))
+        assert set(np.argsort(-np.abs(move))[:2]) == {3, 5}  # mostly joints 4 and 6
+        assert np.linalg.norm(J @ move) < 1e-3 * abs(step)  # the pose hardly moves
+    assert solver._valley_seeds(IKResult(False, singular, 1.0, 0.0)) == []  # not a near miss
+    regular = np.array([0.3, -1.2, 1.3, -0.9, 1.1, 0.2])
+    assert solver._valley_seeds(IKResult(False, regular, 0.01, 0.0)) == []  # not singular
 
 
 def test_ur10_distinct_branches():
