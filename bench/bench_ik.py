@@ -20,7 +20,7 @@ from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 
-LONG_BUDGET_S = 0.3  # the hard targets (near singularities) need several branches; the median does not change
+LONG_BUDGET_S = 0.3  # the hard targets (near singularities) need several branches; most solve in a few ms either way
 
 
 def trained_model(robot: str, tmp: Path, minutes: float) -> HybridModel:
