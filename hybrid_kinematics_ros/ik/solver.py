@@ -182,6 +182,9 @@ class IKSolver:
         self.lower = np.where(np.isfinite(chain.lower), chain.lower, -2 * np.pi)
         self.upper = np.where(np.isfinite(chain.upper), chain.upper, 2 * np.pi)
         self.limits = (self.lower, self.upper, chain.revolute)
+        # a tenth of the success tolerances, in m and rad: where the solver's own iterations stop
+        o = self.options
+        self.inner_tol = (1e-4 * o.position_tolerance_mm, float(np.radians(o.orientation_tolerance_deg)) * 0.1)
         self._analytic = lambda q: model.fk_and_jacobian_single(q, analytic=True)
         # Newton's chord method: the hybrid pose with the URDF model's Jacobian. The two Jacobians differ
         # by the derivative of a millimetre-sized correction, so each step still cuts the error ~1000×,
@@ -217,7 +220,7 @@ class IKSolver:
         """Stage 1 from one seed, then restarts while time remains (if enabled)."""
         o = self.options
         fk_jac = self._analytic
-        tol_m, tol_rad = 1e-3 * o.position_tolerance_mm * 0.1, np.radians(o.orientation_tolerance_deg) * 0.1
+        tol_m, tol_rad = self.inner_tol
         best = None
         attempt_seed = seed
         attempts = 0
@@ -366,7 +369,7 @@ class IKSolver:
         # seed's branch may have none; a branch shifted by 2π on a joint is another hybrid problem (the nets
         # see raw joint values), so branches count as different unless their joints are equal.
         tried = [q0]
-        tol_m, tol_rad = 1e-3 * o.position_tolerance_mm * 0.1, np.radians(o.orientation_tolerance_deg) * 0.1
+        tol_m, tol_rad = self.inner_tol
         seeds = self.nearest_seeds(target, 2 * TABLE_RESTARTS) if o.seed_table else np.empty((0, len(seed)))
         valley = self._valley_seeds(best) if not analytic else []
         for i in itertools.count():
@@ -414,8 +417,7 @@ class IKSolver:
         per step; the floor and stall rules stop the runs that make no progress."""
         if analytic or not self.model.is_corrected:
             return self._result(q0, target, analytic, start, dict(stats))
-        o = self.options
-        tol_m, tol_rad = 1e-4 * o.position_tolerance_mm, np.radians(o.orientation_tolerance_deg) * 0.1
+        tol_m, tol_rad = self.inner_tol
         q = q0
         for fk_jac, iterations in ((self._chord, 12), (self.model.fk_and_jacobian_single, HYBRID_LM_ITERATIONS)):
             q, ep, er, _ = lm_solve(fk_jac, target, q, self.limits, tol_m, tol_rad, iterations, deadline, damping=1e-6)
@@ -442,8 +444,7 @@ class IKSolver:
                 target,
                 q,
                 self.limits,
-                1e-4 * self.options.position_tolerance_mm,
-                np.radians(self.options.orientation_tolerance_deg) * 0.1,
+                *self.inner_tol,
                 HYBRID_LM_ITERATIONS,
                 deadline,
             )
@@ -545,7 +546,7 @@ class IKSolver:
         if targets.ndim != 3 or targets.shape[1:] != (4, 4):
             raise IKError(f"trajectory targets must be (N, 4, 4), got {targets.shape}")
         o = self.options
-        tol_m, tol_rad = 1e-3 * o.position_tolerance_mm * 0.1, np.radians(o.orientation_tolerance_deg) * 0.1
+        tol_m, tol_rad = self.inner_tol
         n = len(targets)
         q = np.empty((n, self.model.chain.dof))
         prev = None if seed is None else np.asarray(seed, dtype=float)
