@@ -365,9 +365,8 @@ class IKSolver:
         best = self._from_branch(target, q0, analytic, start, deadline, stats)
         if best.success or not o.restarts:
             return best
-        # Near a singularity the nets' tenths of a millimetre move the solution by tenths of a radian, and the
-        # seed's branch may have none; a branch shifted by 2π on a joint is another hybrid problem (the nets
-        # see raw joint values), so branches count as different unless their joints are equal.
+        # the other branches (module docstring, 3.); one shifted by 2π on a joint is another hybrid problem (the
+        # nets see raw joint values), so branches count as different unless their joints are equal
         tried = [q0]
         tol_m, tol_rad = self.inner_tol
         seeds = self.nearest_seeds(target, 2 * TABLE_RESTARTS) if o.seed_table else np.empty((0, len(seed)))

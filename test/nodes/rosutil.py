@@ -69,7 +69,8 @@ class Client:
 
     def call(self, client, request, timeout: float = 30.0, resend_after: float = 5.0):
         """Call, and resend every ``resend_after`` seconds while unanswered: with Fast DDS a reply can be
-        lost while the client's response reader is still matching (the services here are idempotent)."""
+        lost while the client's response reader is still matching. A request that must not arrive twice
+        passes ``resend_after=timeout``."""
         end = time.monotonic() + timeout
         while time.monotonic() < end:
             future = client.call_async(request)
