@@ -1,13 +1,20 @@
 """Whatever a test started is stopped when it ends, even when it fails half-way; when a test fails, the
-logs of the processes it started are printed with the failure (a CI run leaves nothing else behind)."""
+logs of the processes it started are printed with the failure (a CI run leaves nothing else behind).
+Each module runs in a ROS domain of its own, so that nothing an earlier module left in discovery (a killed
+participant, a full shared-memory port) reaches it."""
 
 from __future__ import annotations
 
+import itertools
+import os
 import signal
 
 import pytest
 
 from test.nodes.rosutil import LOGS, STARTED, stop
+
+SESSION_DOMAIN = int(os.environ["ROS_DOMAIN_ID"])  # set per session by test/conftest.py
+MODULE_DOMAINS = itertools.count(SESSION_DOMAIN + 1)
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -16,6 +23,14 @@ def pytest_runtest_makereport(item, call):
     report = outcome.get_result()
     if report.when == "call":
         item.failed_call = report.failed
+
+
+@pytest.fixture(scope="module", autouse=True)
+def own_domain():
+    """Read by ``rclpy.init`` in this process and inherited by every node a test starts."""
+    os.environ["ROS_DOMAIN_ID"] = str(next(MODULE_DOMAINS) % 233)
+    yield
+    os.environ["ROS_DOMAIN_ID"] = str(SESSION_DOMAIN)
 
 
 @pytest.fixture(autouse=True)

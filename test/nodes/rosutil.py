@@ -64,8 +64,14 @@ class Client:
     def service(self, srv_type, name: str, timeout: float = 60.0):
         client = self.node.create_client(srv_type, name)
         if not client.wait_for_service(timeout_sec=timeout):
-            raise TimeoutError(f"service {name} did not appear within {timeout} s")
+            raise TimeoutError(f"service {name} did not appear within {timeout} s; {self.graph()}")
         return client
+
+    def graph(self) -> str:
+        """What this participant's discovery sees: tells a node that never came up from one not discovered."""
+        nodes = sorted(f"{ns.rstrip('/')}/{n}" for n, ns in self.node.get_node_names_and_namespaces())
+        services = sorted(name for name, _ in self.node.get_service_names_and_types())
+        return f"domain {os.environ.get('ROS_DOMAIN_ID')}, nodes seen {nodes}, services seen {services}"
 
     def call(self, client, request, timeout: float = 30.0, resend_after: float = 5.0):
         """Call, and resend every ``resend_after`` seconds while unanswered: with Fast DDS a reply can be
@@ -80,7 +86,7 @@ class Client:
             if future.done():
                 return future.result()
             client.remove_pending_request(future)
-        raise TimeoutError(f"no answer from {client.srv_name} within {timeout} s")
+        raise TimeoutError(f"no answer from {client.srv_name} within {timeout} s; {self.graph()}")
 
     def spin_for(self, seconds: float) -> None:
         end = time.monotonic() + seconds
