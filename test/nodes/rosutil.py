@@ -61,7 +61,8 @@ class Client:
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
 
-    def service(self, srv_type, name: str, timeout: float = 60.0):
+    # generous: on a healthy machine both return within a second; a loaded CI runner has taken a minute
+    def service(self, srv_type, name: str, timeout: float = 120.0):
         client = self.node.create_client(srv_type, name)
         if not client.wait_for_service(timeout_sec=timeout):
             raise TimeoutError(f"service {name} did not appear within {timeout} s; {self.graph()}")
@@ -73,7 +74,7 @@ class Client:
         services = sorted(name for name, _ in self.node.get_service_names_and_types())
         return f"domain {os.environ.get('ROS_DOMAIN_ID')}, nodes seen {nodes}, services seen {services}"
 
-    def call(self, client, request, timeout: float = 30.0, resend_after: float = 5.0):
+    def call(self, client, request, timeout: float = 60.0, resend_after: float = 5.0):
         """Call, and resend every ``resend_after`` seconds while unanswered: with Fast DDS a reply can be
         lost while the client's response reader is still matching. A request that must not arrive twice
         passes ``resend_after=timeout``."""
