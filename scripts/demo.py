@@ -257,7 +257,7 @@ def main() -> int:
 
         say("3/5 evaluating on separate test sets from the virtual cell: near the recording, and away from it")
         near_trajectory_test_set(bag, out / "test_near_bag")
-        test = out / "test_bag"
+        test = out / "test_away_bag"
         cli(
             "simulate",
             "--robot",
