@@ -166,11 +166,16 @@ TEST_SETS = (
 )
 
 
+def model_columns(evaluation: dict) -> list[tuple[str, dict]]:
+    """(label, statistics) of each model the evaluation has (the parametric stage is optional)."""
+    return [(label, evaluation[k]) for label, k in MODELS if k in evaluation]
+
+
 def html_report(out: Path, evaluations: dict, ros: dict, meta: dict) -> Path:
     tables = ""
     for key, title in TEST_SETS:
         evaluation = evaluations[key]
-        columns = [(label, evaluation[k]) for label, k in MODELS if k in evaluation]
+        columns = model_columns(evaluation)
         head = "".join(f"<th>{label}</th>" for label, _ in columns)
         rows = "".join(
             f"<tr><td>{label}</td>" + "".join(f"<td>{stats[k]:.5f}</td>" for _, stats in columns) + "</tr>"
@@ -256,8 +261,8 @@ def main() -> int:
         )
 
         say("3/5 evaluating on separate test sets from the virtual cell: near the recording, and away from it")
-        near_trajectory_test_set(bag, out / "test_near_bag")
-        test = out / "test_away_bag"
+        test_bags = {"near": out / "test_near_bag", "away": out / "test_away_bag"}
+        near_trajectory_test_set(bag, test_bags["near"])
         cli(
             "simulate",
             "--robot",
@@ -265,7 +270,7 @@ def main() -> int:
             "--samples",
             "5000",
             "--out",
-            str(test),
+            str(test_bags["away"]),
             "--seed",
             "99",
             "--range-fraction",
@@ -285,10 +290,10 @@ def main() -> int:
                     str(out / f"plots_{key}"),
                 )
             )
-            for key, bag_path in (("near", out / "test_near_bag"), ("away", test))
+            for key, bag_path in test_bags.items()
         }
 
-        cli("report", "--model", str(model), "--bag", str(test), "--out", str(out / "accuracy_report"))
+        cli("report", "--model", str(model), "--bag", str(test_bags["away"]), "--out", str(out / "accuracy_report"))
 
         say("4/5 kinematics node serving the model; a client calls FK and IK")
         node = launch("kinematics_node", "-p", f"model_dir:={model}", log=out / "kinematics_node.log")
@@ -298,8 +303,7 @@ def main() -> int:
         say("5/5 report")
         report = html_report(out, evaluations, ros, info)
         for key, title in TEST_SETS:
-            evaluation = evaluations[key]
-            columns = [(label, evaluation[k]) for label, k in MODELS if k in evaluation]
+            columns = model_columns(evaluations[key])
             print(f"\nTest set {title}:")
             print(f"{'':28s}" + "".join(f"{label:>18s}" for label, _ in columns))
             for label, k in ROWS:
