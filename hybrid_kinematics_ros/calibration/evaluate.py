@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 from typing import Any
 
@@ -11,6 +12,8 @@ from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import se3
+
+COVERAGE_BINS_RAD = (0.0, 0.05, 0.1, 0.2, 0.4, 0.8, 1.6, np.inf)
 
 
 def error_stats(pos_mm: np.ndarray, rot_deg: np.ndarray) -> dict[str, float]:
@@ -66,11 +69,54 @@ def evaluate(model: HybridModel, pairs: Pairs) -> dict[str, Any]:
         report[name] = error_stats(pos, rot)
         report[f"{name}_inside_range"] = error_stats(pos[inside], rot[inside])
         report[f"{name}_outside_range"] = error_stats(pos[~inside], rot[~inside])
+    distance = model.coverage_distance(pairs.q)
+    if distance is not None and model.nets:
+        base = "parametric" if "parametric" in errors else "analytic"
+        report["coverage"] = coverage_report(distance, errors["hybrid"], errors[base], base)
     if not model.has_orientation and model.nets:
         report["note"] = "no orientation net: orientation is the analytic model's, uncorrected"
     if pairs.position_only:
         report["note"] = "position-only pairs: orientation errors cannot be measured"
     return report
+
+
+def coverage_report(
+    distance: np.ndarray, hybrid: tuple[np.ndarray, np.ndarray], base: tuple[np.ndarray, np.ndarray], base_name: str
+) -> dict[str, Any]:
+    """The errors by joint-space distance (rad) to the nearest training configuration, and the coverage
+    radius that minimises the mean position error when the nets are dropped beyond it.
+
+    Near the training data the nets correct what the ``base`` model (the parametric stage, else the URDF)
+    misses; far from it they extrapolate and can do worse. The radius is fitted on these pairs, so give it
+    pairs that were not used for training.
+    """
+    bins = []
+    for lo, hi in itertools.pairwise(COVERAGE_BINS_RAD):
+        inside = (distance >= lo) & (distance < hi)
+        if inside.any():
+            row: dict[str, Any] = {"from_rad": lo, "to_rad": None if np.isinf(hi) else hi, "count": int(inside.sum())}
+            for name, (pos, rot) in (("hybrid", hybrid), (base_name, base)):
+                row[f"{name}_position_mm_mean"] = float(np.mean(pos[inside]))
+                if not np.all(np.isnan(rot)):
+                    row[f"{name}_orientation_deg_mean"] = float(np.mean(rot[inside]))
+            bins.append(row)
+    # candidate radii: every distance seen; the mean error if the nets are dropped beyond each one
+    order = np.argsort(distance)
+    d, h, b = distance[order], hybrid[0][order], base[0][order]
+    combined = (np.cumsum(h) + (b.sum() - np.cumsum(b))) / len(d)
+    best = int(np.argmin(combined))
+    radius = None if best == len(d) - 1 else float(d[best])
+    return {
+        "distance_rad": {
+            "median": float(np.median(distance)),
+            "p95": float(np.percentile(distance, 95)),
+            "max": float(np.max(distance)),
+        },
+        "fallback": base_name,
+        "bins": bins,
+        "suggested_radius_rad": radius,
+        "position_mm_mean_with_radius": float(combined[best]) if radius is not None else float(np.mean(hybrid[0])),
+    }
 
 
 def plot_distributions(model: HybridModel, pairs: Pairs, out_dir: Path) -> list[Path]:

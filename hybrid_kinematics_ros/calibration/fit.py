@@ -30,6 +30,8 @@ from hybrid_kinematics_ros.io.raw_bag import RawRecording, read_raw
 from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
 
+COVERAGE_SPACING = 0.005  # rad: the grid the stored training configurations are thinned on
+
 
 def align_raw(
     bag: str | Path,
@@ -193,8 +195,14 @@ def fit(
     )
     if position_only:
         manifest["note"] = "position-only data: orientation is not corrected (no orientation net)"
-    save_model_dir(out, manifest, chain.urdf_text, nets)
+    save_model_dir(out, manifest, chain.urdf_text, nets, coverage=thinned(train_pairs.q))
     return HybridModel.load(out), manifest
+
+
+def thinned(q: np.ndarray, spacing: float = COVERAGE_SPACING) -> np.ndarray:
+    """One configuration per ``spacing``-sided cell of joint space: a slow trajectory repeats itself."""
+    _, keep = np.unique(np.round(q / spacing), axis=0, return_index=True)
+    return q[np.sort(keep)]
 
 
 def _best(history: list[dict]) -> dict[str, float]:

@@ -6,7 +6,9 @@ it is that model alone, so nodes and IK use one type whether or not a calibratio
 
 Outside the joint range the nets were trained on, ``range_policy`` decides: ``warn`` (use the nets;
 callers flag it), ``parametric`` (drop the nets there) or ``refuse`` (callers fail such requests; see
-:meth:`HybridModel.check_range`).
+:meth:`HybridModel.check_range`). A trajectory covers a thin part of that box, and away from it the nets
+extrapolate; with ``coverage_radius`` set, the calibrated range is the configurations within that
+distance of a training configuration instead.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
@@ -58,9 +61,13 @@ class HybridModel:
         manifest: dict[str, Any] | None = None,
         path: Path | None = None,
         range_policy: str = "warn",
+        coverage: np.ndarray | None = None,
     ) -> None:
         self.chain = chain
         self.range_policy = range_policy
+        self.coverage = None if coverage is None else np.asarray(coverage, dtype=float)
+        self._tree: cKDTree | None = None
+        self._coverage_radius: float | None = None
         self.nets = dict(nets or {})
         self.manifest = dict(manifest or {})
         self.path = path
@@ -85,6 +92,33 @@ class HybridModel:
         self._range_policy = value
 
     @property
+    def coverage_radius(self) -> float | None:
+        """Joint-space distance (rad) to the nearest training configuration beyond which a configuration
+        counts as outside the calibrated range; None: the per-joint trained range alone decides."""
+        return self._coverage_radius
+
+    @coverage_radius.setter
+    def coverage_radius(self, value: float | None) -> None:
+        if value is not None:
+            if not (np.isfinite(value) and value > 0):
+                raise CalibrationError(f"coverage radius {value} must be a positive number of radians")
+            if self.coverage is None:
+                raise CalibrationError(
+                    f"model {self.path or ''} stores no training configurations (coverage.npy); "
+                    "retrain it with this version to use a coverage radius"
+                )
+        self._coverage_radius = None if value is None else float(value)
+
+    def coverage_distance(self, q: np.ndarray) -> np.ndarray | None:
+        """``(B,)`` Euclidean joint-space distance (rad) to the nearest training configuration; None when
+        the model stores none."""
+        if self.coverage is None:
+            return None
+        if self._tree is None:
+            self._tree = cKDTree(self.coverage)
+        return self._tree.query(np.atleast_2d(q))[0]
+
+    @property
     def is_corrected(self) -> bool:
         """True when the model differs from the URDF: nets, a parametric stage, or both."""
         return bool(self.nets) or not self.base.is_rigid
@@ -107,7 +141,13 @@ class HybridModel:
             )
 
     def describe_outside(self, q: np.ndarray) -> str:
-        """The joints of one configuration outside the trained range, with the range, for messages."""
+        """Why one configuration lies outside the calibrated range (the joints outside the trained range,
+        or its distance to the training data), for messages."""
+        if self.coverage_radius is not None:
+            return (
+                f"{float(self.coverage_distance(q)[0]):.3f} rad from the nearest training configuration "
+                f"(coverage radius {self.coverage_radius:.3f} rad)"
+            )
         out = []
         for name, v, lo, hi in zip(self.joint_names, q, self.trained_lower, self.trained_upper, strict=True):
             if not lo - 1e-9 <= v <= hi + 1e-9:
@@ -150,7 +190,7 @@ class HybridModel:
             raise DataError(
                 f"{files.path} was trained for joints {list(chain.joint_names)}, not {list(expect_joint_names)}"
             )
-        return cls(chain, files.nets, m, Path(path))
+        return cls(chain, files.nets, m, Path(path), coverage=files.coverage)
 
     @property
     def joint_names(self) -> tuple[str, ...]:
@@ -161,9 +201,12 @@ class HybridModel:
         return "orientation" in self.nets
 
     def in_calibrated_range(self, q: np.ndarray) -> np.ndarray:
-        """``(B,)`` True where every joint lies inside the range the nets were trained on."""
-        lower, upper = self._range
+        """``(B,)`` True where every joint lies inside the range the nets were trained on; with a coverage
+        radius, True where a training configuration lies within it instead (the finer test of the two)."""
         q = np.atleast_2d(q)
+        if self._coverage_radius is not None:
+            return self.coverage_distance(q) <= self._coverage_radius
+        lower, upper = self._range
         return ((q >= lower) & (q <= upper)).all(axis=1)
 
     def residuals(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

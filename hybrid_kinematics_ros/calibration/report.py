@@ -104,6 +104,37 @@ def _table(head: list[str], rows: list[list[Any]]) -> str:
     return f"<table><tr>{''.join(f'<th>{html.escape(h)}</th>' for h in head)}</tr>{body}</table>"
 
 
+def _coverage_section(coverage: dict[str, Any] | None) -> list[str]:
+    """Errors by distance to the training data, and the coverage radius that serves them best."""
+    if coverage is None:
+        return []
+    base = coverage["fallback"]
+    head = ["distance to training data (rad)", "pairs", "hybrid position mean (mm)", f"{base} position mean (mm)"]
+    rows = [
+        [
+            f"{b['from_rad']:g} to {b['to_rad']:g}" if b["to_rad"] is not None else f"over {b['from_rad']:g}",
+            b["count"],
+            b["hybrid_position_mm_mean"],
+            b[f"{base}_position_mm_mean"],
+        ]
+        for b in coverage["bins"]
+    ]
+    radius = coverage["suggested_radius_rad"]
+    advice = (
+        f"Dropping the nets beyond {radius:.3f} rad (kinematics_node parameter <code>coverage_radius_rad</code> "
+        "with <code>out_of_range_policy: parametric</code>) gives a mean position error of "
+        f"{coverage['position_mm_mean_with_radius']:.4g} mm on these pairs."
+        if radius is not None
+        else "The nets help at every distance in these pairs: no coverage radius is needed."
+    )
+    return [
+        "<h2>Distance to the training data</h2>",
+        f"<p>Joint-space distance from each test configuration to the nearest training configuration: median "
+        f"{coverage['distance_rad']['median']:.3f} rad, p95 {coverage['distance_rad']['p95']:.3f} rad. {advice}</p>",
+        _table(head, rows),
+    ]
+
+
 def _stats_rows(report: dict[str, Any], suffix: str = "") -> list[list[Any]]:
     rows = []
     for name in ("analytic", "parametric", "hybrid"):
@@ -175,6 +206,7 @@ def write_report(
     ]
     outside_rows = _stats_rows(report, "_outside_range")
     parts.append(_table(STATS_HEAD, outside_rows) if outside_rows else "<p>No test pair lies outside.</p>")
+    parts.extend(_coverage_section(report.get("coverage")))
     iso = iso9283(model, pairs)
     parts.append("<h2>ISO 9283 pose accuracy and repeatability</h2>")
     if iso:

@@ -23,6 +23,16 @@ def add_robot_args(p: argparse.ArgumentParser, required: bool = True) -> None:
     p.add_argument("--tip-link", help="tip link of the chain (with --urdf)")
 
 
+def add_coverage_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--coverage-radius",
+        type=float,
+        metavar="RAD",
+        help="the calibrated range is where a training configuration lies within this distance (joint space, "
+        "rad), instead of the trained joint ranges; `evaluate` suggests one",
+    )
+
+
 def chain_from_args(args: argparse.Namespace) -> Chain:
     if args.robot:
         return load_robot_config(args.robot).chain

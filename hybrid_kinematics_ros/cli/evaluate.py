@@ -9,6 +9,7 @@ from pathlib import Path
 from hybrid_kinematics_ros.calibration.evaluate import evaluate, plot_distributions
 from hybrid_kinematics_ros.calibration.fit import load_pairs
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+from hybrid_kinematics_ros.cli.common import add_coverage_arg
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -17,11 +18,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bag", nargs="+", required=True, help="pairs bag(s) to test on")
     p.add_argument("--json", type=Path, help="write the statistics here")
     p.add_argument("--plots", type=Path, help="write the error-distribution PNGs into this folder")
+    add_coverage_arg(p)
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     model = HybridModel.load(args.model)
+    if args.coverage_radius is not None:  # evaluate the model as served with it: no nets beyond the radius
+        model.coverage_radius, model.range_policy = args.coverage_radius, "parametric"
     pairs = load_pairs(args.bag, model.chain, referencing=model.referencing)
     report = {"model": str(args.model), "bags": [str(b) for b in args.bag], **evaluate(model, pairs)}
     if pairs.dropped:

@@ -9,7 +9,14 @@ from pathlib import Path
 import numpy as np
 
 from hybrid_kinematics_ros.calibration.hybrid import RANGE_POLICIES, HybridModel
-from hybrid_kinematics_ros.cli.common import POSE_COLUMNS, add_robot_args, chain_from_args, read_csv, write_csv
+from hybrid_kinematics_ros.cli.common import (
+    POSE_COLUMNS,
+    add_coverage_arg,
+    add_robot_args,
+    chain_from_args,
+    read_csv,
+    write_csv,
+)
 from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
 
 
@@ -26,12 +33,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         default="warn",
         help="outside the trained joint range: warn (default), parametric (no nets there) or refuse",
     )
+    add_coverage_arg(p)
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     model = HybridModel.load(args.model) if args.model else HybridModel.analytic_only(chain_from_args(args))
     model.range_policy = args.out_of_range
+    model.coverage_radius = args.coverage_radius
     _, q = read_csv(args.joints, model.joint_names)
     if not args.analytic:
         model.check_range(q)
@@ -42,5 +51,5 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {len(q)} poses to {args.out}")
     if outside:
         what = "extrapolated by the nets" if args.out_of_range == "warn" else "without the nets"
-        print(f"warning: {outside} configuration(s) outside the calibrated joint range, {what}", file=sys.stderr)
+        print(f"warning: {outside} configuration(s) outside the calibrated range, {what}", file=sys.stderr)
     return 0

@@ -1,7 +1,9 @@
 """The model directory: self-contained, checked on load, no pickle anywhere.
 
 Layout: ``model.json`` (the manifest), ``robot.urdf`` (a copy of the URDF the model was trained for),
-``position.pt`` and ``orientation.pt`` (TorchScript residual nets; either may be absent, e.g. position-only).
+``position.pt`` and ``orientation.pt`` (TorchScript residual nets; either may be absent, e.g. position-only),
+and ``coverage.npy`` (the training configurations, float32 ``(N, n)``, for the distance to the data; absent in
+models trained before it existed).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ SCHEMA_VERSION = 1
 MANIFEST = "model.json"
 URDF_FILE = "robot.urdf"
 NET_FILES = {"position": "position.pt", "orientation": "orientation.pt"}
+COVERAGE_FILE = "coverage.npy"
 REQUIRED = (
     "schema_version",
     "urdf_sha256",
@@ -58,15 +61,23 @@ def versions() -> dict[str, str]:
 
 @dataclass
 class ModelFiles:
-    """A loaded model directory: the manifest, the URDF text and the TorchScript nets."""
+    """A loaded model directory: the manifest, the URDF text, the TorchScript nets and the training
+    configurations (None for models without ``coverage.npy``)."""
 
     path: Path
     manifest: dict[str, Any]
     urdf_text: str
     nets: dict[str, torch.jit.ScriptModule]
+    coverage: np.ndarray | None = None
 
 
-def save_model_dir(path: Path, manifest: dict[str, Any], urdf_text: str, nets: dict[str, torch.nn.Module]) -> None:
+def save_model_dir(
+    path: Path,
+    manifest: dict[str, Any],
+    urdf_text: str,
+    nets: dict[str, torch.nn.Module],
+    coverage: np.ndarray | None = None,
+) -> None:
     """Write a model directory atomically: into a temporary sibling, then renamed into place."""
     path = Path(path)
     if path.exists() and any(path.iterdir()):
@@ -81,6 +92,14 @@ def save_model_dir(path: Path, manifest: dict[str, Any], urdf_text: str, nets: d
             module.save(str(tmp / NET_FILES[kind]))
             _check_saved(net, tmp / NET_FILES[kind], len(manifest.get("joint_names", [])))
             files[kind] = {"file": NET_FILES[kind], "sha256": sha256_file(tmp / NET_FILES[kind])}
+        extra = {}
+        if coverage is not None:
+            np.save(tmp / COVERAGE_FILE, np.asarray(coverage, dtype=np.float32), allow_pickle=False)
+            extra["coverage"] = {
+                "file": COVERAGE_FILE,
+                "sha256": sha256_file(tmp / COVERAGE_FILE),
+                "configurations": len(coverage),
+            }
         full = {
             "schema_version": SCHEMA_VERSION,
             "urdf_file": URDF_FILE,
@@ -90,6 +109,7 @@ def save_model_dir(path: Path, manifest: dict[str, Any], urdf_text: str, nets: d
                 **manifest.get("nets", {}),
                 **{k: {**manifest.get("nets", {}).get(k, {}), **v} for k, v in files.items()},
             },
+            **extra,
             "versions": versions(),
         }
         (tmp / MANIFEST).write_text(json.dumps(full, indent=2, default=_json_default) + "\n")
@@ -166,4 +186,22 @@ def load_model_dir(path: Path | str) -> ModelFiles:
             raise DataError(f"{file} is not a usable TorchScript residual net: {exc}") from exc
         if tuple(out.shape) != (1, 3) or not torch.all(torch.isfinite(out)):
             raise DataError(f"{file} returns {tuple(out.shape)} or non-finite values for zero joints; expected (1, 3)")
-    return ModelFiles(path, manifest, urdf_text, nets)
+    return ModelFiles(path, manifest, urdf_text, nets, _load_coverage(path, manifest, manifest_path))
+
+
+def _load_coverage(path: Path, manifest: dict[str, Any], manifest_path: Path) -> np.ndarray | None:
+    entry = manifest.get("coverage")
+    if entry is None:
+        return None
+    file = path / entry.get("file", COVERAGE_FILE)
+    if not file.is_file():
+        raise DataError(f"{file} does not exist (listed in {manifest_path})")
+    if sha256_file(file) != entry.get("sha256"):
+        raise DataError(f"{file} is corrupt: its sha256 does not match {manifest_path}")
+    try:
+        configs = np.load(file, allow_pickle=False)
+    except ValueError as exc:
+        raise DataError(f"{file} is not a numpy array file: {exc}") from exc
+    if configs.ndim != 2 or configs.shape[1] != len(manifest["joint_names"]) or not np.all(np.isfinite(configs)):
+        raise DataError(f"{file}: expected finite configurations ({len(manifest['joint_names'])} joints per row)")
+    return configs.astype(float)

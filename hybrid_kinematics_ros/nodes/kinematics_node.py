@@ -71,6 +71,12 @@ class KinematicsNode(Node):
             "outside the joint range the nets were trained on: warn (use them, flag it), "
             "parametric (drop the nets there) or refuse (fail such FK and IK requests)",
         )
+        self.coverage_radius = declare(
+            "coverage_radius_rad",
+            0.0,
+            "> 0: the calibrated range is where a training configuration lies within this distance (joint "
+            "space, rad), instead of the trained joint ranges (hybrid-kinematics evaluate suggests one); 0: off",
+        )
 
         self._lock = threading.Lock()
         self.model, self.solver = self._load()
@@ -124,6 +130,7 @@ class KinematicsNode(Node):
                     )
                 model = HybridModel.analytic_only(chain_from_urdf(urdf, self.base_link, self.tip_link))
             model.range_policy = self.range_policy
+            model.coverage_radius = self.coverage_radius if self.coverage_radius > 0 else None
         except LOAD_ERRORS as exc:
             raise StartupError(str(exc)) from exc
         return model, self._solver(model)

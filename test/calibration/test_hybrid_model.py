@@ -11,7 +11,7 @@ import torch
 
 from hybrid_kinematics_ros.calibration import nets
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.calibration.evaluate import evaluate
+from hybrid_kinematics_ros.calibration.evaluate import coverage_report, evaluate
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics import fk, se3
@@ -118,6 +118,8 @@ def test_mismatched_and_corrupt_models_are_refused(trained, tmp_path):
         HybridModel.load(broken(lambda p: (p / "robot.urdf").write_text(other)))
     with pytest.raises(DataError, match="not valid JSON"):
         HybridModel.load(broken(lambda p: (p / "model.json").write_text("{")))
+    with pytest.raises(DataError, match=r"coverage\.npy is corrupt"):
+        HybridModel.load(broken(lambda p: np.save(p / "coverage.npy", np.zeros((3, 6)))))
     with pytest.raises(DataError, match=r"model\.json does not exist"):
         HybridModel.load(tmp_path)
 
@@ -140,3 +142,45 @@ def test_range_policies(trained):
         model.check_range(q)
     with pytest.raises(CalibrationError, match="range policy 'sometimes' is not one of"):
         model.range_policy = "sometimes"
+
+
+def test_coverage_radius_drops_the_nets_far_from_the_training_data(trained):
+    path, _, _, test = trained
+    model = HybridModel.load(path)
+    stored = np.load(path / "coverage.npy")
+    assert len(stored) == model.manifest["coverage"]["configurations"] and stored.shape[1] == 6
+    # the distance is that to the nearest stored configuration (float32 copies of the training joints)
+    q = test.q[:50]
+    brute = np.linalg.norm(q[:, None, :] - stored[None].astype(float), axis=2).min(axis=1)
+    np.testing.assert_allclose(model.coverage_distance(q), brute, atol=1e-12)
+    near, far = stored[0].astype(float), stored[0] + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.9])
+    far = np.clip(far, model.trained_lower, model.trained_upper)
+    q = np.stack([near, far])
+    radius = 0.5 * float(model.coverage_distance(far[None])[0])
+    assert list(model.in_calibrated_range(q)) == [True, True]  # the per-joint range alone
+    model.coverage_radius, model.range_policy = radius, "parametric"
+    assert list(model.in_calibrated_range(q)) == [True, False]
+    served = model.fk(q)
+    np.testing.assert_array_equal(served[1], model.fk(q[1:], nets=False)[0])
+    assert not np.allclose(served[0], model.fk(q[:1], nets=False)[0], atol=1e-9)  # the nets still correct near
+    model.range_policy = "refuse"
+    with pytest.raises(CalibrationError, match=r"from the nearest training configuration \(coverage radius"):
+        model.check_range(q)
+    with pytest.raises(CalibrationError, match="positive number of radians"):
+        model.coverage_radius = -1.0
+    with pytest.raises(CalibrationError, match="stores no training configurations"):
+        HybridModel.analytic_only(model.chain).coverage_radius = 0.5
+
+
+def test_coverage_report_finds_the_radius_where_the_nets_stop_helping():
+    rng = np.random.default_rng(0)
+    distance = rng.uniform(0.0, 2.0, 4000)
+    hybrid = np.where(distance < 0.7, 0.02, 0.3) + rng.uniform(0, 0.01, 4000)
+    base = np.full(4000, 0.1)
+    report = coverage_report(distance, (hybrid, np.zeros(4000)), (base, np.zeros(4000)), "parametric")
+    assert 0.68 < report["suggested_radius_rad"] < 0.7
+    best = np.where(distance <= report["suggested_radius_rad"], hybrid, base).mean()
+    assert report["position_mm_mean_with_radius"] == pytest.approx(best, rel=1e-12)
+    assert sum(b["count"] for b in report["bins"]) == 4000
+    helpful = coverage_report(distance, (base / 2, np.zeros(4000)), (base, np.zeros(4000)), "analytic")
+    assert helpful["suggested_radius_rad"] is None

@@ -55,6 +55,7 @@ def test_train_evaluate_fk_workflow(tmp_path, capsys):
     assert result.returncode == 0, result.stderr
     report = json.loads((tmp_path / "e.json").read_text())
     assert report["hybrid"]["position_mm_mean"] < report["analytic"]["position_mm_mean"]
+    assert sum(b["count"] for b in report["coverage"]["bins"]) == report["pairs"]
     assert (plots / "position_error_distribution.png").stat().st_size > 1000
 
     model = HybridModel.load(model_dir)
@@ -85,7 +86,16 @@ def test_train_evaluate_fk_workflow(tmp_path, capsys):
     assert refused.returncode == 2 and "outside the calibrated joint range" in refused.stderr
     assert model.joint_names[2] in refused.stderr
     warned = run("fk", "--model", str(model_dir), "--joints", str(far), "--out", out)
-    assert warned.returncode == 0 and "1 configuration(s) outside the calibrated joint range" in warned.stderr
+    assert warned.returncode == 0 and "1 configuration(s) outside the calibrated range" in warned.stderr
+    # inside every joint's range, but far from the training data: outside once a coverage radius is given
+    middle = tmp_path / "middle.csv"
+    centre = 0.5 * (model.trained_lower + model.trained_upper)
+    middle.write_text(",".join(model.joint_names) + "\n" + ",".join(repr(float(v)) for v in centre) + "\n")
+    radius = str(0.5 * float(model.coverage_distance(centre)[0]))
+    args = ("fk", "--model", str(model_dir), "--joints", str(middle), "--out", out, "--out-of-range", "refuse")
+    assert run(*args).returncode == 0
+    refused = run(*args, "--coverage-radius", radius)
+    assert refused.returncode == 2 and "from the nearest training configuration" in refused.stderr
 
     urdf = tmp_path / "calibrated.urdf"
     result = run("export-urdf", "--model", str(model_dir), "--out", str(urdf), "--bag", str(bag))

@@ -266,3 +266,32 @@ def test_out_of_range_policy(ros, trained, policy):
     finally:
         client.close()
         node.destroy_node()
+
+
+def test_coverage_radius(ros, trained):
+    """With a coverage radius, a configuration inside every joint's range but far from the training data
+    gets the model without the nets, and is flagged."""
+    from hybrid_kinematics_ros.nodes.kinematics_node import KinematicsNode
+
+    model = trained[1]
+    near = np.load(trained[0] / "coverage.npy")[0].astype(float)
+    far = 0.5 * (model.trained_lower + model.trained_upper)
+    radius = 0.5 * float(model.coverage_distance(far)[0])
+    overrides = [
+        rclpy.parameter.Parameter("model_dir", value=str(trained[0])),
+        rclpy.parameter.Parameter("out_of_range_policy", value="parametric"),
+        rclpy.parameter.Parameter("coverage_radius_rad", value=radius),
+        rclpy.parameter.Parameter("publish_corrected_pose", value=False),
+    ]
+    node = KinematicsNode("coverage", parameter_overrides=overrides)
+    client = Client("coverage_client")
+    client.executor.add_node(node)
+    try:
+        fk = client.service(ComputeFK, "/coverage/compute_fk")
+        resp = client.call(fk, fk_request([near, far], model.joint_names))
+        assert resp.success and list(resp.in_calibrated_range) == [True, False], resp.message
+        np.testing.assert_allclose(poses_of(resp)[0], model.fk(near)[0], atol=1e-9)
+        np.testing.assert_allclose(poses_of(resp)[1], model.fk(far, nets=False)[0], atol=1e-12)
+    finally:
+        client.close()
+        node.destroy_node()
