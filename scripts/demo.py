@@ -339,9 +339,9 @@ def main() -> int:
         for key, title in TEST_SETS:
             columns = model_columns(evaluations[key], served.get(key), radius)
             print(f"\nTest set {title}:")
-            print(f"{'':28s}" + "".join(f"{label:>18s}" for label, _ in columns))
+            print(f"{'':28s}" + "".join(f"{label:>22s}" for label, _ in columns))
             for label, k in ROWS:
-                print(f"{label:28s}" + "".join(f"{stats[k]:18.5f}" for _, stats in columns))
+                print(f"{label:28s}" + "".join(f"{stats[k]:22.5f}" for _, stats in columns))
         print(
             f"\nIK via the node: {ros['ik_solved']}/{ros['ik_requests']} solved, round-trip error "
             f"{ros['ik_position_error_mm_mean']:.2e} mm / {ros['ik_orientation_error_deg_mean']:.2e} deg, "
