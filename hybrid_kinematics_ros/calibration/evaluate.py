@@ -115,7 +115,7 @@ def coverage_report(
         "fallback": base_name,
         "bins": bins,
         "suggested_radius_rad": radius,
-        "position_mm_mean_with_radius": float(combined[best]) if radius is not None else float(np.mean(hybrid[0])),
+        "position_mm_mean_with_radius": float(combined[best]),  # the last candidate keeps the nets everywhere
     }
 
 
