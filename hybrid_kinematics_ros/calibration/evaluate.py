@@ -43,21 +43,35 @@ def in_base_frame(model: HybridModel, pairs: Pairs) -> Pairs:
     )
 
 
-def pose_errors_of(model: HybridModel, pairs: Pairs) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Errors of the URDF model (``analytic``), the parametric stage alone if any, and the hybrid model.
+def target_errors(model: HybridModel, pairs: Pairs, tip: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position (mm) and orientation (deg) errors of modelled tip poses ``tip (N, 4, 4)`` against base-frame
+    ``pairs``, at the measured target (:attr:`HybridModel.target`).
 
-    Position-only pairs have no orientation to compare with: their orientation errors are NaN. Pairs in
-    the tracker frame the model was referenced to are moved into the base frame first.
+    That is the error in the measurement's own frame: a rigid change of frame keeps distances and angles,
+    so these are the numbers a user gets by mapping the model's FK into the tracker frame with the stored
+    referencing and comparing it with the tracker's readings. Position-only pairs hold the target points
+    themselves and give no orientation (NaN).
+    """
+    pos, rot = se3.pose_errors(measured_targets(model, pairs), tip @ model.target)
+    return (pos, np.full_like(pos, np.nan)) if pairs.position_only else (pos, rot)
+
+
+def measured_targets(model: HybridModel, pairs: Pairs) -> np.ndarray:
+    """``(N, 4, 4)``: the measured target poses in the base frame (position-only: the points, no rotation)."""
+    return pairs.T if pairs.position_only else pairs.T @ model.target
+
+
+def pose_errors_of(model: HybridModel, pairs: Pairs) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Errors of the URDF model (``analytic``), the parametric stage alone if any, and the hybrid model,
+    at the measured target (:func:`target_errors`). Pairs in the tracker frame the model was referenced
+    to are moved into the base frame first.
     """
     pairs = in_base_frame(model, pairs)
     models = {"analytic": model.fk(pairs.q, analytic=True)}
     if model.has_parametric:
         models["parametric"] = model.fk(pairs.q, nets=False)
     models["hybrid"] = model.fk(pairs.q)
-    out = {name: se3.pose_errors(pairs.T, T) for name, T in models.items()}
-    if pairs.position_only:
-        out = {name: (pos, np.full_like(rot, np.nan)) for name, (pos, rot) in out.items()}
-    return out
+    return {name: target_errors(model, pairs, T) for name, T in models.items()}
 
 
 def evaluate(model: HybridModel, pairs: Pairs) -> dict[str, Any]:

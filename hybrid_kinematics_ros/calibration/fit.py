@@ -119,10 +119,13 @@ def fit(
         log(f"referenced frame '{ref.frame_id}': rms {ref.rms_position_mm:.4f} mm ({ref.outliers} outliers)")
         train_pairs, val_pairs, test_pairs = (ref.to_base(p, chain.base_link) for p in raw)
     position_only = train_pairs.position_only
+    target = ref.target_offset if ref is not None else None  # position-only: the models predict that point
     base = ElasticChain.rigid(chain)
     if parametric:
         start = time.perf_counter()
-        result = identify(chain, train_pairs.q, train_pairs.T, *payload, position_only=position_only, seed=seed)
+        result = identify(
+            chain, train_pairs.q, train_pairs.T, *payload, position_only=position_only, seed=seed, target=target
+        )
         if ref is not None:
             ref, result = anchor_base(chain, ref, result)
             train_pairs, val_pairs, test_pairs = (ref.to_base(p, chain.base_link) for p in raw)
@@ -138,8 +141,8 @@ def fit(
     norm_lower, norm_upper = (chain.lower, chain.upper) if preset.full_range else (lower, upper)
     norm_lower = np.where(np.isfinite(norm_lower), norm_lower, lower)
     norm_upper = np.where(np.isfinite(norm_upper), norm_upper, upper)
-    y_train = train.residual_targets(base, train_pairs.q, train_pairs.T)
-    y_val = train.residual_targets(base, val_pairs.q, val_pairs.T)
+    y_train = train.residual_targets(base, train_pairs.q, train_pairs.T, target)
+    y_val = train.residual_targets(base, val_pairs.q, val_pairs.T, target)
     arch = arch or {}
     kinds = ("position",) if position_only else train.KINDS
     jobs = {}

@@ -193,6 +193,12 @@ class HybridModel:
         return cls(chain, files.nets, m, Path(path), coverage=files.coverage)
 
     @property
+    def target(self) -> np.ndarray:
+        """``(4, 4)``: the measured target in the tip frame (the referencing's ``flange_to_target``;
+        identity without referencing). Accuracy is judged there, where the tracker measured."""
+        return np.eye(4) if self.referencing is None else self.referencing.flange_to_target
+
+    @property
     def joint_names(self) -> tuple[str, ...]:
         return self.chain.joint_names
 

@@ -78,12 +78,17 @@ def build_model(
     return ElasticChain(geometry, zero, compliance, bending, float(payload_mass), np.asarray(payload_com, float))
 
 
-def pose_residuals(model: ElasticChain, q: np.ndarray, T: np.ndarray, position_only: bool) -> np.ndarray:
-    """``(N, 3)`` or ``(N, 6)``: measured minus modelled position (m), then rotation (rad × 1 m)."""
+def pose_residuals(
+    model: ElasticChain, q: np.ndarray, T: np.ndarray, position_only: bool, target: np.ndarray | None = None
+) -> np.ndarray:
+    """``(N, 3)`` or ``(N, 6)``: measured minus modelled position (m), then rotation (rad × 1 m).
+
+    Position-only: ``T`` holds measured points at ``target`` (m, tip frame; None: the tip itself).
+    """
     pred = model.fk(q)
-    dp = T[:, :3, 3] - pred[:, :3, 3]
     if position_only:
-        return dp
+        return T[:, :3, 3] - se3.point_at(pred, target)
+    dp = T[:, :3, 3] - pred[:, :3, 3]
     w = se3.rotvec(T[:, :3, :3] @ np.swapaxes(pred[:, :3, :3], 1, 2))
     return np.concatenate([dp, ORIENTATION_LENGTH * w], axis=1)
 
@@ -154,8 +159,12 @@ def identify(
     position_only: bool = False,
     max_pairs: int = 5000,
     seed: int = 0,
+    target: np.ndarray | None = None,
 ) -> ParametricResult:
     """Identify the elasto-geometric parameters from joints ``q (N, n)`` and measured base-frame poses ``T``.
+
+    Position-only: ``T`` holds the measured target points and ``target`` (m) their offset in the tip
+    frame, which makes the flange's rotation observable.
 
     At most ``max_pairs`` pairs (drawn reproducibly) enter the fit: a few thousand pin down the ~80
     parameters far below the tracker noise, and the cost grows with the count.
@@ -172,7 +181,7 @@ def identify(
         values = np.zeros(len(params))
         values[active] = z * scale[active]
         model = build_model(chain, params, values, payload_mass, com)
-        return pose_residuals(model, q_fit, T_fit, position_only).ravel()
+        return pose_residuals(model, q_fit, T_fit, position_only, target).ravel()
 
     everything = np.ones(len(params), dtype=bool)
     r0 = residual(np.zeros(len(params)), everything)

@@ -8,7 +8,11 @@ transforms:
 - :func:`reference_by_circles` (the paper's): fit circles to the target's path while joints 1, 2, 5 and
   6 move one at a time, and build the frames from the fitted axes.
 
-A position-only target (a plain reflector) has no orientation: only its offset from the flange is found.
+A position-only target (a plain reflector) has no orientation: only its offset from the flange is found,
+and a position-only model is defined at that point. Its pairs in the base frame are the measured target
+points (:meth:`Referencing.to_base`); the parametric stage and the position net fit
+``p_tip(q) + R_tip(q) · t`` to them, with ``t`` the target's offset, and the served tip is that corrected
+point less ``R_model · t`` (the orientation stays the parametric model's).
 """
 
 from __future__ import annotations
@@ -41,15 +45,27 @@ class Referencing:
     method: str = "least squares"
     outliers: int = 0  # pairs more than OUTLIER_M off after the fit, left out of the rms
 
+    @property
+    def target_offset(self) -> np.ndarray | None:
+        """``(3,)`` m: where a position-only target sits in the tip frame; None for a 6-DoF target."""
+        return self.flange_to_target[:3, 3].copy() if self.position_only else None
+
     def to_base(self, pairs: Pairs, base_link: str) -> Pairs:
-        """The pairs with their poses turned into tip poses in the base frame."""
+        """The pairs in the base frame: tip poses for a 6-DoF target, the target points for a position-only one.
+
+        A reflector's offset from the tip is along the tip's axes, which a position-only measurement does
+        not give; it cannot be subtracted without a model of the tip's orientation. So the point stays the
+        target and the models predict the target instead (see :attr:`target_offset`).
+        """
         if pairs.frame_id != self.frame_id:
             raise CalibrationError(
                 f"the pairs are in frame '{pairs.frame_id}', but the referencing is for '{self.frame_id}'"
             )
-        T = self.base_to_tracker @ pairs.T @ se3.inverse(self.flange_to_target)
         if pairs.position_only:
+            T = self.base_to_tracker @ pairs.T
             T[:, :3, :3] = np.eye(3)  # still no orientation
+        else:
+            T = self.base_to_tracker @ pairs.T @ se3.inverse(self.flange_to_target)
         return pairs.with_poses(T, base_link)
 
     def manifest(self) -> dict[str, Any]:

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from hybrid_kinematics_ros.calibration.evaluate import evaluate, plot_distributions, pose_errors_of
+from hybrid_kinematics_ros.calibration.evaluate import evaluate, measured_targets, plot_distributions, pose_errors_of
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.io.pairs import Pairs
 
@@ -32,16 +32,17 @@ def iso9283(model: HybridModel, pairs: Pairs, min_repeats: int = 3) -> list[dict
     """
     keys = np.round(pairs.q, REPEAT_DECIMALS)
     _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    targets = measured_targets(model, pairs)
     out = []
     for group in np.flatnonzero(counts >= min_repeats):
         rows = np.flatnonzero(inverse.ravel() == group)
-        measured = pairs.T[rows, :3, 3]
+        measured = targets[rows, :3, 3]
         centre = measured.mean(axis=0)
         spread = np.linalg.norm(measured - centre, axis=1)
         q = pairs.q[rows[:1]]
         entry = {"pose": len(out) + 1, "repeats": len(rows), "joints_rad": q[0].round(4).tolist()}
         for name, T in (("analytic", model.fk(q, analytic=True)), ("hybrid", model.fk(q))):
-            entry[f"AP_{name}_mm"] = float(1e3 * np.linalg.norm(centre - T[0, :3, 3]))
+            entry[f"AP_{name}_mm"] = float(1e3 * np.linalg.norm(centre - (T[0] @ model.target)[:3, 3]))
         entry["RP_mm"] = float(1e3 * (spread.mean() + 3 * spread.std(ddof=1)))
         out.append(entry)
     return out

@@ -37,8 +37,8 @@ class Preset:
     batch: int
     sincos: bool  # sin/cos joint features beside the normalised joints
     turn: bool  # learn the residual in the frame that turns with joint 1
-    cosine: bool  # cosine learning-rate decay timed to reach zero at the time budget
-    max_epochs: int
+    cosine: bool  # cosine learning-rate decay reaching zero at the time budget or at max_epochs, the sooner
+    max_epochs: int  # with a generous time budget, a schedule that machine load does not change
     patience: int  # epochs without validation improvement before stopping; 0: never stop early
     full_range: bool  # normalise over the joint limits (else over the range seen in the data)
 
@@ -49,11 +49,17 @@ PRESETS = {
 }
 
 
-def residual_targets(base: ElasticChain, q: np.ndarray, T: np.ndarray) -> dict[str, np.ndarray]:
-    """Base-frame targets ``{"position": Δp (N, 3) m, "orientation": ω (N, 3) rad}`` against ``base``."""
+def residual_targets(
+    base: ElasticChain, q: np.ndarray, T: np.ndarray, target: np.ndarray | None = None
+) -> dict[str, np.ndarray]:
+    """Base-frame targets ``{"position": Δp (N, 3) m, "orientation": ω (N, 3) rad}`` against ``base``.
+
+    ``target`` (m, tip frame): position-only pairs measure the point there, so ``Δp`` is that point's
+    error; with the orientation uncorrected it is also the served tip's position correction.
+    """
     model = base.fk(q)
     return {
-        "position": T[:, :3, 3] - model[:, :3, 3],
+        "position": T[:, :3, 3] - se3.point_at(model, target),
         "orientation": se3.rotvec(T[:, :3, :3] @ np.swapaxes(model[:, :3, :3], 1, 2)),
     }
 
@@ -119,6 +125,8 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
     history: list[dict] = []
     start = time.perf_counter()
     stale = 0
+    total_steps = p.max_epochs * (n // batch)
+    done_steps = 0
     unit, factor = UNIT[job.kind]
     for epoch in range(1, p.max_epochs + 1):
         perm = torch.randperm(n, generator=gen)
@@ -130,8 +138,9 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
                 out_of_time = True
                 break
             if p.cosine:
+                progress = max(elapsed / job.max_seconds, done_steps / total_steps)
                 for group in opt.param_groups:
-                    group["lr"] = p.lr * 0.5 * (1.0 + math.cos(math.pi * elapsed / job.max_seconds))
+                    group["lr"] = p.lr * 0.5 * (1.0 + math.cos(math.pi * progress))
             idx = perm[s : s + batch]
             loss = torch.linalg.vector_norm(net.standardised(q_train[idx]) - y_train[idx], dim=1).mean()
             opt.zero_grad(set_to_none=True)
@@ -139,6 +148,7 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
             opt.step()
             total += loss.item()
             steps += 1
+            done_steps += 1
         if steps == 0:
             break
         val = _validation_error(net, q_val, y_val)

@@ -6,12 +6,12 @@ import argparse
 import json
 from pathlib import Path
 
-from hybrid_kinematics_ros.calibration.evaluate import error_stats
+from hybrid_kinematics_ros.calibration.evaluate import error_stats, target_errors
 from hybrid_kinematics_ros.calibration.export import export_urdf
 from hybrid_kinematics_ros.calibration.fit import load_pairs
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.io.errors import DataError
-from hybrid_kinematics_ros.kinematics import fk, se3
+from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
 
 
@@ -39,7 +39,6 @@ def run(args: argparse.Namespace) -> int:
             ("parametric", model.fk(pairs.q, nets=False)),
             ("hybrid", model.fk(pairs.q)),
         ):
-            pos, rot = se3.pose_errors(pairs.T, T)
-            report[name] = error_stats(pos, rot) if not pairs.position_only else error_stats(pos, pos * float("nan"))
+            report[name] = error_stats(*target_errors(model, pairs, T))
     print(json.dumps(report, indent=2))
     return 0

@@ -25,6 +25,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--max-minutes", type=float, default=5.0, help="wall-clock training budget (nets train side by side)"
     )
+    p.add_argument(
+        "--max-epochs",
+        type=int,
+        help="stop (and end the cosine schedule) after this many epochs: the same model on a loaded machine, "
+        "given a --max-minutes that is not reached",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
         "--raw-frame-id", help="raw recordings: frame of their pairs (the base link if the tracker frame is it)"
@@ -95,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
             val_pairs,
             test_pairs,
             args.out,
-            train.preset(args.preset),
+            train.preset(args.preset, max_epochs=args.max_epochs),
             args.max_minutes,
             seed=args.seed,
             arch={"position": args.arch_position, "orientation": args.arch_orientation},

@@ -104,6 +104,14 @@ def inverse(t: np.ndarray) -> np.ndarray:
     return out
 
 
+def point_at(t: np.ndarray, offset: np.ndarray | None) -> np.ndarray:
+    """``(..., 3)``: the point at ``offset (3,)`` in the frames ``t (..., 4, 4)``; their origins when None."""
+    t = np.asarray(t)
+    if offset is None:
+        return t[..., :3, 3]
+    return t[..., :3, 3] + t[..., :3, :3] @ np.asarray(offset, dtype=float)
+
+
 def pose_difference(t_true: np.ndarray, t_model: np.ndarray) -> np.ndarray:
     """Paper eq. 1, ``T_diff = T_true · T_model^-1``, so that ``T_diff · T_model = T_true``."""
     return np.asarray(t_true) @ inverse(t_model)
