@@ -373,6 +373,10 @@ def _start_seconds(stamp: _Section) -> float:
         value = value.isoformat()
     if isinstance(value, str):
         try:
+            return float(value)  # seconds, e.g. from the command line
+        except ValueError:
+            pass
+        try:
             parsed = dt.datetime.fromisoformat(value)
         except ValueError:
             raise stamp.error("start", f"'{value}' is neither seconds nor an ISO 8601 time") from None
