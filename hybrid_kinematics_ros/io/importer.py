@@ -228,7 +228,7 @@ class _Section:
 
 
 def spec_from_dict(data: Mapping[str, Any], source: str = "<flags>") -> ImportSpec:
-    """Check a spec dict (the YAML layout, see ``config/import/ipa_robot_accuracy.yaml``) and build the spec.
+    """Check a spec dict (the YAML layout, see ``config/import/ipa_robot_accuracy_a.yaml``) and build the spec.
 
     Raises:
         DataError: naming the spec and the key of the first unknown key, missing or bad value.

@@ -8,9 +8,11 @@ import subprocess
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.cli.main import main
 from hybrid_kinematics_ros.io.pairs import read_pairs
+from hybrid_kinematics_ros.kinematics import se3
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures" / "ipa-robot-accuracy"
 SERIES_A = FIXTURES / "Series_A_measurements_grid_head40.csv"
@@ -120,3 +122,32 @@ def test_malformed_file_and_bad_spec_end_with_one_line(tmp_path):
     spec.write_text(f"extends: ipa_robot_accuracy_a\nposition: {position}\n")
     line = one_line_error(run(*args[:2], str(spec), *args[3:], "--csv", str(SERIES_A)))
     assert line.endswith(f"import spec {spec} with flags: position.unit 'inch' is not one of mm, m")
+
+
+def test_reflector_points_quaternions_and_a_row_filter_by_flags(tmp_path, capsys):
+    rng = np.random.default_rng(2)
+    q = rng.uniform(-3, 3, (8, 3))
+    T = se3.from_rotvec(rng.uniform(-2, 2, (8, 3)), rng.uniform(-3, 3, (8, 3)))
+    layout_mm = np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [0.0, 80.0, 0.0]])
+    points = np.einsum("bij,kj->bki", T[:, :3, :3], layout_mm) + 1e3 * T[:, None, :3, 3]
+    quat = Rotation.from_matrix(T[:, :3, :3]).as_quat()[:, [3, 0, 1, 2]]
+    part = np.arange(8) % 2
+    header = "a1,a2,a3," + ",".join(f"p{k}{a}" for k in range(3) for a in "xyz") + ",x,y,z,qw,qx,qy,qz,part"
+    table = np.hstack([q, points.reshape(8, 9), 1e3 * T[:, :3, 3], quat, part[:, None]])
+    path = tmp_path / "t.csv"
+    path.write_text(header + "\n" + "\n".join(",".join(repr(float(v)) for v in row) for row in table) + "\n")
+    common = ["import", "--csv", str(path), "--frame-id", "f", "--joints", "j1=a1,j2=a2,j3=a3", "--joint-unit", "rad"]
+    common += ["--filter", "part=1"]
+    point_flags = [f"p{k}x,p{k}y,p{k}z=" + ",".join(str(v) for v in layout_mm[k]) for k in range(3)]
+    by_points = [*common, "--orientation", "points", "--point-unit", "mm", "--out", str(tmp_path / "points")]
+    assert main([*by_points, *(f for p in point_flags for f in ("--point", p))]) == 0
+    by_quat = [*common, "--position", "x,y,z", "--position-unit", "mm", "--orientation", "quaternion"]
+    assert (
+        main([*by_quat, "--quaternion", "qw,qx,qy,qz", "--quaternion-order", "wxyz", "--out", str(tmp_path / "q")]) == 0
+    )
+    summaries = [json.loads(line) for line in capsys.readouterr().out.strip().splitlines()]
+    assert [(s["imported"], s["filtered_out"]) for s in summaries] == [(4, 4), (4, 4)]
+    for bag in ("points", "q"):
+        pairs = read_pairs(tmp_path / bag, ("j1", "j2", "j3"))
+        np.testing.assert_allclose(pairs.T, T[part == 1], rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(pairs.q, q[part == 1])
