@@ -160,6 +160,8 @@ def spec_dict_from_args(args: argparse.Namespace) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
+    if args.out.exists():  # before reading the file, not after
+        raise DataError(f"{args.out} exists already, not overwriting")
     source = f"{args.spec} with flags" if args.spec else "from flags"
     spec = spec_from_dict(spec_dict_from_args(args), source)
     model_joints = chain_from_args(args).joint_names if (args.robot or args.urdf) else None
