@@ -1,3 +1,4 @@
+import os
 from glob import glob
 
 from setuptools import find_packages, setup
@@ -11,7 +12,8 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{package_name}"]),
         (f"share/{package_name}", ["package.xml"]),
-        (f"share/{package_name}/config", glob("config/*")),
+        (f"share/{package_name}/config", [f for f in glob("config/*") if os.path.isfile(f)]),
+        (f"share/{package_name}/config/import", glob("config/import/*.yaml")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,

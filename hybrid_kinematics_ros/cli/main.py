@@ -1,4 +1,4 @@
-"""``hybrid-kinematics``: the offline workflow (simulate, align, train, evaluate, fk, ik, ...) as subcommands.
+"""``hybrid-kinematics``: the offline workflow (simulate, import, align, train, evaluate, fk, ik, ...) as subcommands.
 
 Every subsystem error ends the command with one line naming the bad file, field or value, and exit code 2.
 """
@@ -10,13 +10,13 @@ import sys
 from collections.abc import Sequence
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.cli import align, evaluate, export_urdf, fk, ik, report, simulate, train
+from hybrid_kinematics_ros.cli import align, evaluate, export_urdf, fk, ik, import_, report, simulate, train
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 from hybrid_kinematics_ros.simulation.errors import SimulationError
 
-COMMANDS = [simulate, align, train, evaluate, report, fk, ik, export_urdf]
+COMMANDS = [simulate, import_, align, train, evaluate, report, fk, ik, export_urdf]
 USER_ERRORS: tuple[type[Exception], ...] = (
     CalibrationError,
     DataError,

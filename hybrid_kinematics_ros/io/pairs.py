@@ -5,6 +5,10 @@
   ``header.stamp``; ``frame_id`` is the base link when in the base frame, else the tracker's frame.
   A target without orientation (a plain reflector) writes the zero quaternion ``(0, 0, 0, 0)`` in
   every sample: the bag is then position-only.
+- optional condition channels, one topic per condition with the same ``header.stamp`` as the pairs:
+  ``/calibration/temperature`` (``sensor_msgs/msg/Temperature``, °C), ``/calibration/fluid_pressure``
+  (``sensor_msgs/msg/FluidPressure``, Pa), ``/calibration/relative_humidity``
+  (``sensor_msgs/msg/RelativeHumidity``, 0-1). Bags without them are complete pairs bags.
 
 This module is the only reader and writer of pairs. Alignment is on ``header.stamp``, never on bag time.
 """
@@ -12,7 +16,7 @@ This module is the only reader and writer of pairs. Alignment is on ``header.sta
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -31,8 +35,20 @@ JOINT_STATE = "sensor_msgs/msg/JointState"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 QUAT_TOLERANCE = 1e-6  # |‖q‖ − 1| above this is a non-unit quaternion
 
+CONDITION_PREFIX = "/calibration/"
+# condition name -> (message type, its value field); the message's unit is the condition's unit
+CONDITION_TYPES: dict[str, tuple[str, str]] = {
+    "temperature": ("sensor_msgs/msg/Temperature", "temperature"),
+    "fluid_pressure": ("sensor_msgs/msg/FluidPressure", "fluid_pressure"),
+    "relative_humidity": ("sensor_msgs/msg/RelativeHumidity", "relative_humidity"),
+}
+
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 _T = TYPESTORE.types
+
+
+def condition_topic(name: str) -> str:
+    return CONDITION_PREFIX + name
 
 
 @dataclass
@@ -46,12 +62,26 @@ class Pairs:
     frame_id: str
     dropped: Counter = field(default_factory=Counter)
     position_only: bool = False  # the target gives no orientation: rotations are identity placeholders
+    # condition channels (name -> (N,) values, e.g. "temperature" in °C), one value per sample
+    conditions: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name, values in self.conditions.items():
+            if np.shape(values) != (len(self.q),):
+                raise DataError(f"condition '{name}' has shape {np.shape(values)}, expected ({len(self.q)},)")
 
     def __len__(self) -> int:
         return len(self.q)
 
     def subset(self, index: np.ndarray) -> Pairs:
-        return replace(self, q=self.q[index], T=self.T[index], stamps=self.stamps[index], dropped=Counter())
+        return replace(
+            self,
+            q=self.q[index],
+            T=self.T[index],
+            stamps=self.stamps[index],
+            dropped=Counter(),
+            conditions={k: v[index] for k, v in self.conditions.items()},
+        )
 
     def with_poses(self, T: np.ndarray, frame_id: str) -> Pairs:
         """The same samples with the poses expressed in another frame."""
@@ -59,6 +89,8 @@ class Pairs:
 
     @staticmethod
     def concatenate(parts: Sequence[Pairs]) -> Pairs:
+        """One set of pairs from several; only the condition channels that every part carries are kept
+        (a channel some samples lack cannot be an input for all of them)."""
         first = parts[0]
         for p in parts[1:]:
             if (p.joint_names, p.frame_id, p.position_only) != (first.joint_names, first.frame_id, first.position_only):
@@ -68,6 +100,7 @@ class Pairs:
                     f"'{first.frame_id}' (position only: {first.position_only})"
                 )
         dropped = sum((p.dropped for p in parts), Counter())
+        names = [n for n in first.conditions if all(n in p.conditions for p in parts)]
         return Pairs(
             np.concatenate([p.q for p in parts]),
             np.concatenate([p.T for p in parts]),
@@ -76,6 +109,7 @@ class Pairs:
             first.frame_id,
             dropped,
             first.position_only,
+            {n: np.concatenate([p.conditions[n] for p in parts]) for n in names},
         )
 
 
@@ -98,14 +132,29 @@ def pose_stamped_msg(ns: int, frame_id: str, position: np.ndarray, quat_xyzw: np
     return _T[POSE_STAMPED](header=header, pose=_T["geometry_msgs/msg/Pose"](position=point, orientation=quat))
 
 
+def condition_msg(ns: int, name: str, value: float):
+    msgtype, value_field = CONDITION_TYPES[name]
+    header = _T["std_msgs/msg/Header"](stamp=_stamp(ns), frame_id="")
+    return _T[msgtype](header=header, **{value_field: float(value)}, variance=0.0)
+
+
 class PairsWriter:
     """Streams pairs into a new bag; use as a context manager so a crash still closes the file."""
 
     def __init__(
-        self, path: str | Path, joint_names: Sequence[str], frame_id: str, position_only: bool = False
+        self,
+        path: str | Path,
+        joint_names: Sequence[str],
+        frame_id: str,
+        position_only: bool = False,
+        conditions: Sequence[str] = (),
     ) -> None:
         self.path = Path(path)
         self.position_only = position_only
+        unknown = sorted(set(conditions) - set(CONDITION_TYPES))
+        if unknown:
+            raise DataError(f"unknown condition channel(s) {unknown}; known: {', '.join(CONDITION_TYPES)}")
+        self.conditions = list(conditions)
         if self.path.exists():
             raise DataError(f"{self.path} exists already, not overwriting")
         if not self.path.parent.is_dir():
@@ -119,27 +168,40 @@ class PairsWriter:
         self._writer.open()
         self._joints = self._writer.add_connection(JOINTS_TOPIC, JOINT_STATE, typestore=TYPESTORE)
         self._poses = self._writer.add_connection(POSE_TOPIC, POSE_STAMPED, typestore=TYPESTORE)
+        self._conditions = {
+            name: self._writer.add_connection(condition_topic(name), CONDITION_TYPES[name][0], typestore=TYPESTORE)
+            for name in self.conditions
+        }
         return self
 
     def __exit__(self, *exc: object) -> None:
         self._writer.close()
 
-    def write(self, q: np.ndarray, T: np.ndarray, stamps: Iterable[int]) -> None:
+    def write(
+        self, q: np.ndarray, T: np.ndarray, stamps: Iterable[int], conditions: Mapping[str, np.ndarray] | None = None
+    ) -> None:
+        """Append samples; ``conditions`` gives one value per sample for each channel named at construction."""
+        conditions = conditions or {}
+        if set(conditions) != set(self.conditions):
+            raise DataError(f"{self.path}: condition values for {sorted(conditions)}, expected {self.conditions}")
         positions, quats = pose_from_matrix(T)
         if self.position_only:
             quats = np.zeros_like(quats)
-        for qi, p, quat, ns in zip(q, positions, quats, stamps, strict=True):
+        for i, (qi, p, quat, ns) in enumerate(zip(q, positions, quats, stamps, strict=True)):
             ns = int(ns)
             js = joint_state_msg(ns, self.joint_names, np.asarray(qi, dtype=float))
             ps = pose_stamped_msg(ns, self.frame_id, p, quat)
             self._writer.write(self._joints, ns, TYPESTORE.serialize_cdr(js, JOINT_STATE))
             self._writer.write(self._poses, ns, TYPESTORE.serialize_cdr(ps, POSE_STAMPED))
+            for name, conn in self._conditions.items():
+                msg = condition_msg(ns, name, conditions[name][i])
+                self._writer.write(conn, ns, TYPESTORE.serialize_cdr(msg, conn.msgtype))
         self.count += len(q)
 
 
 def write_pairs(path: str | Path, pairs: Pairs) -> None:
-    with PairsWriter(path, pairs.joint_names, pairs.frame_id, pairs.position_only) as writer:
-        writer.write(pairs.q, pairs.T, pairs.stamps)
+    with PairsWriter(path, pairs.joint_names, pairs.frame_id, pairs.position_only, list(pairs.conditions)) as writer:
+        writer.write(pairs.q, pairs.T, pairs.stamps, pairs.conditions)
 
 
 def _ns(header) -> int:
@@ -190,16 +252,28 @@ def read_pairs(path: str | Path, joint_names: Sequence[str] | None = None) -> Pa
                 raise DataError(f"bag {path} has no topic {topic}{raw}; topics: {', '.join(sorted(conns)) or 'none'}")
             if conns[topic].msgtype != msgtype:
                 raise DataError(f"bag {path}: topic {topic} has type {conns[topic].msgtype}, expected {msgtype}")
+        channels: dict[str, str] = {}  # topic -> condition name
+        for name, (msgtype, _) in CONDITION_TYPES.items():
+            conn = conns.get(condition_topic(name))
+            if conn is not None:
+                if conn.msgtype != msgtype:
+                    raise DataError(f"bag {path}: topic {conn.topic} has type {conn.msgtype}, expected {msgtype}")
+                channels[conn.topic] = name
+        values: dict[str, dict[int, float]] = {name: {} for name in channels.values()}
         joints: dict[int, np.ndarray] = {}
         poses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         frames: set[str] = set()
         dropped: Counter = Counter()
         names = tuple(joint_names) if joint_names is not None else None
         order = None
-        for conn, _, raw in reader.messages(connections=[conns[JOINTS_TOPIC], conns[POSE_TOPIC]]):
+        wanted = [conns[JOINTS_TOPIC], conns[POSE_TOPIC], *(conns[t] for t in channels)]
+        for conn, _, raw in reader.messages(connections=wanted):
             msg = TYPESTORE.deserialize_cdr(raw, conn.msgtype)
             ns = _ns(msg.header)
-            if conn.topic == JOINTS_TOPIC:
+            if conn.topic in channels:
+                name = channels[conn.topic]
+                values[name][ns] = float(getattr(msg, CONDITION_TYPES[name][1]))
+            elif conn.topic == JOINTS_TOPIC:
                 msg_names = tuple(msg.name)
                 if names is None:
                     names = msg_names
@@ -241,19 +315,30 @@ def read_pairs(path: str | Path, joint_names: Sequence[str] | None = None) -> Pa
         dropped["pose_without_joint_state"] += len(poses) - len(common)
     if not common:
         raise DataError(f"bag {path}: no joint state has a tracker pose with the same header.stamp")
+    for name, by_stamp in values.items():  # a pair without its condition value cannot be used with it
+        missing = sum(1 for s in common if s not in by_stamp)
+        if missing:
+            dropped[f"without_{name}"] += missing
+            common = [s for s in common if s in by_stamp]
+    if not common:
+        raise DataError(f"bag {path}: no usable pair left after dropping {dict(+dropped)}")
     q = np.array([joints[s] for s in common])
     pos = np.array([poses[s][0] for s in common])
     quat = np.array([poses[s][1] for s in common])
     stamps = np.array(common, dtype=np.int64)
+    cond = {name: np.array([by_stamp[s] for s in common]) for name, by_stamp in values.items()}
 
     finite = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(pos), axis=1) & np.all(np.isfinite(quat), axis=1)
+    for v in cond.values():
+        finite &= np.isfinite(v)
     dropped["nan_or_inf"] += int(np.sum(~finite))
     if np.all(quat[finite] == 0.0):  # a plain reflector: the contract's zero quaternion means "no orientation"
         keep = finite
         if not np.any(keep):
             raise DataError(f"bag {path}: no usable pair left after dropping {dict(+dropped)}")
         T = matrix_from_pose(pos[keep], np.tile([0.0, 0.0, 0.0, 1.0], (int(keep.sum()), 1)))
-        return Pairs(q[keep], T, stamps[keep], names, frames.pop(), +dropped, position_only=True)
+        kept = {k: v[keep] for k, v in cond.items()}
+        return Pairs(q[keep], T, stamps[keep], names, frames.pop(), +dropped, position_only=True, conditions=kept)
     norms = np.linalg.norm(np.where(np.isfinite(quat), quat, 0.0), axis=1)
     unit = np.abs(norms - 1.0) <= QUAT_TOLERANCE
     dropped["non_unit_quaternion"] += int(np.sum(finite & ~unit))
@@ -261,4 +346,6 @@ def read_pairs(path: str | Path, joint_names: Sequence[str] | None = None) -> Pa
     if not np.any(keep):
         raise DataError(f"bag {path}: no usable pair left after dropping {dict(+dropped)}")
     quat = quat[keep] / norms[keep, None]
-    return Pairs(q[keep], matrix_from_pose(pos[keep], quat), stamps[keep], names, frames.pop(), +dropped)
+    T = matrix_from_pose(pos[keep], quat)
+    kept = {k: v[keep] for k, v in cond.items()}
+    return Pairs(q[keep], T, stamps[keep], names, frames.pop(), +dropped, conditions=kept)

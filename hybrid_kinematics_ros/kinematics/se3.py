@@ -138,3 +138,30 @@ def ik_cost(t_a: np.ndarray, t_b: np.ndarray) -> np.ndarray:
     scale = np.ones((4, 4))
     scale[:3, 3] = 1e3
     return np.sum(((np.asarray(t_a) - np.asarray(t_b)) * scale) ** 2, axis=(-2, -1))
+
+
+def fit_rigid(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rigid transforms ``(B, 4, 4)`` with ``T · source ≈ target``, and the RMS residual ``(B,)``.
+
+    ``source`` is ``(k, 3)`` (one layout for every batch item, e.g. nominal reflector points on a tool) or
+    ``(B, k, 3)``; ``target`` is ``(B, k, 3)``; ``k >= 3`` non-collinear points. Kabsch by a batched SVD,
+    with the reflection guard: scipy's ``Rotation.align_vectors`` gives the same rotation one batch item
+    per call, which costs ~100x more over a whole measurement file.
+    """
+    target = np.asarray(target, dtype=float)
+    source = np.broadcast_to(np.asarray(source, dtype=float), target.shape)
+    cs = source.mean(axis=-2, keepdims=True)
+    ct = target.mean(axis=-2, keepdims=True)
+    h = np.einsum("bki,bkj->bij", source - cs, target - ct)
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(np.swapaxes(vt, -1, -2) @ np.swapaxes(u, -1, -2)))
+    fix = np.ones((len(target), 3))
+    fix[:, 2] = np.where(d == 0.0, 1.0, d)
+    rotation = np.swapaxes(vt, -1, -2) @ (fix[:, :, None] * np.swapaxes(u, -1, -2))
+    out = np.zeros((len(target), 4, 4))
+    out[:, :3, :3] = rotation
+    out[:, :3, 3] = ct[:, 0] - np.einsum("bij,bj->bi", rotation, cs[:, 0])
+    out[:, 3, 3] = 1.0
+    fitted = np.einsum("bij,bkj->bki", rotation, source) + out[:, None, :3, 3]
+    residual = np.sqrt(np.mean(np.sum((fitted - target) ** 2, axis=-1), axis=-1))
+    return out, residual

@@ -15,6 +15,8 @@ from hybrid_kinematics_ros.io.pairs import (
     POSE_TOPIC,
     TYPESTORE,
     Pairs,
+    PairsWriter,
+    condition_msg,
     joint_state_msg,
     pose_stamped_msg,
     read_pairs,
@@ -116,3 +118,58 @@ def test_malformed_bags_get_clear_errors(tmp_path):
         read_pairs(tmp_path / "bag", joint_names=("x", "y", "z"))
     with pytest.raises(DataError, match="exists already"):
         write_pairs(tmp_path / "bag", make_pairs(5))
+
+
+def test_condition_channels_round_trip_subset_and_concatenate(tmp_path):
+    pairs = make_pairs(20)
+    temperature = 22.9 + 0.01 * np.arange(20)
+    pairs.conditions["temperature"] = temperature
+    write_pairs(tmp_path / "bag", pairs)
+    mcap_file = next((tmp_path / "bag").glob("*.mcap"))
+    topics = {m.channel.topic: m.schema.name for m in read_ros2_messages(str(mcap_file))}
+    assert topics["/calibration/temperature"] == "sensor_msgs/msg/Temperature"
+    back = read_pairs(tmp_path / "bag")
+    np.testing.assert_array_equal(back.conditions["temperature"], temperature)
+    part = back.subset(np.array([3, 1]))
+    np.testing.assert_array_equal(part.conditions["temperature"], temperature[[3, 1]])
+    both = Pairs.concatenate([part, back])
+    np.testing.assert_array_equal(both.conditions["temperature"], np.concatenate([temperature[[3, 1]], temperature]))
+    # a channel only some parts carry cannot be an input for every sample: it is left out
+    assert Pairs.concatenate([back, make_pairs(3)]).conditions == {}
+    with pytest.raises(DataError, match=r"condition 'temperature' has shape \(2,\), expected \(20,\)"):
+        Pairs(pairs.q, pairs.T, pairs.stamps, NAMES, "base_link", conditions={"temperature": np.zeros(2)})
+
+
+def test_bag_without_conditions_reads_with_none_and_missing_values_are_dropped(tmp_path):
+    entries = []
+    for i in range(4):
+        ns = 10**9 * (i + 1)
+        entries.append((POSE_TOPIC, pose_stamped_msg(ns, "base_link", [i, 0, 0], [0, 0, 0, 1])))
+        entries.append((JOINTS_TOPIC, joint_state_msg(ns, NAMES, np.zeros(3))))
+    write_raw(tmp_path / "old", entries)  # the two topics only, as bags were before condition channels
+    assert read_pairs(tmp_path / "old").conditions == {}
+
+    pairs = make_pairs(4)
+    with PairsWriter(tmp_path / "bag", NAMES, "base_link", conditions=["temperature"]) as writer:
+        writer.write(pairs.q[:2], pairs.T[:2], pairs.stamps[:2], {"temperature": np.array([21.0, np.nan])})
+        with pytest.raises(DataError, match=r"condition values for \[\], expected \['temperature'\]"):
+            writer.write(pairs.q[2:], pairs.T[2:], pairs.stamps[2:])
+    with Writer(tmp_path / "bag2", version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = [
+            writer.add_connection(t, m, typestore=TYPESTORE)
+            for t, m in (
+                (JOINTS_TOPIC, JOINT_STATE),
+                (POSE_TOPIC, POSE_STAMPED),
+                ("/calibration/temperature", "sensor_msgs/msg/Temperature"),
+            )
+        ]
+        for i, ns in enumerate(pairs.stamps):
+            msgs = [joint_state_msg(ns, NAMES, pairs.q[i]), pose_stamped_msg(ns, "base_link", [0, 0, i], [0, 0, 0, 1])]
+            if i < 2:  # the last two samples come without a temperature
+                msgs.append(condition_msg(ns, "temperature", [21.0, np.nan][i]))
+            for conn, msg in zip(conns, msgs, strict=False):
+                writer.write(conn, int(ns), TYPESTORE.serialize_cdr(msg, conn.msgtype))
+    for bag in ("bag", "bag2"):
+        back = read_pairs(tmp_path / bag)
+        assert len(back) == 1 and back.conditions["temperature"].tolist() == [21.0]
+    assert back.dropped == {"without_temperature": 2, "nan_or_inf": 1}
