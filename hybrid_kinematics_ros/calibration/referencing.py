@@ -132,16 +132,6 @@ def anchor_base(chain: Chain, ref: Referencing, result: ParametricResult) -> tup
     return replace(ref, base_to_tracker=base), replace(result, model=anchored, values=values, rigid_values=rigid)
 
 
-def _kabsch(source: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """The rigid transform ``(4, 4)`` that best maps points ``source`` onto ``target``."""
-    cs, ct = source.mean(axis=0), target.mean(axis=0)
-    rotation, _ = Rotation.align_vectors(target - ct, source - cs)
-    out = np.eye(4)
-    out[:3, :3] = rotation.as_matrix()
-    out[:3, 3] = ct - rotation.apply(cs)
-    return out
-
-
 def _transform(x: np.ndarray) -> np.ndarray:
     return se3.from_rotvec(x[:3], x[3:6])[0]
 
@@ -164,7 +154,7 @@ def reference(
     if np.linalg.matrix_rank(p_tip - p_tip.mean(axis=0), tol=1e-3) < 3:
         raise CalibrationError("the tip positions span less than 3 dimensions: referencing needs varied poses")
     # Start: the target near the flange, the tracker from the point clouds; then the target offset.
-    base_tracker = _kabsch(meas[:, :3, 3], p_tip)
+    base_tracker = se3.fit_rigid(meas[:, :3, 3], p_tip[None])[0][0]
     in_tip = se3.inverse(model) @ base_tracker @ meas
     start_target = np.eye(4)
     start_target[:3, 3] = np.median(in_tip[:, :3, 3], axis=0)
@@ -290,7 +280,7 @@ def reference_by_circles(
 
     # Base: frame from axes 1-2 in the tracker frame against the same construction on the nominal model.
     # Circle normals have no sign; the model's axes fix it once the base rotation is roughly known.
-    rough = _kabsch(meas[:, :3, 3], fk.fk(chain, q)[:, :3, 3])
+    rough = se3.fit_rigid(meas[:, :3, 3], fk.fk(chain, q)[None, :, :3, 3])[0][0]
     c1, n1, o1, a1 = fitted[0]
     c2, n2, o2, a2 = fitted[1]
     n1 = _orient(n1, rough[:3, :3].T @ a1)
