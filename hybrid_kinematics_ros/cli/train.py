@@ -10,7 +10,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from hybrid_kinematics_ros.calibration import train
-from hybrid_kinematics_ros.calibration.fit import fit, load_pairs, split
+from hybrid_kinematics_ros.calibration.fit import SPLIT_BLOCKS, fit, load_pairs, split, split_summary
 from hybrid_kinematics_ros.cli.common import add_robot_args, chain_from_args, payload_from_args
 
 
@@ -45,6 +45,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--payload-com", type=float, nargs=3, metavar=("X", "Y", "Z"), help="m, in the tip frame")
     p.add_argument("--val-bag", nargs="+", help="separate validation bag(s); default: 10%% of --bag")
     p.add_argument("--test-bag", nargs="+", help="separate test bag(s); default: 10%% of --bag")
+    p.add_argument(
+        "--split-blocks",
+        type=int,
+        default=SPLIT_BLOCKS,
+        help=f"without --val-bag/--test-bag: cut --bag into this many contiguous time blocks and hold out whole "
+        f"blocks, so that neighbours of a test pair do not train (default {SPLIT_BLOCKS}; 0: single random pairs)",
+    )
     p.set_defaults(run=run)
 
 
@@ -81,14 +88,12 @@ class Progress:
 def run(args: argparse.Namespace) -> int:
     chain = chain_from_args(args)
     pairs = load_pairs(args.bag, chain, args.raw_frame_id, allow_tracker_frame=True)
-    if args.val_bag or args.test_bag:
-        train_pairs, val_pairs, test_pairs = split(
-            pairs, args.seed, (0.0 if args.val_bag else 0.1, 0.0 if args.test_bag else 0.1)
-        )
-        val_pairs = load_pairs(args.val_bag, chain, allow_tracker_frame=True) if args.val_bag else val_pairs
-        test_pairs = load_pairs(args.test_bag, chain, allow_tracker_frame=True) if args.test_bag else test_pairs
-    else:
-        train_pairs, val_pairs, test_pairs = split(pairs, args.seed)
+    blocks = None if args.split_blocks == 0 else args.split_blocks
+    train_pairs, val_pairs, test_pairs = split(
+        pairs, args.seed, (0.0 if args.val_bag else 0.1, 0.0 if args.test_bag else 0.1), blocks
+    )
+    val_pairs = load_pairs(args.val_bag, chain, allow_tracker_frame=True) if args.val_bag else val_pairs
+    test_pairs = load_pairs(args.test_bag, chain, allow_tracker_frame=True) if args.test_bag else test_pairs
     print(
         f"pairs: {len(train_pairs)} train, {len(val_pairs)} validation, {len(test_pairs)} test"
         + (f"; dropped {dict(pairs.dropped)}" if pairs.dropped else "")
@@ -105,7 +110,11 @@ def run(args: argparse.Namespace) -> int:
             args.max_minutes,
             seed=args.seed,
             arch={"position": args.arch_position, "orientation": args.arch_orientation},
-            data_summary={"bags": [str(b) for b in args.bag], "dropped": dict(pairs.dropped)},
+            data_summary={
+                "bags": [str(b) for b in args.bag],
+                "dropped": dict(pairs.dropped),
+                "split": split_summary(blocks, bool(args.val_bag), bool(args.test_bag)),
+            },
             progress=progress,
             parametric=args.parametric,
             payload=payload_from_args(args),
