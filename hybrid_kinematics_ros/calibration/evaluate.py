@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+from hybrid_kinematics_ros.calibration.referencing import to_base_frame
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import se3
 
@@ -32,33 +32,26 @@ def error_stats(pos_mm: np.ndarray, rot_deg: np.ndarray) -> dict[str, float]:
 
 
 def in_base_frame(model: HybridModel, pairs: Pairs) -> Pairs:
-    base = model.chain.base_link
-    if pairs.frame_id == base:
-        return pairs
-    if model.referencing is not None and pairs.frame_id == model.referencing.frame_id:
-        return model.referencing.to_base(pairs, base)
-    raise CalibrationError(
-        f"the pairs are in frame '{pairs.frame_id}', the model works in '{base}'"
-        + (f" and was referenced to '{model.referencing.frame_id}'" if model.referencing else " and has no referencing")
-    )
+    """``pairs`` in the base frame, moved with the referencing of their tracker station if they are in one."""
+    return to_base_frame([pairs], model.chain, model.referencings)
 
 
-def target_errors(model: HybridModel, pairs: Pairs, tip: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def target_errors(pairs: Pairs, tip: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Position (mm) and orientation (deg) errors of modelled tip poses ``tip (N, 4, 4)`` against base-frame
-    ``pairs``, at the measured target (:attr:`HybridModel.target`).
+    ``pairs``, at the measured target (:attr:`Pairs.target`, which referencing sets).
 
     That is the error in the measurement's own frame: a rigid change of frame keeps distances and angles,
     so these are the numbers a user gets by mapping the model's FK into the tracker frame with the stored
     referencing and comparing it with the tracker's readings. Position-only pairs hold the target points
     themselves and give no orientation (NaN).
     """
-    pos, rot = se3.pose_errors(measured_targets(model, pairs), tip @ model.target)
+    pos, rot = se3.pose_errors(measured_targets(pairs), tip @ pairs.targets)
     return (pos, np.full_like(pos, np.nan)) if pairs.position_only else (pos, rot)
 
 
-def measured_targets(model: HybridModel, pairs: Pairs) -> np.ndarray:
+def measured_targets(pairs: Pairs) -> np.ndarray:
     """``(N, 4, 4)``: the measured target poses in the base frame (position-only: the points, no rotation)."""
-    return pairs.T if pairs.position_only else pairs.T @ model.target
+    return pairs.T if pairs.position_only else pairs.T @ pairs.targets
 
 
 def pose_errors_of(model: HybridModel, pairs: Pairs) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -71,7 +64,7 @@ def pose_errors_of(model: HybridModel, pairs: Pairs) -> dict[str, tuple[np.ndarr
     if model.has_parametric:
         models["parametric"] = model.fk(pairs.q, nets=False)
     models["hybrid"] = model.fk(pairs.q)
-    return {name: target_errors(model, pairs, T) for name, T in models.items()}
+    return {name: target_errors(pairs, T) for name, T in models.items()}
 
 
 def evaluate(model: HybridModel, pairs: Pairs) -> dict[str, Any]:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
@@ -16,7 +16,12 @@ from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.calibration.parametric import identify
-from hybrid_kinematics_ros.calibration.referencing import Referencing, anchor_base, reference
+from hybrid_kinematics_ros.calibration.referencing import (
+    Referencing,
+    anchor_stations,
+    reference_stations,
+    to_base_frame,
+)
 from hybrid_kinematics_ros.io.model_dir import save_model_dir
 from hybrid_kinematics_ros.io.pairs import (
     JOINTS_TOPIC,
@@ -45,36 +50,57 @@ def align_raw(
     return align(chain, rec, options, frame_id), rec
 
 
+def load_stations(bags: Sequence[str | Path], chain: Chain, raw_frame_id: str | None = None) -> list[Pairs]:
+    """Pairs from pairs bags or raw recordings (aligned on the fly), one :class:`Pairs` per frame: each
+    tracker station (and the base link, if some bags are in it), in the order first seen.
+
+    ``raw_frame_id`` names the frame of raw recordings' pairs (e.g. the base link when the tracker frame
+    is the robot base, as in the simulated cell).
+    """
+    parts: dict[str, list[Pairs]] = {}
+    for bag in bags:
+        topics = bag_topics(bag)
+        if JOINTS_TOPIC not in topics and RAW_JOINTS_TOPIC in topics and RAW_POSE_TOPIC in topics:
+            pairs = align_raw(bag, chain, frame_id=raw_frame_id)[0].pairs
+        else:
+            pairs = read_pairs(bag, chain.joint_names)
+        parts.setdefault(pairs.frame_id, []).append(pairs)
+    return [Pairs.concatenate(group) for group in parts.values()]
+
+
 def load_pairs(
     bags: Sequence[str | Path],
     chain: Chain,
     raw_frame_id: str | None = None,
-    referencing: Referencing | None = None,
-    allow_tracker_frame: bool = False,
+    referencings: Mapping[str, Referencing] | None = None,
 ) -> Pairs:
-    """Pairs from pairs bags, or from raw recordings, which are aligned on the fly.
+    """Pairs in the base frame from bags in it or in any referenced tracker frame (see :func:`load_stations`)."""
+    return to_base_frame(load_stations(bags, chain, raw_frame_id), chain, referencings or {})
 
-    ``raw_frame_id`` names the frame of raw recordings' pairs (e.g. the base link when the tracker frame
-    is the robot base, as in the simulated cell). Pairs in a tracker frame are moved into the base frame
-    with ``referencing``; without one they are an error unless ``allow_tracker_frame`` (training, which
-    references them itself).
-    """
-    parts = []
-    for bag in bags:
-        topics = bag_topics(bag)
-        if JOINTS_TOPIC not in topics and RAW_JOINTS_TOPIC in topics and RAW_POSE_TOPIC in topics:
-            parts.append(align_raw(bag, chain, frame_id=raw_frame_id)[0].pairs)
-        else:
-            parts.append(read_pairs(bag, chain.joint_names))
-    pairs = Pairs.concatenate(parts)
-    if pairs.frame_id != chain.base_link and referencing is not None and pairs.frame_id == referencing.frame_id:
-        return referencing.to_base(pairs, chain.base_link)
-    if pairs.frame_id != chain.base_link and not allow_tracker_frame:
-        raise CalibrationError(
-            f"the pairs are in frame '{pairs.frame_id}', not the base link '{chain.base_link}'; "
-            "train a model on them first (training references them) or evaluate with a model referenced to that frame"
-        )
-    return pairs
+
+def reference_all(
+    chain: Chain, stations: Sequence[Pairs], shared_targets: Sequence[Sequence[str]] = (), seed: int = 0
+) -> dict[str, Referencing]:
+    """A referencing for every station in a tracker frame. Stations named together in ``shared_targets``
+    share one target transform (the target stayed on the flange while the tracker moved); every other
+    station gets its own."""
+    tracker = {p.frame_id: p for p in stations if p.frame_id != chain.base_link}
+    groups: list[list[str]] = []
+    for names in shared_targets:
+        unknown = [n for n in names if n not in tracker]
+        if unknown:
+            raise CalibrationError(
+                f"shared target: no training pairs in frame(s) {', '.join(unknown)} "
+                f"(tracker frames: {', '.join(tracker) or 'none'})"
+            )
+        groups.append(list(names))
+    grouped = {n for g in groups for n in g}
+    groups += [[n] for n in tracker if n not in grouped]
+    out: dict[str, Referencing] = {}
+    for group in groups:
+        for ref in reference_stations(chain, [tracker[n] for n in group], seed=seed):
+            out[ref.frame_id] = ref
+    return out
 
 
 SPLIT_BLOCKS = 100  # time blocks a split cuts the pairs into, by default
@@ -120,9 +146,9 @@ def split_summary(blocks: int | None, separate_val: bool, separate_test: bool) -
 
 def fit(
     chain: Chain,
-    train_pairs: Pairs,
-    val_pairs: Pairs,
-    test_pairs: Pairs,
+    train_pairs: Pairs | Sequence[Pairs],
+    val_pairs: Pairs | Sequence[Pairs],
+    test_pairs: Pairs | Sequence[Pairs],
     out: Path,
     preset: train.Preset,
     max_minutes: float,
@@ -134,45 +160,48 @@ def fit(
     parametric: bool = False,
     payload: tuple[float, np.ndarray] = (0.0, np.zeros(3)),
     log: Callable[[str], None] = lambda _: None,
+    shared_targets: Sequence[Sequence[str]] = (),
 ) -> tuple[HybridModel, dict[str, Any]]:
     """Reference, identify, train both nets within ``max_minutes`` (side by side), write the model directory.
 
-    Pairs in a tracker frame are referenced first (:func:`referencing.reference`); with ``parametric``
-    the elasto-geometric stage is identified next, and the nets learn what it leaves. Position-only
-    pairs train the position net alone.
+    Each set of pairs may come from several tracker stations (one :class:`Pairs` per frame). Every
+    tracker frame is referenced first (:func:`reference_all`); with ``parametric`` the elasto-geometric
+    stage is identified next, from all stations together, and the nets learn what it leaves.
+    Position-only pairs train the position net alone.
     """
     manifest: dict[str, Any] = {}
-    ref = None
-    raw = train_pairs, val_pairs, test_pairs
-    if train_pairs.frame_id != chain.base_link:
-        ref = reference(chain, train_pairs, seed=seed)
+    raw = [[p] if isinstance(p, Pairs) else list(p) for p in (train_pairs, val_pairs, test_pairs)]
+    refs = reference_all(chain, raw[0], shared_targets, seed)
+    for ref in refs.values():
         log(f"referenced frame '{ref.frame_id}': rms {ref.rms_position_mm:.4f} mm ({ref.outliers} outliers)")
-        train_pairs, val_pairs, test_pairs = (ref.to_base(p, chain.base_link) for p in raw)
+    train_pairs, val_pairs, test_pairs = (to_base_frame(p, chain, refs) for p in raw)
     position_only = train_pairs.position_only
-    target = ref.target_offset if ref is not None else None  # position-only: the models predict that point
+    # position-only: the models predict the target points, wherever each station's target sat
+    target = _target_offsets(train_pairs)
     base = ElasticChain.rigid(chain)
     if parametric:
         start = time.perf_counter()
         result = identify(
             chain, train_pairs.q, train_pairs.T, *payload, position_only=position_only, seed=seed, target=target
         )
-        if ref is not None:
-            ref, result = anchor_base(chain, ref, result)
-            train_pairs, val_pairs, test_pairs = (ref.to_base(p, chain.base_link) for p in raw)
+        if refs:
+            anchored, result = anchor_stations(chain, list(refs.values()), result)
+            refs = {ref.frame_id: ref for ref in anchored}
+            train_pairs, val_pairs, test_pairs = (to_base_frame(p, chain, refs) for p in raw)
         base = result.model
         manifest["parametric"] = {**result.manifest(), "seconds": round(time.perf_counter() - start, 1)}
         log(
             f"parametric stage: {int(result.identifiable.sum())} of {len(result.params)} parameters identifiable; "
             f"rms {result.rms_before['position_mm']:.4f} -> {result.rms_after['position_mm']:.4f} mm"
         )
-    if ref is not None:
-        manifest["referencing"] = ref.manifest()
+    if refs:
+        manifest["referencing"] = [ref.manifest() for ref in refs.values()]
     lower, upper = train_pairs.q.min(axis=0), train_pairs.q.max(axis=0)
     norm_lower, norm_upper = (chain.lower, chain.upper) if preset.full_range else (lower, upper)
     norm_lower = np.where(np.isfinite(norm_lower), norm_lower, lower)
     norm_upper = np.where(np.isfinite(norm_upper), norm_upper, upper)
     y_train = train.residual_targets(base, train_pairs.q, train_pairs.T, target)
-    y_val = train.residual_targets(base, val_pairs.q, val_pairs.T, target)
+    y_val = train.residual_targets(base, val_pairs.q, val_pairs.T, _target_offsets(val_pairs))
     arch = arch or {}
     kinds = ("position",) if position_only else train.KINDS
     jobs = {}
@@ -221,7 +250,7 @@ def fit(
                 "train": len(train_pairs),
                 "val": len(val_pairs),
                 "test": len(test_pairs),
-                "frame_id": manifest.get("referencing", {}).get("frame_id", chain.base_link),
+                "frame_ids": [p.frame_id for p in raw[0]],
             },
             "metrics": {"test": metrics},
         }
@@ -230,6 +259,11 @@ def fit(
         manifest["note"] = "position-only data: orientation is not corrected (no orientation net)"
     save_model_dir(out, manifest, chain.urdf_text, nets, coverage=thinned(train_pairs.q))
     return HybridModel.load(out), manifest
+
+
+def _target_offsets(pairs: Pairs) -> np.ndarray | None:
+    """``(N, 3)``: where position-only pairs' targets sit in the tip frame; None for 6-DoF pairs."""
+    return pairs.targets[:, :3, 3] if pairs.position_only else None
 
 
 def thinned(q: np.ndarray, spacing: float = COVERAGE_SPACING) -> np.ndarray:

@@ -78,8 +78,10 @@ class HybridModel:
         self._range = (self.trained_lower - 1e-9, self.trained_upper + 1e-9)
         section = self.manifest.get("parametric")
         self.base = model_from_manifest(chain, section) if section else ElasticChain.rigid(chain)
-        ref = self.manifest.get("referencing")
-        self.referencing = Referencing.from_manifest(ref) if ref else None
+        section = self.manifest.get("referencing") or []
+        refs = [Referencing.from_manifest(r) for r in ([section] if isinstance(section, dict) else section)]
+        self.referencings = {r.frame_id: r for r in refs}  # one per tracker station
+        self.referencing = refs[0] if refs else None  # the first station's
 
     @property
     def range_policy(self) -> str:
@@ -191,12 +193,6 @@ class HybridModel:
                 f"{files.path} was trained for joints {list(chain.joint_names)}, not {list(expect_joint_names)}"
             )
         return cls(chain, files.nets, m, Path(path), coverage=files.coverage)
-
-    @property
-    def target(self) -> np.ndarray:
-        """``(4, 4)``: the measured target in the tip frame (the referencing's ``flange_to_target``;
-        identity without referencing). Accuracy is judged there, where the tracker measured."""
-        return np.eye(4) if self.referencing is None else self.referencing.flange_to_target
 
     @property
     def joint_names(self) -> tuple[str, ...]:

@@ -163,8 +163,8 @@ def identify(
 ) -> ParametricResult:
     """Identify the elasto-geometric parameters from joints ``q (N, n)`` and measured base-frame poses ``T``.
 
-    Position-only: ``T`` holds the measured target points and ``target`` (m) their offset in the tip
-    frame, which makes the flange's rotation observable.
+    Position-only: ``T`` holds the measured target points and ``target`` (m, ``(3,)`` or ``(N, 3)``) their
+    offset in the tip frame, which makes the flange's rotation observable.
 
     At most ``max_pairs`` pairs (drawn reproducibly) enter the fit: a few thousand pin down the ~80
     parameters far below the tracker noise, and the cost grows with the count.
@@ -174,6 +174,8 @@ def identify(
         raise CalibrationError(f"only {len(q)} pairs: the parametric stage needs at least 20")
     pick = np.random.default_rng(seed).permutation(len(q))[:max_pairs]
     q_fit, T_fit = q[pick], T[pick]
+    if target is not None and np.ndim(target) == 2:  # one offset per pair (several tracker stations)
+        target = np.asarray(target)[pick]
     params = parameter_list(chain)
     scale = np.array([SCALE[p.kind] for p in params])
 

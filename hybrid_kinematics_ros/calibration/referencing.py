@@ -17,6 +17,7 @@ point less ``R_model · t`` (the orientation stays the parametric model's).
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -45,17 +46,13 @@ class Referencing:
     method: str = "least squares"
     outliers: int = 0  # pairs more than OUTLIER_M off after the fit, left out of the rms
 
-    @property
-    def target_offset(self) -> np.ndarray | None:
-        """``(3,)`` m: where a position-only target sits in the tip frame; None for a 6-DoF target."""
-        return self.flange_to_target[:3, 3].copy() if self.position_only else None
-
     def to_base(self, pairs: Pairs, base_link: str) -> Pairs:
         """The pairs in the base frame: tip poses for a 6-DoF target, the target points for a position-only one.
 
         A reflector's offset from the tip is along the tip's axes, which a position-only measurement does
         not give; it cannot be subtracted without a model of the tip's orientation. So the point stays the
-        target and the models predict the target instead (see :attr:`target_offset`).
+        target and the models predict the target instead. Either way the pairs carry ``flange_to_target``
+        as their :attr:`Pairs.target`, where errors are judged.
         """
         if pairs.frame_id != self.frame_id:
             raise CalibrationError(
@@ -66,7 +63,8 @@ class Referencing:
             T[:, :3, :3] = np.eye(3)  # still no orientation
         else:
             T = self.base_to_tracker @ pairs.T @ se3.inverse(self.flange_to_target)
-        return pairs.with_poses(T, base_link)
+        target = np.broadcast_to(self.flange_to_target, (len(pairs), 4, 4)).copy()
+        return replace(pairs.with_poses(T, base_link), target=target)
 
     def manifest(self) -> dict[str, Any]:
         return {
@@ -97,7 +95,32 @@ class Referencing:
             raise CalibrationError(f"model.json: the referencing section is malformed ({exc!r})") from exc
 
 
+def to_base_frame(stations: Sequence[Pairs], chain: Chain, referencings: Mapping[str, Referencing]) -> Pairs:
+    """All stations' pairs in the base frame, each moved with its own frame's referencing."""
+    parts = []
+    for pairs in stations:
+        if pairs.frame_id == chain.base_link:
+            parts.append(pairs)
+        elif pairs.frame_id in referencings:
+            parts.append(referencings[pairs.frame_id].to_base(pairs, chain.base_link))
+        else:
+            known = ", ".join(f"'{f}'" for f in referencings) or "none"
+            raise CalibrationError(
+                f"the pairs are in frame '{pairs.frame_id}', not the base link '{chain.base_link}', and the model "
+                f"is referenced to {known}; train with a bag of that tracker station among --bag to reference it"
+            )
+    return Pairs.concatenate(parts)
+
+
 def anchor_base(chain: Chain, ref: Referencing, result: ParametricResult) -> tuple[Referencing, ParametricResult]:
+    """:func:`anchor_stations` for one tracker station."""
+    refs, result = anchor_stations(chain, [ref], result)
+    return refs[0], result
+
+
+def anchor_stations(
+    chain: Chain, refs: Sequence[Referencing], result: ParametricResult
+) -> tuple[list[Referencing], ParametricResult]:
     """Define the base frame by the robot's first joint, as its URDF places it and as its encoder counts.
 
     Least squares on the nominal model puts the base wherever the robot's errors fit best, and the
@@ -107,6 +130,7 @@ def anchor_base(chain: Chain, ref: Referencing, result: ParametricResult) -> tup
     joint cannot be told from a turn of the base; this is the paper's circle-fit convention too). So the
     first joint origin's correction and its zero offset move into ``base_to_tracker``,
     ``B' = X⁻¹ · B`` with ``X = pre₀' · pre₀⁻¹ · local₀(z₀) · pre₀⁻¹``, and the model keeps the nominal ones.
+    ``X`` is the robot's, so every tracker station's ``B`` moves by it.
     """
     first = np.array(
         [
@@ -115,7 +139,7 @@ def anchor_base(chain: Chain, ref: Referencing, result: ParametricResult) -> tup
         ]
     )
     if not np.any(result.values[first]):
-        return ref, result
+        return list(refs), result
     m = result.model
     z0 = m.zero_offset[0]
     a, b = chain.coefficients(np.full(chain.dof, z0))
@@ -128,8 +152,8 @@ def anchor_base(chain: Chain, ref: Referencing, result: ParametricResult) -> tup
     rigid = result.rigid_values.copy()
     rigid[first] -= result.values[first]  # first order: the URDF fit's first joint, relative to the new base
     anchored = build_model(chain, result.params, values, m.payload_mass, m.payload_com)
-    base = se3.inverse(x) @ ref.base_to_tracker
-    return replace(ref, base_to_tracker=base), replace(result, model=anchored, values=values, rigid_values=rigid)
+    moved = [replace(ref, base_to_tracker=se3.inverse(x) @ ref.base_to_tracker) for ref in refs]
+    return moved, replace(result, model=anchored, values=values, rigid_values=rigid)
 
 
 def _transform(x: np.ndarray) -> np.ndarray:
@@ -145,54 +169,82 @@ def reference(
     robot that look like a moved base or a moved target are absorbed here, which is harmless: the base
     and flange transforms cannot be told apart from them by any measurement.
     """
-    if len(pairs) < 10:
-        raise CalibrationError(f"only {len(pairs)} pairs: referencing needs at least 10")
-    pick = np.random.default_rng(seed).permutation(len(pairs))[:max_pairs]
-    q, meas = pairs.q[pick], pairs.T[pick]
-    model = fk.fk(chain, q) if tip is None else tip[pick]
-    p_tip = model[:, :3, 3]
-    if np.linalg.matrix_rank(p_tip - p_tip.mean(axis=0), tol=1e-3) < 3:
-        raise CalibrationError("the tip positions span less than 3 dimensions: referencing needs varied poses")
-    # Start: the target near the flange, the tracker from the point clouds; then the target offset.
-    base_tracker = se3.fit_rigid(meas[:, :3, 3], p_tip[None])[0][0]
-    in_tip = se3.inverse(model) @ base_tracker @ meas
+    return reference_stations(chain, [pairs], None if tip is None else [tip], max_pairs, seed)[0]
+
+
+def reference_stations(
+    chain: Chain,
+    stations: Sequence[Pairs],
+    tips: Sequence[np.ndarray] | None = None,
+    max_pairs: int = 20_000,
+    seed: int = 0,
+) -> list[Referencing]:
+    """One tracker placement per station (each in its own frame) and ONE target transform shared by all:
+    the target stayed on the flange while the tracker moved. Fitted together by robust least squares,
+    each station's base from a closed-form start; see :func:`reference`.
+    """
+    position_only = stations[0].position_only
+    if any(p.position_only != position_only for p in stations):
+        raise CalibrationError("stations sharing a target must all be 6-DoF or all position-only")
+    rng = np.random.default_rng(seed)
+    per_station = max(10, max_pairs // len(stations))
+    parts = []  # (q, measured, modelled tip, start of base_to_tracker) per station
+    for k, pairs in enumerate(stations):
+        if len(pairs) < 10:
+            raise CalibrationError(f"frame '{pairs.frame_id}': only {len(pairs)} pairs; referencing needs at least 10")
+        pick = rng.permutation(len(pairs))[:per_station]
+        model = fk.fk(chain, pairs.q[pick]) if tips is None else tips[k][pick]
+        p_tip = model[:, :3, 3]
+        if np.linalg.matrix_rank(p_tip - p_tip.mean(axis=0), tol=1e-3) < 3:
+            raise CalibrationError(
+                f"frame '{pairs.frame_id}': the tip positions span less than 3 dimensions; referencing needs "
+                "varied poses"
+            )
+        meas = pairs.T[pick]
+        parts.append((meas, model, se3.fit_rigid(meas[:, :3, 3], p_tip[None])[0][0]))
+    # Start: the target near the flange, each tracker from its point clouds; then the target offset.
+    in_tip = np.concatenate([se3.inverse(model) @ b @ meas for meas, model, b in parts])
     start_target = np.eye(4)
     start_target[:3, 3] = np.median(in_tip[:, :3, 3], axis=0)
-    if not pairs.position_only:
+    if not position_only:
         start_target[:3, :3] = Rotation.from_matrix(in_tip[:, :3, :3]).mean().as_matrix()
+    width = 3 if position_only else 6
+    n_target = 3 if position_only else 6
 
-    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        b = base_tracker @ _transform(x[:6])
+    def unpack(x: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
         t = start_target.copy()
-        t[:3, 3] += x[6:9]
-        if not pairs.position_only:
-            t = t @ _transform(np.r_[0.0, 0.0, 0.0, x[9:12]])
-        return b, t
+        t[:3, 3] += x[:3]
+        if not position_only:
+            t = t @ _transform(np.r_[0.0, 0.0, 0.0, x[3:6]])
+        bases = [b @ _transform(x[n_target + 6 * k : n_target + 6 * k + 6]) for k, (_, _, b) in enumerate(parts)]
+        return bases, t
 
     def residual(x: np.ndarray) -> np.ndarray:
-        b, t = unpack(x)
-        pred = se3.inverse(b) @ model @ t
-        dp = meas[:, :3, 3] - pred[:, :3, 3]
-        if pairs.position_only:
-            return dp.ravel()
-        dw = se3.rotvec(meas[:, :3, :3] @ np.swapaxes(pred[:, :3, :3], 1, 2))
-        return np.concatenate([dp, dw], axis=1).ravel()
+        bases, t = unpack(x)
+        out = []
+        for (meas, model, _), b in zip(parts, bases, strict=True):
+            pred = se3.inverse(b) @ model @ t
+            dp = meas[:, :3, 3] - pred[:, :3, 3]
+            if position_only:
+                out.append(dp.ravel())
+            else:
+                dw = se3.rotvec(meas[:, :3, :3] @ np.swapaxes(pred[:, :3, :3], 1, 2))
+                out.append(np.concatenate([dp, dw], axis=1).ravel())
+        return np.concatenate(out)
 
-    size = 9 if pairs.position_only else 12
+    size = n_target + 6 * len(parts)
     fit = least_squares(residual, np.zeros(size), loss="soft_l1", f_scale=ROBUST_SCALE, x_scale="jac")
-    b, t = unpack(fit.x)
-    res = fit.fun.reshape(len(q), -1)
-    inlier = np.linalg.norm(res[:, :3], axis=1) < OUTLIER_M
-    res = res[inlier]
-    return Referencing(
-        pairs.frame_id,
-        b,
-        t,
-        pairs.position_only,
-        float(1e3 * np.sqrt(np.mean(np.sum(res[:, :3] ** 2, axis=1)))),
-        float("nan") if pairs.position_only else float(np.degrees(np.sqrt(np.mean(np.sum(res[:, 3:] ** 2, 1))))),
-        outliers=int(np.sum(~inlier)),
-    )
+    bases, t = unpack(fit.x)
+    out, start = [], 0
+    for pairs, (meas, _, _), b in zip(stations, parts, bases, strict=True):
+        res = fit.fun[start : start + width * len(meas)].reshape(len(meas), width)
+        start += width * len(meas)
+        inlier = np.linalg.norm(res[:, :3], axis=1) < OUTLIER_M
+        res = res[inlier]
+        rms_deg = float("nan") if position_only else float(np.degrees(np.sqrt(np.mean(np.sum(res[:, 3:] ** 2, 1)))))
+        rms_mm = float(1e3 * np.sqrt(np.mean(np.sum(res[:, :3] ** 2, axis=1))))
+        out.append(Referencing(pairs.frame_id, b, t, position_only, rms_mm, rms_deg, outliers=int(np.sum(~inlier))))
+    return out
 
 
 def fit_circle(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:

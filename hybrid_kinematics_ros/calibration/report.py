@@ -32,7 +32,7 @@ def iso9283(model: HybridModel, pairs: Pairs, min_repeats: int = 3) -> list[dict
     """
     keys = np.round(pairs.q, REPEAT_DECIMALS)
     _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    targets = measured_targets(model, pairs)
+    targets = measured_targets(pairs)
     out = []
     for group in np.flatnonzero(counts >= min_repeats):
         rows = np.flatnonzero(inverse.ravel() == group)
@@ -42,7 +42,7 @@ def iso9283(model: HybridModel, pairs: Pairs, min_repeats: int = 3) -> list[dict
         q = pairs.q[rows[:1]]
         entry = {"pose": len(out) + 1, "repeats": len(rows), "joints_rad": q[0].round(4).tolist()}
         for name, T in (("analytic", model.fk(q, analytic=True)), ("hybrid", model.fk(q))):
-            entry[f"AP_{name}_mm"] = float(1e3 * np.linalg.norm(centre - (T[0] @ model.target)[:3, 3]))
+            entry[f"AP_{name}_mm"] = float(1e3 * np.linalg.norm(centre - (T[0] @ pairs.targets[rows[0]])[:3, 3]))
         entry["RP_mm"] = float(1e3 * (spread.mean() + 3 * spread.std(ddof=1)))
         out.append(entry)
     return out
@@ -216,24 +216,23 @@ def write_report(
         parts.append(_table(head, rows))
     else:
         parts.append("<p>The test data repeats no pose (three or more measurements of one joint vector).</p>")
-    ref = m.get("referencing")
+    refs = model.referencings.values()
     parts.append("<h2>Referencing</h2>")
-    if ref:
+    for ref in refs:
         rows = []
-        for label, key in (
-            ("tracker in the base frame", "base_to_tracker"),
-            ("target on the flange", "flange_to_target"),
+        for label, t in (
+            ("tracker in the base frame", ref.base_to_tracker),
+            ("target on the flange", ref.flange_to_target),
         ):
-            t = np.asarray(ref[key])
             rpy = np.degrees(Rotation.from_matrix(t[:3, :3]).as_euler("xyz"))
             rows.append([label, *(1e3 * t[:3, 3]).tolist(), *rpy.tolist()])
         head = ["transform", "x (mm)", "y (mm)", "z (mm)", "roll (deg)", "pitch (deg)", "yaw (deg)"]
         parts += [
-            f"<p>Method: {html.escape(ref['method'])}; frame '{html.escape(ref['frame_id'])}'; residual rms "
-            f"{ref['rms_position_mm']:.4f} mm; {ref.get('outliers', 0)} outliers left out.</p>",
+            f"<p>Method: {html.escape(ref.method)}; frame '{html.escape(ref.frame_id)}'; residual rms "
+            f"{ref.rms_position_mm:.4f} mm; {ref.outliers} outliers left out.</p>",
             _table(head, rows),
         ]
-    else:
+    if not refs:
         parts.append("<p>The training data was in the base frame: no referencing was needed.</p>")
     par = m.get("parametric")
     parts.append("<h2>Parametric stage</h2>")

@@ -26,7 +26,7 @@ def run(args: argparse.Namespace) -> int:
     model = HybridModel.load(args.model)
     if args.coverage_radius is not None:  # evaluate the model as served with it: no nets beyond the radius
         model.coverage_radius, model.range_policy = args.coverage_radius, "parametric"
-    pairs = load_pairs(args.bag, model.chain, referencing=model.referencing)
+    pairs = load_pairs(args.bag, model.chain, referencings=model.referencings)
     report = {"model": str(args.model), "bags": [str(b) for b in args.bag], **evaluate(model, pairs)}
     if pairs.dropped:
         report["dropped"] = dict(pairs.dropped)

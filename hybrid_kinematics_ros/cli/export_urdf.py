@@ -31,7 +31,7 @@ def run(args: argparse.Namespace) -> int:
     args.out.write_text(text)
     report: dict = {"urdf": str(args.out)}
     if args.bag:
-        pairs = load_pairs(args.bag, model.chain, referencing=model.referencing)
+        pairs = load_pairs(args.bag, model.chain, referencings=model.referencings)
         exported = chain_from_urdf(text, model.chain.base_link, model.chain.tip_link).with_tool(model.chain.tool)
         for name, T in (
             ("nominal_urdf", model.fk(pairs.q, analytic=True)),
@@ -39,6 +39,6 @@ def run(args: argparse.Namespace) -> int:
             ("parametric", model.fk(pairs.q, nets=False)),
             ("hybrid", model.fk(pairs.q)),
         ):
-            report[name] = error_stats(*target_errors(model, pairs, T))
+            report[name] = error_stats(*target_errors(pairs, T))
     print(json.dumps(report, indent=2))
     return 0

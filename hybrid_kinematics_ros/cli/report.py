@@ -23,7 +23,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     model = HybridModel.load(args.model)
-    pairs = load_pairs(args.bag, model.chain, referencing=model.referencing)
+    pairs = load_pairs(args.bag, model.chain, referencings=model.referencings)
     curve = None
     if args.curve:
         try:

@@ -5,12 +5,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections import Counter
 from pathlib import Path
 
 from tqdm import tqdm
 
 from hybrid_kinematics_ros.calibration import train
-from hybrid_kinematics_ros.calibration.fit import SPLIT_BLOCKS, fit, load_pairs, split, split_summary
+from hybrid_kinematics_ros.calibration.fit import SPLIT_BLOCKS, fit, load_stations, split, split_summary
 from hybrid_kinematics_ros.cli.common import add_robot_args, chain_from_args, payload_from_args
 
 
@@ -45,6 +46,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--payload-com", type=float, nargs=3, metavar=("X", "Y", "Z"), help="m, in the tip frame")
     p.add_argument("--val-bag", nargs="+", help="separate validation bag(s); default: 10%% of --bag")
     p.add_argument("--test-bag", nargs="+", help="separate test bag(s); default: 10%% of --bag")
+    p.add_argument(
+        "--shared-target",
+        action="append",
+        metavar="FRAME,FRAME[,...]",
+        help="tracker frames whose stations saw the same target on the flange (not remounted): they share one "
+        "flange-to-target transform; repeat for several groups (default: one per frame)",
+    )
     p.add_argument(
         "--split-blocks",
         type=int,
@@ -87,18 +95,23 @@ class Progress:
 
 def run(args: argparse.Namespace) -> int:
     chain = chain_from_args(args)
-    pairs = load_pairs(args.bag, chain, args.raw_frame_id, allow_tracker_frame=True)
+    stations = load_stations(args.bag, chain, args.raw_frame_id)
     blocks = None if args.split_blocks == 0 else args.split_blocks
-    train_pairs, val_pairs, test_pairs = split(
-        pairs, args.seed, (0.0 if args.val_bag else 0.1, 0.0 if args.test_bag else 0.1), blocks
-    )
-    val_pairs = load_pairs(args.val_bag, chain, allow_tracker_frame=True) if args.val_bag else val_pairs
-    test_pairs = load_pairs(args.test_bag, chain, allow_tracker_frame=True) if args.test_bag else test_pairs
+    fractions = (0.0 if args.val_bag else 0.1, 0.0 if args.test_bag else 0.1)
+    # each station is split on its own, so that every tracker frame is referenced, validated and tested
+    splits = [split(p, args.seed, fractions, blocks) for p in stations]
+    train_pairs, val_pairs, test_pairs = ([s[k] for s in splits] for k in range(3))
+    val_pairs = load_stations(args.val_bag, chain) if args.val_bag else val_pairs
+    test_pairs = load_stations(args.test_bag, chain) if args.test_bag else test_pairs
+    dropped = sum((p.dropped for p in stations), Counter())
+    count = [sum(len(p) for p in parts) for parts in (train_pairs, val_pairs, test_pairs)]
     print(
-        f"pairs: {len(train_pairs)} train, {len(val_pairs)} validation, {len(test_pairs)} test"
-        + (f"; dropped {dict(pairs.dropped)}" if pairs.dropped else "")
+        f"pairs: {count[0]} train, {count[1]} validation, {count[2]} test"
+        + (f" from {len(stations)} frames ({', '.join(p.frame_id for p in stations)})" if len(stations) > 1 else "")
+        + (f"; dropped {dict(dropped)}" if dropped else "")
     )
-    progress = Progress(60.0 * args.max_minutes, ("position",) if pairs.position_only else train.KINDS)
+    position_only = stations[0].position_only
+    progress = Progress(60.0 * args.max_minutes, ("position",) if position_only else train.KINDS)
     try:
         _, manifest = fit(
             chain,
@@ -112,13 +125,14 @@ def run(args: argparse.Namespace) -> int:
             arch={"position": args.arch_position, "orientation": args.arch_orientation},
             data_summary={
                 "bags": [str(b) for b in args.bag],
-                "dropped": dict(pairs.dropped),
+                "dropped": dict(dropped),
                 "split": split_summary(blocks, bool(args.val_bag), bool(args.test_bag)),
             },
             progress=progress,
             parametric=args.parametric,
             payload=payload_from_args(args),
             log=lambda line: tqdm.write(line, file=sys.stderr),
+            shared_targets=[names.split(",") for names in args.shared_target or []],
         )
     finally:
         progress.close()

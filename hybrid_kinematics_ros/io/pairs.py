@@ -64,6 +64,9 @@ class Pairs:
     position_only: bool = False  # the target gives no orientation: rotations are identity placeholders
     # condition channels (name -> (N,) values, e.g. "temperature" in °C), one value per sample
     conditions: dict[str, np.ndarray] = field(default_factory=dict)
+    # (N, 4, 4): where the measured target sits in the tip frame, set by referencing (each tracker station
+    # has its own); None: at the tip. Position-only pairs in the base frame hold that target's points.
+    target: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for name, values in self.conditions.items():
@@ -81,7 +84,13 @@ class Pairs:
             stamps=self.stamps[index],
             dropped=Counter(),
             conditions={k: v[index] for k, v in self.conditions.items()},
+            target=None if self.target is None else self.target[index],
         )
+
+    @property
+    def targets(self) -> np.ndarray:
+        """``(N, 4, 4)``: :attr:`target`, identity where none is set."""
+        return np.tile(np.eye(4), (len(self), 1, 1)) if self.target is None else self.target
 
     def with_poses(self, T: np.ndarray, frame_id: str) -> Pairs:
         """The same samples with the poses expressed in another frame."""
@@ -110,6 +119,7 @@ class Pairs:
             dropped,
             first.position_only,
             {n: np.concatenate([p.conditions[n] for p in parts]) for n in names},
+            None if all(p.target is None for p in parts) else np.concatenate([p.targets for p in parts]),
         )
 
 

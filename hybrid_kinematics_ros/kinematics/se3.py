@@ -105,11 +105,12 @@ def inverse(t: np.ndarray) -> np.ndarray:
 
 
 def point_at(t: np.ndarray, offset: np.ndarray | None) -> np.ndarray:
-    """``(..., 3)``: the point at ``offset (3,)`` in the frames ``t (..., 4, 4)``; their origins when None."""
+    """``(..., 3)``: the point at ``offset`` (``(3,)`` or one per frame, ``(..., 3)``) in the frames
+    ``t (..., 4, 4)``; their origins when None."""
     t = np.asarray(t)
     if offset is None:
         return t[..., :3, 3]
-    return t[..., :3, 3] + t[..., :3, :3] @ np.asarray(offset, dtype=float)
+    return t[..., :3, 3] + np.einsum("...ij,...j->...i", t[..., :3, :3], np.asarray(offset, dtype=float))
 
 
 def pose_difference(t_true: np.ndarray, t_model: np.ndarray) -> np.ndarray:
