@@ -119,7 +119,9 @@ def split(
     """
     n = len(pairs)
     if n < 10:
-        raise CalibrationError(f"only {n} pairs: at least 10 are needed to train, validate and test")
+        raise CalibrationError(
+            f"frame '{pairs.frame_id}': only {n} pairs; at least 10 are needed to train, validate and test"
+        )
     rng = np.random.default_rng(seed)
     n_val = max(1, int(n * fractions[0])) if fractions[0] > 0 else 0
     n_test = max(1, int(n * fractions[1])) if fractions[1] > 0 else 0
