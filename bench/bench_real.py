@@ -1,0 +1,183 @@
+"""Real data: a UR10 measured by a Leica tracker with a T-Mac probe (../shared/datasets/ipa-robot-accuracy,
+MIT, Landgraf et al., CASE 2021), read from the raw CSV files with the shipped import specs.
+
+Every error is measured in the tracker frame at the probe, on held-out data that no model saw, chosen as
+contiguous blocks of rows (neighbouring rows of a grid are near-duplicates). Rows: the URDF model, the
+geometry-only fit (joint offsets and origins: what robot_calibration or pybotics users get), the
+parametric stage, the hybrid model with our recipe and with the paper's. Training runs by epochs with a
+wall-clock cap, so a loaded machine gives the same models.
+
+Usage: python -m bench.bench_real [A] [C] [CB] [all] [curve] [--minutes M] [--epochs E]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from bench.report import table, write_section
+from hybrid_kinematics_ros.calibration import train
+from hybrid_kinematics_ros.calibration.evaluate import error_stats, target_errors
+from hybrid_kinematics_ros.calibration.fit import fit, split
+from hybrid_kinematics_ros.calibration.parametric import model_from_manifest
+from hybrid_kinematics_ros.calibration.referencing import to_base_frame
+from hybrid_kinematics_ros.io.importer import import_table, load_spec_dict, spec_from_dict
+from hybrid_kinematics_ros.io.pairs import Pairs
+from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "ipa-robot-accuracy"
+SERIES = {  # name: (file, import spec, stamp start override: B and C share a spec)
+    "A": ("Series_A/measurements_grid.csv", "ipa_robot_accuracy_a", None),
+    "B": ("Series_B/measurements_joint_configurations.csv", "ipa_robot_accuracy_bc", None),
+    "C": ("Series_C/measurements_random_poses.csv", "ipa_robot_accuracy_bc", "2020-12-01T00:00:00"),
+    "D": ("Series_D/measurements_iso_cubes.csv", "ipa_robot_accuracy_d", None),
+}
+REPEAT_TOLERANCE_RAD = 1e-3  # readings of a repeated pose agree to the encoders' noise, not exactly
+
+
+def load_series(name: str, joints: tuple[str, ...]) -> Pairs:
+    path, spec_name, start = SERIES[name]
+    data = load_spec_dict(spec_name)
+    if start is not None:
+        data = {**data, "stamp": {**data["stamp"], "start": start}}
+    return import_table(DATA / path, spec_from_dict(data, spec_name), joints).pairs
+
+
+def repeatability_mm(pairs: Pairs) -> tuple[float, int]:
+    """Mean distance of repeated measurements of one joint vector from their mean, and the group count.
+    Readings of one commanded pose differ by encoder noise (up to 1e-4 rad here), so a group is every
+    chain of readings closer than ``REPEAT_TOLERANCE_RAD``."""
+    links = cKDTree(pairs.q).query_pairs(REPEAT_TOLERANCE_RAD, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(links)), (links[:, 0], links[:, 1])), shape=(len(pairs), len(pairs)))
+    _, label = connected_components(graph, directed=False)
+    spread = []
+    groups = 0
+    for g in np.flatnonzero(np.bincount(label) >= 2):
+        p = pairs.T[label == g, :3, 3]
+        spread.extend(np.linalg.norm(p - p.mean(axis=0), axis=1))
+        groups += 1
+    return 1e3 * float(np.mean(spread)), groups
+
+
+def rows_for(cfg, train_sets, test_sets, recipes, minutes, epochs, seed=0):
+    """Fit each recipe once; errors of every model on each test set, in the tracker frame at the probe."""
+    out: dict[str, dict[str, dict]] = {}
+    seconds = {}
+    for recipe, preset in recipes.items():
+        tr, va = zip(*[split(p, seed, (0.1, 0.0))[:2] for p in train_sets], strict=True)
+        with tempfile.TemporaryDirectory() as tmp:
+            start = time.perf_counter()
+            model, manifest = fit(
+                cfg.chain,
+                list(tr),
+                list(va),
+                list(va),
+                Path(tmp) / "m",
+                replace(preset, max_epochs=epochs),
+                minutes,
+                seed=seed,
+                parametric=True,
+                payload=(cfg.payload_mass, cfg.payload_com),
+            )
+            seconds[recipe] = time.perf_counter() - start
+        geometry = model_from_manifest(cfg.chain, manifest["parametric"], rigid=True)
+        for name, te in test_sets.items():
+            base = to_base_frame([te], cfg.chain, model.referencings)
+            models = {
+                "URDF model": model.fk(base.q, analytic=True),
+                "geometry only": geometry.fk(base.q),
+                "parametric stage": model.fk(base.q, nets=False),
+                f"hybrid, {recipe}": model.fk(base.q),
+            }
+            for label, T in models.items():
+                out.setdefault(name, {})[label] = error_stats(*target_errors(base, T))
+    return out, seconds
+
+
+def table_of(results: dict[str, dict[str, dict]]) -> str:
+    rows = []
+    for test, models in results.items():
+        for label, s in models.items():
+            rows.append(
+                [
+                    test,
+                    label,
+                    s["count"],
+                    s["position_mm_mean"],
+                    s["position_mm_p95"],
+                    s["position_mm_max"],
+                    s.get("orientation_deg_mean", float("nan")),
+                    s.get("orientation_deg_p95", float("nan")),
+                ]
+            )
+    head = ["test set", "model", "poses", "pos. mean (mm)", "pos. p95 (mm)", "pos. max (mm)", "ori. mean (deg)"]
+    return table([*head, "ori. p95 (deg)"], rows)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("parts", nargs="*", default=["A", "C"])
+    parser.add_argument("--minutes", type=float, default=10.0, help="wall-clock cap per model")
+    parser.add_argument("--epochs", type=int, default=300, help="training epochs per net (the real budget)")
+    args = parser.parse_args()
+    cfg = load_robot_config("ur10")
+    series = {name: load_series(name, cfg.chain.joint_names) for name in SERIES}
+    recipes = {"ours": train.PRESETS["fast"], "paper": train.PRESETS["paper"]}
+    held = {name: split(p, 0, (0.0, 0.2)) for name, p in series.items()}  # train, _, test (a fifth, blocks)
+    body = [
+        "Real UR10 (ipa-robot-accuracy), tracker frame, at the probe; held-out fifth of each series in "
+        "contiguous blocks of rows. " + ", ".join(f"{k}: {len(v)} poses" for k, v in series.items()) + ".",
+    ]
+    for name in ("B", "D"):
+        floor, groups = repeatability_mm(series[name])
+        body.append(f"Repeatability floor, series {name}: {floor:.4f} mm over {groups} repeated poses.")
+    timing = []
+    for part in args.parts:
+        if part in ("A", "C"):
+            results, seconds = rows_for(cfg, [held[part][0]], {part: held[part][2]}, recipes, args.minutes, args.epochs)
+        elif part == "CB":
+            results, seconds = rows_for(
+                cfg, [series["C"]], {"B (trained on C)": series["B"]}, recipes, args.minutes, args.epochs
+            )
+        elif part == "all":
+            results, seconds = rows_for(
+                cfg,
+                [held[n][0] for n in SERIES],
+                {f"{n} (all)": held[n][2] for n in SERIES},
+                recipes,
+                args.minutes,
+                args.epochs,
+            )
+        elif part == "curve":
+            results, seconds = {}, {}
+            for count in (250, 500, 1000, 2000, 4000, len(held["A"][0])):
+                pool = held["A"][0]  # a random draw of the training fifths: the amount matters, not the place
+                subset = pool.subset(np.sort(np.random.default_rng(0).permutation(len(pool))[:count]))
+                r, s = rows_for(
+                    cfg,
+                    [subset],
+                    {f"A, {count} train": held["A"][2]},
+                    {"ours": recipes["ours"]},
+                    args.minutes,
+                    args.epochs,
+                )
+                results.update(r)
+                seconds.update({f"{count}": s["ours"]})
+        else:
+            raise SystemExit(f"unknown part {part}")
+        body.append(f"### {part}\n\n" + table_of(results))
+        timing.append(f"{part}: " + ", ".join(f"{k} {v:.0f} s" for k, v in seconds.items()))
+    body.append("Training time per model (referencing, parametric stage, nets): " + "; ".join(timing) + ".")
+    write_section("real", "Real UR10 data (bench_real)", "\n\n".join(body))
+
+
+if __name__ == "__main__":
+    main()
