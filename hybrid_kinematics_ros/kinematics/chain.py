@@ -19,8 +19,10 @@ import yourdfpy
 from lxml import etree
 
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
+from hybrid_kinematics_ros.kinematics.paths import resolve_path
 
 ACTUATED = ("revolute", "continuous", "prismatic")
+LEADING_JUNK = "\ufeff \t\r\n"  # what may precede a URDF's first tag
 
 
 @dataclass(frozen=True, eq=False)
@@ -128,18 +130,20 @@ def _generators(pre: np.ndarray, axes: np.ndarray, revolute: np.ndarray) -> np.n
 
 
 def load_urdf(source: str | Path) -> tuple[yourdfpy.URDF, str]:
-    """Parse a URDF from a path or from XML text; returns the model and the text it came from."""
+    """Parse a URDF from a path (``package://`` too) or from XML text; returns the model and the text."""
     text = str(source)
-    if not text.lstrip().startswith("<"):
-        path = Path(source)
+    if not text.lstrip(LEADING_JUNK).startswith("<"):
+        path = resolve_path(source)
         if not path.is_file():
-            raise KinematicsError(f"URDF file {path} does not exist")
-        text = path.read_text()
+            raise KinematicsError(f"URDF file {source} does not exist" + (f" ({path})" if str(path) != text else ""))
+        text = path.read_text(encoding="utf-8-sig")
     where = source if len(str(source)) < 200 else "text"
+    # ROS's parser (tinyxml2) skips a byte-order mark and blank lines before the XML declaration; lxml does not.
+    xml = text.lstrip(LEADING_JUNK).encode()
     try:
         # yourdfpy silently recovers from malformed XML; a URDF must parse strictly.
-        etree.fromstring(text.encode())
-        urdf = yourdfpy.URDF.load(io.BytesIO(text.encode()), build_scene_graph=False, load_meshes=False)
+        etree.fromstring(xml)
+        urdf = yourdfpy.URDF.load(io.BytesIO(xml), build_scene_graph=False, load_meshes=False)
     except Exception as exc:  # lxml and yourdfpy raise a variety of errors
         raise KinematicsError(f"cannot parse URDF ({where}): {exc}") from exc
     return urdf, text

@@ -15,7 +15,6 @@ from __future__ import annotations
 import signal
 import sys
 import threading
-from pathlib import Path
 
 import numpy as np
 import rclpy
@@ -33,6 +32,7 @@ from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
+from hybrid_kinematics_ros.kinematics.paths import resolve_path
 from hybrid_kinematics_ros.nodes.convert import (
     RequestError,
     joint_state_msg,
@@ -57,8 +57,10 @@ class KinematicsNode(Node):
         def declare(name: str, default, description: str):
             return read_only_parameter(self, name, default, description)
 
-        self.model_dir = declare("model_dir", "", "trained model directory; empty: analytic URDF kinematics only")
-        self.urdf_path = declare("urdf_path", "", "URDF file (or give robot_description)")
+        self.model_dir = declare(
+            "model_dir", "", "trained model directory (or package://pkg/path); empty: analytic URDF kinematics only"
+        )
+        self.urdf_path = declare("urdf_path", "", "URDF file or package://pkg/path (or give robot_description)")
         self.robot_description = declare("robot_description", "", "URDF text (used when urdf_path is empty)")
         self.base_link = declare("base_link", "", "base link of the chain (default: the model's)")
         self.tip_link = declare("tip_link", "", "tip link of the chain (default: the model's)")
@@ -108,9 +110,11 @@ class KinematicsNode(Node):
     # ------------------------------------------------------------------ loading
     def _urdf(self) -> str | None:
         if self.urdf_path:
-            if not Path(self.urdf_path).is_file():
-                raise StartupError(f"parameter urdf_path: {self.urdf_path} does not exist")
-            return Path(self.urdf_path).read_text()
+            path = resolve_path(self.urdf_path)
+            if not path.is_file():
+                where = "" if str(path) == self.urdf_path else f" ({path})"
+                raise StartupError(f"parameter urdf_path: {self.urdf_path}{where} does not exist")
+            return path.read_text(encoding="utf-8-sig")
         return self.robot_description or None
 
     def _load(self) -> tuple[HybridModel, IKSolver]:
