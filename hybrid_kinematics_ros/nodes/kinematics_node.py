@@ -106,6 +106,8 @@ class KinematicsNode(Node):
         self.get_logger().info(
             f"serving {kind}: {m.chain.base_link} -> {m.chain.tip_link}, joints {', '.join(m.joint_names)}"
         )
+        for warning in m.chain.inertial_warnings:
+            self.get_logger().warn(f"URDF: {warning}")
 
     # ------------------------------------------------------------------ loading
     def _urdf(self) -> str | None:
