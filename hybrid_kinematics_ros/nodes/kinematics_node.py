@@ -15,9 +15,11 @@ from __future__ import annotations
 import signal
 import sys
 import threading
+import time
 
 import numpy as np
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -44,6 +46,7 @@ from hybrid_kinematics_ros.nodes.convert import (
     stamp_is_zero,
 )
 from hybrid_kinematics_ros.nodes.runtime import StartupError, read_only_parameter, run_node
+from hybrid_kinematics_ros.nodes.stats import RequestStats
 
 LOAD_ERRORS = (DataError, KinematicsError, CalibrationError, OSError)
 MAX_SOLUTIONS = 16
@@ -67,6 +70,12 @@ class KinematicsNode(Node):
         topic = declare("joint_states_topic", "/joint_states", "joint states to turn into corrected poses")
         publish = declare("publish_corrected_pose", True, "publish ~/corrected_pose for each joint state")
         self.ik_timeout_ms = declare("ik_timeout_ms", 50.0, "time budget per IK solution")
+        self.ik_request_budget_ms = declare(
+            "ik_request_budget_ms",
+            0.0,
+            "total time budget of one IK request, all seeds and solutions (0: max_solutions x ik_timeout_ms)",
+        )
+        diagnostics_period = declare("diagnostics_period_s", 1.0, "period of /diagnostics (s); 0: off")
         self.range_policy = declare(
             "out_of_range_policy",
             "warn",
@@ -83,6 +92,7 @@ class KinematicsNode(Node):
         self._lock = threading.Lock()
         self.model, self.solver = self._load()
         self._latest: np.ndarray | None = None
+        self.stats = RequestStats()
 
         # Replies share one writer; with the default depth of 10, a burst from many clients can overwrite a
         # reply before a slow client has taken it, and that call is never answered.
@@ -101,6 +111,9 @@ class KinematicsNode(Node):
         # best effort (matches reliable and best-effort publishers) with a deep queue for bursts
         joint_qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.BEST_EFFORT)
         self.pose_node.create_subscription(JointState, topic, self._on_joint_state, joint_qos)
+        if diagnostics_period > 0:
+            self.diag_pub = self.pose_node.create_publisher(DiagnosticArray, "/diagnostics", 10)
+            self.pose_node.create_timer(diagnostics_period, self._publish_diagnostics)
         m = self.model
         kind = f"calibrated model {self.model_dir}" if m.is_corrected else "analytic URDF model (no model_dir)"
         self.get_logger().info(
@@ -147,6 +160,14 @@ class KinematicsNode(Node):
 
     # ------------------------------------------------------------------ callbacks
     def _on_joint_state(self, msg: JointState) -> None:
+        try:
+            self._corrected_pose(msg)
+        except Exception as exc:  # one bad message must not end the topic
+            self.get_logger().error(
+                f"corrected_pose: internal error ({type(exc).__name__}): {exc}", throttle_duration_sec=5.0
+            )
+
+    def _corrected_pose(self, msg: JointState) -> None:
         model = self.model
         q = joints_from_msg_lenient(msg, model.joint_names)
         if q is None:
@@ -166,6 +187,7 @@ class KinematicsNode(Node):
             self.pose_pub.publish(pose_msg(model.fk_single(q), model.chain.base_link, msg.header.stamp))
 
     def _on_fk(self, request: ComputeFK.Request, response: ComputeFK.Response) -> ComputeFK.Response:
+        start = time.perf_counter()
         model = self.model
         try:
             if not request.joint_states:
@@ -198,9 +220,20 @@ class KinematicsNode(Node):
             )
         except (RequestError, KinematicsError, CalibrationError) as exc:
             response.success, response.message = False, str(exc)
+        except Exception as exc:  # a bug must cost one answer, never the service
+            self._unexpected("compute_fk", exc, response)
+        outside = response.in_calibrated_range.count(False) if response.success and model.nets else 0
+        self.stats.record("fk", time.perf_counter() - start, response.success, outside)
         return response
 
+    def _unexpected(self, service: str, exc: Exception, response) -> None:
+        """Any other exception: answer success=false with its message and keep serving."""
+        response.success = False
+        response.message = f"internal error ({type(exc).__name__}): {exc}"
+        self.get_logger().error(f"{service}: {response.message}", throttle_duration_sec=1.0)
+
     def _on_ik(self, request: ComputeIK.Request, response: ComputeIK.Response) -> ComputeIK.Response:
+        start = time.perf_counter()
         model, solver = self.model, self.solver
         try:
             target = matrix_from_msg(request.target, model.chain.base_link)
@@ -215,27 +248,40 @@ class KinematicsNode(Node):
                 results = [solver.solve(target, seed, analytic=request.analytic_only)]
             else:
                 extra = [self._latest] if self._latest is not None and seed is not self._latest else []
-                results = solver.solve_many(target, seed, k, extra, analytic=request.analytic_only)
+                budget_ms = self.ik_request_budget_ms if self.ik_request_budget_ms > 0 else k * self.ik_timeout_ms
+                deadline = start + budget_ms / 1e3
+                results = solver.solve_many(target, seed, k, extra, analytic=request.analytic_only, deadline=deadline)
             good = [r for r in results if r.success]
             now = self.get_clock().now().to_msg()
             response.solutions = [joint_state_msg(r.q, model.joint_names, now) for r in good]
             response.position_error_mm = [float(r.position_error_mm) for r in good]
             response.orientation_error_deg = [float(r.orientation_error_deg) for r in good]
+            response.in_calibrated_range = [bool(r.in_calibrated_range) for r in good]
             response.success = bool(good)
             if good:
                 response.message = f"{len(good)} solution(s)"
             else:
-                response.message = results[0].message if results else "no solution found from any seed"
-        except (RequestError, IKError, KinematicsError) as exc:
+                response.message = (
+                    results[0].message if results else "no solution found from any seed within the time budget"
+                )
+        except (RequestError, IKError, KinematicsError, CalibrationError) as exc:
             response.success, response.message = False, str(exc)
+        except Exception as exc:  # a bug must cost one answer, never the service
+            self._unexpected("compute_ik", exc, response)
+        if not response.success:
+            response.solutions, response.position_error_mm, response.orientation_error_deg = [], [], []
+            response.in_calibrated_range = []
+        outside = response.in_calibrated_range.count(False) if model.nets else 0
+        self.stats.record("ik", time.perf_counter() - start, response.success, outside)
         return response
 
     def _on_reload(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Load ``model_dir`` again; on failure the old model keeps serving."""
         try:
             model, solver = self._load()
-        except StartupError as exc:
-            response.success, response.message = False, f"reload failed, still serving the old model: {exc}"
+        except Exception as exc:  # StartupError, or a bug: either way the old model serves on
+            detail = str(exc) if isinstance(exc, StartupError) else f"internal error ({type(exc).__name__}): {exc}"
+            response.success, response.message = False, f"reload failed, still serving the old model: {detail}"
             self.get_logger().error(response.message)
             return response
         with self._lock:
@@ -243,6 +289,26 @@ class KinematicsNode(Node):
         response.success, response.message = True, f"reloaded {self.model_dir or 'the URDF model'}"
         self.get_logger().info(response.message)
         return response
+
+    def _publish_diagnostics(self) -> None:
+        model = self.model
+        values = {
+            "model": str(self.model_dir) if self.model_dir else "analytic URDF model",
+            "chain": f"{model.chain.base_link} -> {model.chain.tip_link}",
+            "range_policy": model.range_policy,
+            "coverage_radius_rad": str(model.coverage_radius or 0.0),
+            **self.stats.snapshot(),
+        }
+        status = DiagnosticStatus(
+            level=DiagnosticStatus.OK,
+            name=f"{self.get_name()}: hybrid kinematics",
+            hardware_id=model.chain.base_link,
+            message="calibrated model" if model.is_corrected else "analytic URDF model",
+            values=[KeyValue(key=k, value=v) for k, v in values.items()],
+        )
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.pose_node.get_clock().now().to_msg()
+        self.diag_pub.publish(msg)
 
     @property
     def companions(self) -> tuple[Node, Node]:
@@ -264,8 +330,15 @@ def main(args: list[str] | None = None) -> int:
         signal.signal(sig, lambda *_: stopping.set())
 
     def spin_loop(executor) -> None:
+        """The callbacks answer every exception themselves; this guard is the last line, so that a thread
+        never ends while the others serve (a node half-deaf)."""
         while rclpy.ok() and not stopping.is_set():
-            executor.spin_once(timeout_sec=0.1)
+            try:
+                executor.spin_once(timeout_sec=0.1)
+            except Exception as exc:
+                if not rclpy.ok() or stopping.is_set():
+                    break
+                rclpy.logging.get_logger("kinematics_node").error(f"spin: {type(exc).__name__}: {exc}")
 
     def spin(executor) -> None:
         node = executor.get_nodes()[0]
