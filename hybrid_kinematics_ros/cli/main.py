@@ -11,14 +11,14 @@ import warnings
 from collections.abc import Sequence
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.cli import align, evaluate, export_urdf, fk, ik, report, simulate, train
+from hybrid_kinematics_ros.cli import align, compensate, evaluate, export_urdf, fk, ik, report, simulate, train
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.chain import ImplausibleInertialWarning
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 from hybrid_kinematics_ros.simulation.errors import SimulationError
 
-COMMANDS = [simulate, align, train, evaluate, report, fk, ik, export_urdf]
+COMMANDS = [simulate, align, train, evaluate, report, fk, ik, compensate, export_urdf]
 USER_ERRORS: tuple[type[Exception], ...] = (
     CalibrationError,
     DataError,

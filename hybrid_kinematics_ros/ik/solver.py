@@ -550,14 +550,20 @@ class IKSolver:
         d[rev] = (d[rev] + np.pi) % (2 * np.pi) - np.pi
         return bool(np.all(np.abs(d) < tol))
 
-    def solve_trajectory(self, targets: np.ndarray, seed: np.ndarray | None = None) -> list[IKResult]:
+    def solve_trajectory(
+        self, targets: np.ndarray, seed: np.ndarray | None = None, start: np.ndarray | None = None
+    ) -> list[IKResult]:
         """A sequence of targets, each seeded by the previous answer (the first by ``seed``).
 
         Two passes instead of one hybrid solve per pose: the URDF model's IK along the path, each pose from
         the answer before it (a few cheap iterations), then Newton's chord method on all poses at once
         through the batched hybrid FK. Poses that do not converge there get a full :meth:`solve`. Each
         result's ``seconds`` is the batch's time per pose.
+
+        ``start`` ``(N, n)``: the URDF model's answers are known already (a trajectory planned on the URDF
+        is its own URDF IK), so the first pass is skipped.
         """
+        initial = start
         start = time.perf_counter()
         targets = np.asarray(targets, dtype=float)
         if targets.ndim != 3 or targets.shape[1:] != (4, 4):
@@ -566,10 +572,12 @@ class IKSolver:
         tol_m, tol_rad = self.inner_tol
         n = len(targets)
         q = np.empty((n, self.model.chain.dof))
+        if initial is not None:
+            q[:] = np.asarray(initial, dtype=float).reshape(q.shape)
         prev = None if seed is None else np.asarray(seed, dtype=float)
-        if prev is None and n:  # no seed: the first pose's full solve picks the branch for the path
+        if prev is None and n and initial is None:  # no seed: the first pose's full solve picks the branch
             prev = self.solve(targets[0]).q
-        for i, target in enumerate(targets):
+        for i, target in enumerate(targets if initial is None else ()):
             target, from_q = self._check(target, prev)
             # the path's own extrapolation saves a step or two; the previous answer if that goes astray
             for start_q in ((2.0 * q[i - 1] - q[i - 2]) if i >= 2 else from_q, from_q):

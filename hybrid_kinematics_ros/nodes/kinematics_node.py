@@ -19,6 +19,7 @@ import time
 
 import numpy as np
 import rclpy
+import torch
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
@@ -26,9 +27,10 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
-from hybrid_kinematics_interfaces.srv import ComputeFK, ComputeIK
+from hybrid_kinematics_interfaces.srv import CompensateTrajectory, ComputeFK, ComputeIK
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+from hybrid_kinematics_ros.ik.compensate import MAX_JOINT_CORRECTION_RAD, compensate
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.io.errors import DataError
@@ -44,6 +46,8 @@ from hybrid_kinematics_ros.nodes.convert import (
     pose_msg,
     pose_msgs,
     stamp_is_zero,
+    trajectory_arrays,
+    trajectory_msg,
 )
 from hybrid_kinematics_ros.nodes.runtime import StartupError, read_only_parameter, run_node
 from hybrid_kinematics_ros.nodes.stats import RequestStats
@@ -75,6 +79,23 @@ class KinematicsNode(Node):
             0.0,
             "total time budget of one IK request, all seeds and solutions (0: max_solutions x ik_timeout_ms)",
         )
+        self.compensation_tolerance = (
+            declare("compensation_tolerance_mm", 1e-5, "compensate_trajectory: hybrid FK vs the plan's URDF pose"),
+            declare("compensation_tolerance_deg", 1e-5, "compensate_trajectory: orientation tolerance"),
+        )
+        self.max_joint_correction = declare(
+            "max_joint_correction_rad",
+            MAX_JOINT_CORRECTION_RAD,
+            "compensate_trajectory: a larger correction of a point (a singularity, another branch) fails it",
+        )
+        torch_threads = declare(
+            "torch_threads",
+            1,
+            "threads of torch's batched net inference; 0: torch's default (one per core, which on a busy machine "
+            "with this node's three executor threads is 2-4x slower for a 1000-point trajectory)",
+        )
+        if torch_threads > 0:
+            torch.set_num_threads(torch_threads)
         diagnostics_period = declare("diagnostics_period_s", 1.0, "period of /diagnostics (s); 0: off")
         self.range_policy = declare(
             "out_of_range_policy",
@@ -91,6 +112,7 @@ class KinematicsNode(Node):
 
         self._lock = threading.Lock()
         self.model, self.solver = self._load()
+        self.compensator = self._compensator(self.model)
         self._latest: np.ndarray | None = None
         self.stats = RequestStats()
 
@@ -102,6 +124,7 @@ class KinematicsNode(Node):
         own = self.get_fully_qualified_name()
         self.ik_node.create_service(ComputeIK, f"{own}/compute_ik", self._on_ik, qos_profile=SERVICE_QOS)
         self.ik_node.create_service(Trigger, f"{own}/reload", self._on_reload)
+        self.ik_node.create_service(CompensateTrajectory, f"{own}/compensate_trajectory", self._on_compensate)
         self.pose_node = Node(f"{self.get_name()}_pose", namespace=self.get_namespace(), context=self.context)
         self.pose_pub = (
             self.pose_node.create_publisher(PoseStamped, f"{own}/corrected_pose", QoSProfile(depth=100))
@@ -156,6 +179,17 @@ class KinematicsNode(Node):
 
     def _solver(self, model: HybridModel) -> IKSolver:
         options = IKOptions(timeout_s=self.ik_timeout_ms / 1e3, require_calibrated_range=self.range_policy == "refuse")
+        return IKSolver(model, options)
+
+    def _compensator(self, model: HybridModel) -> IKSolver:
+        """The IK of compensate_trajectory: the node's options with the compensation's tolerances."""
+        mm, deg = self.compensation_tolerance
+        options = IKOptions(
+            timeout_s=self.ik_timeout_ms / 1e3,
+            require_calibrated_range=self.range_policy == "refuse",
+            position_tolerance_mm=mm,
+            orientation_tolerance_deg=deg,
+        )
         return IKSolver(model, options)
 
     # ------------------------------------------------------------------ callbacks
@@ -275,6 +309,48 @@ class KinematicsNode(Node):
         self.stats.record("ik", time.perf_counter() - start, response.success, outside)
         return response
 
+    def _on_compensate(
+        self, request: CompensateTrajectory.Request, response: CompensateTrajectory.Response
+    ) -> CompensateTrajectory.Response:
+        """The corrected trajectory; on failure, the points before ``failed_index``."""
+        model, solver = self.model, self.compensator
+        response.failed_index = -1
+        try:
+            q, t, qd, qdd = trajectory_arrays(request.trajectory, model.joint_names)
+            result = compensate(
+                solver,
+                q,
+                t,
+                qd,
+                qdd,
+                require_calibrated_range=model.range_policy == "refuse",
+                max_joint_correction_rad=self.max_joint_correction,
+            )
+            keep = len(q) if result.success else result.failed_index
+            response.trajectory = trajectory_msg(
+                request.trajectory,
+                model.joint_names,
+                result.positions[:keep],
+                None if result.velocities is None else result.velocities[:keep],
+                None if result.accelerations is None else result.accelerations[:keep],
+            )
+            response.position_error_mm = result.position_error_mm.tolist()
+            response.orientation_error_deg = result.orientation_error_deg.tolist()
+            response.in_calibrated_range = result.in_calibrated_range.tolist()
+            response.failed_index = result.failed_index
+            response.success = result.success
+            outside = int(np.sum(~result.in_calibrated_range)) if model.nets else 0
+            response.message = (
+                result.message
+                if not result.success
+                else f"{len(q)} points corrected" + (f"; {outside} outside the calibrated range" if outside else "")
+            )
+        except (RequestError, IKError, KinematicsError, CalibrationError) as exc:
+            response.success, response.message = False, str(exc)
+        except Exception as exc:  # a bug must cost one answer, never the service
+            self._unexpected("compensate_trajectory", exc, response)
+        return response
+
     def _on_reload(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Load ``model_dir`` again; on failure the old model keeps serving."""
         try:
@@ -284,8 +360,9 @@ class KinematicsNode(Node):
             response.success, response.message = False, f"reload failed, still serving the old model: {detail}"
             self.get_logger().error(response.message)
             return response
+        compensator = self._compensator(model)
         with self._lock:
-            self.model, self.solver = model, solver
+            self.model, self.solver, self.compensator = model, solver, compensator
         response.success, response.message = True, f"reloaded {self.model_dir or 'the URDF model'}"
         self.get_logger().info(response.message)
         return response

@@ -14,7 +14,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from std_srvs.srv import Trigger
 
-from hybrid_kinematics_interfaces.srv import ComputeFK, ComputeIK
+from hybrid_kinematics_interfaces.srv import CompensateTrajectory, ComputeFK, ComputeIK
 from test.nodes.rosutil import Client
 from test.nodes.test_kinematics_node import fk_request, ik_request
 
@@ -145,6 +145,65 @@ def test_diagnostics_report_the_serving(ros, trained):
         p50, p90, p99 = (float(values[f"fk_latency_p{p}_ms"]) for p in (50, 90, 99))
         assert 0 < p50 <= p90 <= p99
         assert float(values["ik_latency_p50_ms"]) > 0
+    finally:
+        client.close()
+        node.destroy_node()
+
+
+def trajectory_request(t, q, names, qd=None, order=None):
+    from builtin_interfaces.msg import Duration
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    order = list(range(len(names))) if order is None else order
+    msg = JointTrajectory(joint_names=[names[i] for i in order])
+    for k, tk in enumerate(t):
+        point = JointTrajectoryPoint(positions=q[k, order].tolist())
+        if qd is not None:
+            point.velocities = qd[k, order].tolist()
+        point.time_from_start = Duration(sec=int(tk), nanosec=round((tk - int(tk)) * 1e9))
+        msg.points.append(point)
+    req = CompensateTrajectory.Request()
+    req.trajectory = msg
+    return req
+
+
+def test_compensate_trajectory_service(ros, trained):
+    from hybrid_kinematics_ros.ik.compensate import compensate
+    from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
+    from test.ik.test_compensate import A, B, plan
+
+    model = trained[1]
+    node, client = in_process("comp", trained[0], publish_corrected_pose=False)
+    t, q, qd, _ = plan(A, B, n=200)
+    order = [3, 0, 5, 1, 4, 2]  # a planner's own joint order
+    try:
+        srv = client.service(CompensateTrajectory, "/comp/compensate_trajectory")
+        resp = client.call(srv, trajectory_request(t, q, model.joint_names, qd, order))
+        assert resp.success and resp.failed_index == -1, resp.message
+        assert list(resp.trajectory.joint_names) == [model.joint_names[i] for i in order]
+        got = np.array([p.positions for p in resp.trajectory.points])[:, np.argsort(order)]
+        tight = IKOptions(position_tolerance_mm=1e-5, orientation_tolerance_deg=1e-5)  # the node's defaults
+        expected = compensate(IKSolver(model, tight), q, t, qd)
+        np.testing.assert_allclose(got, expected.positions, atol=1e-9)
+        vel = np.array([p.velocities for p in resp.trajectory.points])[:, np.argsort(order)]
+        np.testing.assert_allclose(vel, expected.velocities, atol=1e-9)
+        stamps = [(p.time_from_start.sec, p.time_from_start.nanosec) for p in resp.trajectory.points]
+        sent = trajectory_request(t, q, model.joint_names).trajectory.points
+        assert stamps == [(p.time_from_start.sec, p.time_from_start.nanosec) for p in sent]
+        assert max(resp.position_error_mm) <= 1e-5 and all(resp.in_calibrated_range)
+        # the wrist crosses its singularity: corrected, or the first point that cannot be is named
+        a, b = A.copy(), B.copy()
+        a[4], b[4] = 0.6, -0.6
+        t2, q2, _, _ = plan(a, b, n=401)
+        singular = client.call(srv, trajectory_request(t2, q2, model.joint_names))
+        if not singular.success:
+            k = singular.failed_index
+            assert k >= 0 and abs(q2[k, 4]) < 0.2 and f"point {k}" in singular.message
+            assert len(singular.trajectory.points) == k
+        bad = trajectory_request(t[:3], q[:3, :5], model.joint_names[:5])
+        answer = client.call(srv, bad)
+        assert not answer.success and "missing joint_6" in answer.message
+        assert client.call(srv, trajectory_request(t, q, model.joint_names)).success  # still serving
     finally:
         client.close()
         node.destroy_node()
