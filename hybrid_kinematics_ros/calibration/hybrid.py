@@ -168,13 +168,17 @@ class HybridModel:
     ) -> HybridModel:
         """Load a model directory; refuse it if it was trained for another URDF or other joints.
 
+        ``expect_urdf`` (a path, ``package://`` or XML text, e.g. the ``robot_description``) is compared by
+        its kinematics between the model's base and tip links (:meth:`Chain.first_difference`), not by its
+        bytes: xacro's or another tool's output of the same robot is accepted.
+
         Raises:
             DataError: missing, corrupt or mismatched files, with the file named.
         """
         files = load_model_dir(path)
         m = files.manifest
-        chain = chain_from_urdf(files.urdf_text, m["base_link"], m["tip_link"])
-        chain = chain.with_tool(np.asarray(m["tool"], dtype=float))
+        trained_chain = chain_from_urdf(files.urdf_text, m["base_link"], m["tip_link"])
+        chain = trained_chain.with_tool(np.asarray(m["tool"], dtype=float))
         chain = chain.with_limits(m["joint_limits"]["lower"], m["joint_limits"]["upper"])
         if tuple(m["joint_names"]) != chain.joint_names:
             raise DataError(
@@ -182,11 +186,12 @@ class HybridModel:
                 f"{list(chain.joint_names)}"
             )
         if expect_urdf is not None:
+            # A robot_description from xacro or another tool is never byte-identical: compare the kinematics.
             expected = chain_from_urdf(expect_urdf, m["base_link"], m["tip_link"])
-            if expected.urdf_sha256 != m["urdf_sha256"]:
+            difference = trained_chain.first_difference(expected)
+            if difference:
                 raise DataError(
-                    f"{files.path} was trained for another URDF (sha256 {m['urdf_sha256'][:12]}…, "
-                    f"given {expected.urdf_sha256[:12]}…); retrain or use the matching URDF"
+                    f"{files.path} was trained for another URDF: {difference}; retrain or use the matching URDF"
                 )
         if expect_joint_names is not None and tuple(expect_joint_names) != chain.joint_names:
             raise DataError(

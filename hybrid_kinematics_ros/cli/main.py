@@ -7,16 +7,29 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from collections.abc import Sequence
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.cli import align, evaluate, export_urdf, fk, ik, import_, report, simulate, train
+from hybrid_kinematics_ros.cli import (
+    align,
+    compensate,
+    evaluate,
+    export_urdf,
+    fk,
+    ik,
+    import_,
+    report,
+    simulate,
+    train,
+)
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.io.errors import DataError
+from hybrid_kinematics_ros.kinematics.chain import ImplausibleInertialWarning
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 from hybrid_kinematics_ros.simulation.errors import SimulationError
 
-COMMANDS = [simulate, import_, align, train, evaluate, report, fk, ik, export_urdf]
+COMMANDS = [simulate, import_, align, train, evaluate, report, fk, ik, compensate, export_urdf]
 USER_ERRORS: tuple[type[Exception], ...] = (
     CalibrationError,
     DataError,
@@ -36,8 +49,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    default_show = warnings.showwarning
+
+    def show(message, category, *rest, **kwargs) -> None:
+        """Our own warnings as one plain line each, like the errors; others as Python shows them."""
+        if issubclass(category, ImplausibleInertialWarning):
+            print(f"hybrid-kinematics {args.command}: warning: {message}", file=sys.stderr)
+        else:
+            default_show(message, category, *rest, **kwargs)
+
     try:
-        return int(args.run(args) or 0)
+        with warnings.catch_warnings():
+            warnings.showwarning = show
+            return int(args.run(args) or 0)
     except USER_ERRORS as exc:
         print(f"hybrid-kinematics {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -5,14 +5,18 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from collections import Counter
 from pathlib import Path
+from typing import TextIO
 
 from tqdm import tqdm
 
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.fit import SPLIT_BLOCKS, fit, load_stations, split, split_summary
 from hybrid_kinematics_ros.cli.common import add_robot_args, chain_from_args, payload_from_args
+
+PLAIN_INTERVAL_S = 5.0  # off a terminal: one progress line this often
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -64,33 +68,88 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 class Progress:
-    """One bar per net, advancing with training time; shows epoch, loss and validation error."""
+    """Training progress per net: epoch, loss and validation error, advancing with training time.
 
-    def __init__(self, seconds: float, kinds: tuple[str, ...] = train.KINDS) -> None:
-        self.bars = {
-            kind: tqdm(
-                total=round(seconds),
-                desc=f"{kind:<11}",
-                unit="s",
-                position=i,
-                leave=True,
-                bar_format="{desc} {bar} {n_fmt}/{total_fmt} s {postfix}",
-            )
-            for i, kind in enumerate(kinds)
-        }
+    On a terminal, one tqdm bar per net. Off a terminal (CI logs, ``make demo > log``) tqdm's redraws
+    would be thousands of carriage-return and cursor-movement lines, so one plain line is printed every
+    ``interval`` seconds instead, and a last one at the end.
+    """
 
-    def __call__(self, entry: dict) -> None:
-        bar = self.bars[entry["kind"]]
+    def __init__(
+        self,
+        seconds: float,
+        kinds: tuple[str, ...] = train.KINDS,
+        stream: TextIO | None = None,
+        interval: float = PLAIN_INTERVAL_S,
+    ) -> None:
+        self.stream = sys.stderr if stream is None else stream
+        self.total = round(seconds)
+        self.plain = not _is_terminal(self.stream)
+        self.interval = interval
+        self.latest: dict[str, dict] = {}
+        self._last_line = time.monotonic()
+        self.bars = (
+            {}
+            if self.plain
+            else {
+                kind: tqdm(
+                    total=self.total,
+                    desc=f"{kind:<11}",
+                    unit="s",
+                    position=i,
+                    leave=True,
+                    file=self.stream,
+                    bar_format="{desc} {bar} {n_fmt}/{total_fmt} s {postfix}",
+                )
+                for i, kind in enumerate(kinds)
+            }
+        )
+
+    @staticmethod
+    def describe(entry: dict) -> str:
         unit = train.UNIT[entry["kind"]][0]
-        bar.n = min(round(entry["seconds"]), bar.total)
-        bar.set_postfix_str(
+        return (
             f"epoch {entry['epoch']} loss {entry['loss']:.4f} val {entry[f'val_{unit}']:.5f} {unit} "
             f"best {entry[f'best_val_{unit}']:.5f} {unit}"
         )
 
+    def __call__(self, entry: dict) -> None:
+        if self.plain:
+            self.latest[entry["kind"]] = entry
+            if time.monotonic() - self._last_line >= self.interval:
+                self._print_line()
+            return
+        bar = self.bars[entry["kind"]]
+        bar.n = min(round(entry["seconds"]), bar.total)
+        bar.set_postfix_str(self.describe(entry))
+
+    def _print_line(self) -> None:
+        parts = [
+            f"{kind} {min(round(e['seconds']), self.total)}/{self.total} s {self.describe(e)}"
+            for kind, e in self.latest.items()
+        ]
+        print("train: " + "; ".join(parts), file=self.stream, flush=True)
+        self._last_line = time.monotonic()
+
+    def write(self, line: str) -> None:
+        """A log line that does not break the bars."""
+        if self.plain:
+            print(line, file=self.stream, flush=True)
+        else:
+            tqdm.write(line, file=self.stream)
+
     def close(self) -> None:
+        if self.plain and self.latest:
+            self._print_line()
         for bar in self.bars.values():
             bar.close()
+
+
+def _is_terminal(stream: TextIO) -> bool:
+    try:
+        return stream.isatty()
+    except (AttributeError, ValueError):  # closed or file-like without isatty
+        return False
 
 
 def run(args: argparse.Namespace) -> int:
@@ -131,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
             progress=progress,
             parametric=args.parametric,
             payload=payload_from_args(args),
-            log=lambda line: tqdm.write(line, file=sys.stderr),
+            log=progress.write,
             shared_targets=[names.split(",") for names in args.shared_target or []],
         )
     finally:

@@ -112,6 +112,7 @@ STALL_ITERATIONS = 12  # LM converges in a handful of steps from a good basin; a
 STALL_COST = 1e-6  # (m or rad)²: still this far after STALL_ITERATIONS means another seed is cheaper
 FLOOR_RATIO, FLOOR_STEPS = 0.98, 3  # steps gaining under 2 % each, this many in a row: a floor
 BRANCH_RAD = 1e-2  # classical answers closer than this on every joint are one branch
+SEARCH_SHARE = 0.5  # of a solve_many request's total budget, for the seed search; refinement gets the rest
 CLASSICAL_SHARE = 0.5  # of the budget, for the seed's classical stage; the other branches get the rest
 VALLEY_MM, VALLEY_SINGULAR = 0.1, 1e-2  # a near miss (mm) at a near-singular Jacobian (smallest singular value)
 VALLEY_STEPS_RAD = (-0.7, 0.7, -1.2, 1.2)  # along the weak direction; a local minimum there is this far off
@@ -246,15 +247,17 @@ class IKSolver:
         _, index = self._tree.query(_pose_features(target[None])[0], k=k)
         return self.table[np.atleast_1d(index)]
 
-    def refine(self, target: np.ndarray, q0: np.ndarray, recentre: int = 1) -> tuple[np.ndarray, dict]:
+    def refine(
+        self, target: np.ndarray, q0: np.ndarray, recentre: int = 1, deadline: float = float("inf")
+    ) -> tuple[np.ndarray, dict]:
         """Stage 2: bounded least squares through the hybrid FK in a box around ``q0``.
 
         Near a singularity the hybrid answer can lie outside the box; when the solve ends on the box's
         edge short of the tolerance, the box moves to the new point (at most ``recentre`` times).
         """
-        q, info = self._refine_box(target, q0)
+        q, info = self._refine_box(target, q0, deadline)
         boxes = 1
-        while boxes <= recentre and "errors" not in info:
+        while boxes <= recentre and "errors" not in info and time.perf_counter() < deadline:
             pos, rot = self.errors(q, target)
             on_edge = np.abs(q - q0).max() >= self.options.refine_width_rad * 0.999
             if not on_edge or (
@@ -262,13 +265,15 @@ class IKSolver:
             ):
                 break
             q0 = q
-            q, more = self._refine_box(target, q0)
+            q, more = self._refine_box(target, q0, deadline)
             info["nfev"] += more["nfev"]
             boxes += 1
         info["boxes"] = boxes
         return q, info
 
-    def _refine_box(self, target: np.ndarray, q0: np.ndarray) -> tuple[np.ndarray, dict]:
+    def _refine_box(
+        self, target: np.ndarray, q0: np.ndarray, deadline: float = float("inf")
+    ) -> tuple[np.ndarray, dict]:
         """One bounded solve in the box around ``q0``.
 
         The same bounded problem is first handed to our projected Levenberg-Marquardt (about 10× less
@@ -293,7 +298,7 @@ class IKSolver:
                     tol_m,
                     tol_rad,
                     12,  # Gauss-Newton steps converge in a handful from the classical answer; else it is stuck
-                    time.perf_counter() + 0.25 * o.timeout_s,
+                    min(time.perf_counter() + 0.25 * o.timeout_s, deadline),
                     damping=1e-9,  # q0 is close: Gauss-Newton steps from the start
                 )
                 used += it
@@ -486,18 +491,29 @@ class IKSolver:
         max_solutions: int = 8,
         extra_seeds: list[np.ndarray] | None = None,
         analytic: bool = False,
+        deadline: float | None = None,
     ) -> list[IKResult]:
-        """Up to ``max_solutions`` distinct solutions, nearest to the seed first. Empty if none reached."""
+        """Up to ``max_solutions`` distinct solutions, nearest to the seed first. Empty if none reached.
+
+        ``deadline`` (``time.perf_counter()`` time) bounds the whole request: the per-seed budget
+        (``timeout_s``) alone lets 65 seeds and the refinements add up to seconds. The seed search gets
+        the first half of the time left, refinement the rest; solutions not refined by then are dropped.
+        """
         start = time.perf_counter()
         target, seed = self._check(target, seed)
         seeds = [seed, *(extra_seeds or []), *self.spread]
         found: list[np.ndarray] = []
         o = self.options
         tol_m, tol_rad = 1e-3 * o.position_tolerance_mm, np.radians(o.orientation_tolerance_deg)
+        end = float("inf") if deadline is None else deadline
+        search_end = start + SEARCH_SHARE * (end - start)
         for s in seeds:
-            deadline = time.perf_counter() + o.timeout_s
+            now = time.perf_counter()
+            if now > search_end:
+                break
+            seed_deadline = min(now + o.timeout_s, search_end)
             q, ep, er, _ = lm_solve(
-                self._analytic, target, s, self.limits, tol_m * 0.1, tol_rad * 0.1, o.max_iterations, deadline
+                self._analytic, target, s, self.limits, tol_m * 0.1, tol_rad * 0.1, o.max_iterations, seed_deadline
             )
             if ep > tol_m or er > tol_rad:
                 continue
@@ -507,7 +523,9 @@ class IKSolver:
         found.sort(key=lambda q: float(np.linalg.norm(q - seed)))
         results = []
         for q0 in found[:max_solutions]:
-            q, stats = (q0, {}) if analytic or not self.model.is_corrected else self.refine(target, q0)
+            if time.perf_counter() > end:
+                break
+            q, stats = (q0, {}) if analytic or not self.model.is_corrected else self.refine(target, q0, deadline=end)
             result = self._result(q, target, analytic, start, stats, stats.pop("errors", None))
             if result.success:
                 results.append(result)
@@ -532,14 +550,20 @@ class IKSolver:
         d[rev] = (d[rev] + np.pi) % (2 * np.pi) - np.pi
         return bool(np.all(np.abs(d) < tol))
 
-    def solve_trajectory(self, targets: np.ndarray, seed: np.ndarray | None = None) -> list[IKResult]:
+    def solve_trajectory(
+        self, targets: np.ndarray, seed: np.ndarray | None = None, start: np.ndarray | None = None
+    ) -> list[IKResult]:
         """A sequence of targets, each seeded by the previous answer (the first by ``seed``).
 
         Two passes instead of one hybrid solve per pose: the URDF model's IK along the path, each pose from
         the answer before it (a few cheap iterations), then Newton's chord method on all poses at once
         through the batched hybrid FK. Poses that do not converge there get a full :meth:`solve`. Each
         result's ``seconds`` is the batch's time per pose.
+
+        ``start`` ``(N, n)``: the URDF model's answers are known already (a trajectory planned on the URDF
+        is its own URDF IK), so the first pass is skipped.
         """
+        initial = start
         start = time.perf_counter()
         targets = np.asarray(targets, dtype=float)
         if targets.ndim != 3 or targets.shape[1:] != (4, 4):
@@ -548,10 +572,12 @@ class IKSolver:
         tol_m, tol_rad = self.inner_tol
         n = len(targets)
         q = np.empty((n, self.model.chain.dof))
+        if initial is not None:
+            q[:] = np.asarray(initial, dtype=float).reshape(q.shape)
         prev = None if seed is None else np.asarray(seed, dtype=float)
-        if prev is None and n:  # no seed: the first pose's full solve picks the branch for the path
+        if prev is None and n and initial is None:  # no seed: the first pose's full solve picks the branch
             prev = self.solve(targets[0]).q
-        for i, target in enumerate(targets):
+        for i, target in enumerate(targets if initial is None else ()):
             target, from_q = self._check(target, prev)
             # the path's own extrapolation saves a step or two; the previous answer if that goes astray
             for start_q in ((2.0 * q[i - 1] - q[i - 2]) if i >= 2 else from_q, from_q):

@@ -21,6 +21,8 @@ import numpy as np
 import torch
 
 from hybrid_kinematics_ros.io.errors import DataError
+from hybrid_kinematics_ros.kinematics.errors import KinematicsError
+from hybrid_kinematics_ros.kinematics.paths import resolve_path
 
 SCHEMA_VERSION = 1
 MANIFEST = "model.json"
@@ -142,8 +144,12 @@ def _json_default(value: Any) -> Any:
 
 
 def load_model_dir(path: Path | str) -> ModelFiles:
-    """Load and check a model directory. Raises :class:`DataError` naming the file and the problem."""
-    path = Path(path)
+    """Load and check a model directory (a path or ``package://``). Raises :class:`DataError` naming the
+    file and the problem."""
+    try:
+        path = resolve_path(path)
+    except KinematicsError as exc:
+        raise DataError(f"model directory {path}: {exc}") from exc
     manifest_path = path / MANIFEST
     if not manifest_path.is_file():
         raise DataError(

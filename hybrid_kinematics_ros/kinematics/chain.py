@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -19,8 +20,11 @@ import yourdfpy
 from lxml import etree
 
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
+from hybrid_kinematics_ros.kinematics.paths import resolve_path
 
 ACTUATED = ("revolute", "continuous", "prismatic")
+MAX_COM_DISTANCE_M = 3.0  # a link's centre of mass further than this from its frame is a unit mistake
+LEADING_JUNK = "\ufeff \t\r\n"  # what may precede a URDF's first tag
 
 
 @dataclass(frozen=True, eq=False)
@@ -54,6 +58,7 @@ class Chain:
     urdf_sha256: str = ""
     urdf_text: str = field(default="", repr=False)
     tool: np.ndarray = field(default_factory=lambda: np.eye(4))  # the part of ``post`` added by a robot config
+    inertial_warnings: tuple[str, ...] = ()  # links whose implausible inertials were left out (see chain_from_urdf)
 
     def __post_init__(self) -> None:
         for name in (
@@ -99,10 +104,90 @@ class Chain:
         b = np.where(self.revolute, 1.0 - np.cos(q), 0.0)
         return a, b
 
+    def first_difference(
+        self, other: Chain, tol_m: float = 1e-5, tol_rad: float = 1e-5, tol_limit: float = 1e-3
+    ) -> str | None:
+        """The first way ``other`` is kinematically another robot than this chain, or None.
+
+        Compares what the kinematics depends on, joint by joint from the base: joint names, types, axes,
+        origins (fixed transforms between joints, fixed links collapsed) and limits, then the transform to
+        the tip. Comments, attribute order, meshes, inertials, links off the chain and float formatting
+        do not count. The default tolerances (10 µm, 2e-3°) lie far below a calibration's accuracy but far
+        above the rounding of a URDF written by another tool; limits get ``tol_limit`` (rad or m), since
+        tools round ±π.
+        """
+        if self.joint_names != other.joint_names:
+            for k, (a, b) in enumerate(zip(self.joint_names, other.joint_names, strict=False)):
+                if a != b:
+                    return f"joint {k + 1} of the chain is '{a}', the given URDF has '{b}' there"
+            return (
+                f"the chain has {self.dof} joints ({', '.join(self.joint_names)}), the given URDF "
+                f"{other.dof} ({', '.join(other.joint_names)})"
+            )
+        for k, name in enumerate(self.joint_names):
+            kinds = [_joint_kind(c, k) for c in (self, other)]
+            if kinds[0] != kinds[1]:
+                return f"joint '{name}' is {kinds[0]}, {kinds[1]} in the given URDF"
+            angle = float(np.arccos(np.clip(self.axes[k] @ other.axes[k], -1.0, 1.0)))
+            if angle > tol_rad:
+                return (
+                    f"joint '{name}': axis {np.round(self.axes[k], 6).tolist()} differs from "
+                    f"{np.round(other.axes[k], 6).tolist()} by {np.degrees(angle):.4f} deg"
+                )
+            what = _transform_difference(self.pre[k], other.pre[k], tol_m, tol_rad)
+            if what:
+                return f"joint '{name}': origin (from the previous joint) {what}"
+            for side, a, b in (("lower", self.lower[k], other.lower[k]), ("upper", self.upper[k], other.upper[k])):
+                if not (a == b or abs(a - b) <= tol_limit):
+                    return f"joint '{name}': {side} limit {a:.6g} differs from {b:.6g} in the given URDF"
+        untooled = self.post @ np.linalg.inv(self.tool), other.post @ np.linalg.inv(other.tool)
+        what = _transform_difference(*untooled, tol_m, tol_rad)
+        if what:
+            return f"the transform from joint '{self.joint_names[-1]}' to '{self.tip_link}' {what}"
+        return None
+
     def mid_limits(self) -> np.ndarray:
         lo = np.where(np.isfinite(self.lower), self.lower, -np.pi)
         hi = np.where(np.isfinite(self.upper), self.upper, np.pi)
         return 0.5 * (lo + hi)
+
+
+class ImplausibleInertialWarning(UserWarning):
+    """A link's inertial cannot be right (mass <= 0, or its centre of mass metres away); it is ignored."""
+
+
+def _implausible_inertial(mass: float, com: np.ndarray) -> str | None:
+    """Why a link's inertial is implausible, or None. A centre of mass given in millimetres lands hundreds of
+    metres from the link, and its gravity torque would swamp the compliance fit. A mass of exactly 0 is how
+    ROS URDFs write frame-only links (``tool0``, ``ee_link``, ``panda_link8``): it adds nothing and is not
+    reported, or every real UR or Panda URDF would warn."""
+    if mass == 0:
+        return None
+    if not mass > 0:
+        return f"mass {mass:g} kg is not positive"
+    distance = float(np.linalg.norm(com))
+    if distance > MAX_COM_DISTANCE_M:
+        return f"centre of mass {distance:.3g} m from its joint (more than {MAX_COM_DISTANCE_M:g} m; millimetres?)"
+    return None
+
+
+def _joint_kind(chain: Chain, k: int) -> str:
+    if not chain.revolute[k]:
+        return "prismatic"
+    return "continuous" if chain.continuous[k] else "revolute"
+
+
+def _transform_difference(a: np.ndarray, b: np.ndarray, tol_m: float, tol_rad: float) -> str | None:
+    """How two 4x4 transforms differ (mm, deg), or None within the tolerances."""
+    shift = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
+    cos = 0.5 * (np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0)
+    turn = float(np.arccos(np.clip(cos, -1.0, 1.0)))
+    if shift <= tol_m and turn <= tol_rad:
+        return None
+    return (
+        f"differs by {shift * 1e3:.4f} mm and {np.degrees(turn):.4f} deg (xyz {np.round(a[:3, 3], 6).tolist()} "
+        f"here, {np.round(b[:3, 3], 6).tolist()} in the given URDF)"
+    )
 
 
 def _skew4(axis: np.ndarray) -> np.ndarray:
@@ -128,18 +213,20 @@ def _generators(pre: np.ndarray, axes: np.ndarray, revolute: np.ndarray) -> np.n
 
 
 def load_urdf(source: str | Path) -> tuple[yourdfpy.URDF, str]:
-    """Parse a URDF from a path or from XML text; returns the model and the text it came from."""
+    """Parse a URDF from a path (``package://`` too) or from XML text; returns the model and the text."""
     text = str(source)
-    if not text.lstrip().startswith("<"):
-        path = Path(source)
+    if not text.lstrip(LEADING_JUNK).startswith("<"):
+        path = resolve_path(source)
         if not path.is_file():
-            raise KinematicsError(f"URDF file {path} does not exist")
-        text = path.read_text()
+            raise KinematicsError(f"URDF file {source} does not exist" + (f" ({path})" if str(path) != text else ""))
+        text = path.read_text(encoding="utf-8-sig")
     where = source if len(str(source)) < 200 else "text"
+    # ROS's parser (tinyxml2) skips a byte-order mark and blank lines before the XML declaration; lxml does not.
+    xml = text.lstrip(LEADING_JUNK).encode()
     try:
         # yourdfpy silently recovers from malformed XML; a URDF must parse strictly.
-        etree.fromstring(text.encode())
-        urdf = yourdfpy.URDF.load(io.BytesIO(text.encode()), build_scene_graph=False, load_meshes=False)
+        etree.fromstring(xml)
+        urdf = yourdfpy.URDF.load(io.BytesIO(xml), build_scene_graph=False, load_meshes=False)
     except Exception as exc:  # lxml and yourdfpy raise a variety of errors
         raise KinematicsError(f"cannot parse URDF ({where}): {exc}") from exc
     return urdf, text
@@ -167,15 +254,21 @@ def chain_from_urdf(source: str | Path, base_link: str, tip_link: str) -> Chain:
 
     names, pre, axes, revolute, continuous, lower, upper = [], [], [], [], [], [], []
     seg_mass, seg_com = [], []
+    implausible: list[str] = []
     fixed = np.eye(4)  # transform accumulated since the last actuated joint frame
     mass, moment = 0.0, np.zeros(3)  # of the segment since the last actuated joint, in its frame
 
     def add_inertial(link_name: str, frame: np.ndarray) -> None:
         nonlocal mass, moment
         inertial = links[link_name].inertial
-        if inertial is None or not inertial.mass:
+        if inertial is None or inertial.mass is None:
             return
         origin = inertial.origin if inertial.origin is not None else np.eye(4)
+        problem = _implausible_inertial(float(inertial.mass), origin[:3, 3])
+        if problem:
+            implausible.append(f"link '{link_name}': {problem}; its mass is left out of the gravity torques")
+        if problem or inertial.mass == 0:
+            return
         mass += float(inertial.mass)
         moment += float(inertial.mass) * (frame @ origin)[:3, 3]
 
@@ -219,7 +312,7 @@ def chain_from_urdf(source: str | Path, base_link: str, tip_link: str) -> Chain:
     seg_mass.append(mass)
     seg_com.append(moment / mass if mass > 0 else np.zeros(3))
 
-    return Chain(
+    chain = Chain(
         base_link=base_link,
         tip_link=tip_link,
         joint_names=tuple(names),
@@ -234,4 +327,8 @@ def chain_from_urdf(source: str | Path, base_link: str, tip_link: str) -> Chain:
         segment_com=np.array(seg_com),
         urdf_sha256=hashlib.sha256(text.encode()).hexdigest(),
         urdf_text=text,
+        inertial_warnings=tuple(implausible),
     )
+    for message in implausible:
+        warnings.warn(message, ImplausibleInertialWarning, stacklevel=2)
+    return chain

@@ -16,8 +16,9 @@ from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
+from hybrid_kinematics_ros.kinematics.paths import config_dir, resolve_path
 
-CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
+CONFIG_DIR = config_dir()  # the package share directory's config/ (see paths.py)
 
 
 def transform_from_xyz_rpy(spec: dict[str, Any] | None, where: str) -> np.ndarray:
@@ -49,11 +50,11 @@ class RobotConfig:
 
 
 def resolve_robot(spec: str | Path) -> Path:
-    """A config path, or the name of an embedded robot (``ur10``, ``rx160``)."""
-    path = Path(spec)
+    """A config path (``package://`` too), or the name of an embedded robot (``ur10``, ``rx160``)."""
+    path = resolve_path(spec)
     if path.is_file():
         return path
-    embedded = CONFIG_DIR / f"{spec}.yaml"
+    embedded = config_dir() / f"{spec}.yaml"
     if embedded.is_file():
         return embedded
     raise KinematicsError(f"robot config {spec} does not exist (embedded robots: ur10, rx160)")
@@ -70,7 +71,9 @@ def load_robot_config(spec: str | Path) -> RobotConfig:
     for key in ("urdf", "base_link", "tip_link"):
         if key not in raw:
             raise KinematicsError(f"{path}: missing field '{key}'")
-    urdf_path = (path.parent / raw["urdf"]).resolve()
+    urdf_path = resolve_path(raw["urdf"], relative_to=path.parent).resolve()
+    if not urdf_path.is_file():
+        raise KinematicsError(f"{path}: field 'urdf': {urdf_path} does not exist")
     chain = chain_from_urdf(urdf_path, raw["base_link"], raw["tip_link"])
     chain = chain.with_tool(transform_from_xyz_rpy(raw.get("tool"), f"{path}: field 'tool'"))
     limits = raw.get("joint_limits")

@@ -10,6 +10,7 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from hybrid_kinematics_ros.kinematics.se3 import matrix_from_pose, pose_from_matrix, quat_from_rotation
 
@@ -109,3 +110,60 @@ def joint_state_msg(q: np.ndarray, names: Sequence[str], stamp: Time) -> JointSt
 
 def stamp_is_zero(stamp: Time) -> bool:
     return stamp.sec == 0 and stamp.nanosec == 0
+
+
+def trajectory_arrays(
+    msg: JointTrajectory, names: Sequence[str]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Positions ``(N, n)`` in the model's joint order, times ``(N,)`` (s), and the velocities and
+    accelerations when every point has them (None when no point has them)."""
+    if not msg.points:
+        raise RequestError("trajectory has no points")
+    given = list(msg.joint_names)
+    if len(set(given)) != len(given):
+        raise RequestError("trajectory joint_names name a joint more than once")
+    missing = [n for n in names if n not in given]
+    unknown = [n for n in given if n not in names]
+    if missing or unknown:
+        problems = [f"missing {', '.join(missing)}"] * bool(missing) + [f"unknown {', '.join(unknown)}"] * bool(unknown)
+        raise RequestError(
+            f"trajectory joint_names must be the chain's joints ({', '.join(names)}): {'; '.join(problems)}"
+        )
+    order = [given.index(n) for n in names]
+    out = {}
+    for field in ("positions", "velocities", "accelerations"):
+        lengths = {len(getattr(p, field)) for p in msg.points}
+        if field != "positions" and lengths == {0}:
+            out[field] = None
+            continue
+        if lengths != {len(given)}:
+            i = next(i for i, p in enumerate(msg.points) if len(getattr(p, field)) != len(given))
+            raise RequestError(
+                f"trajectory point {i} has {len(getattr(msg.points[i], field))} {field} for {len(given)} joints"
+                + ("" if field == "positions" else " (give them for every point or for none)")
+            )
+        out[field] = np.array([getattr(p, field) for p in msg.points], dtype=float)[:, order]
+    times = np.array([p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec for p in msg.points])
+    return out["positions"], times, out["velocities"], out["accelerations"]
+
+
+def trajectory_msg(
+    request: JointTrajectory,
+    names: Sequence[str],
+    positions: np.ndarray,
+    velocities: np.ndarray | None,
+    accelerations: np.ndarray | None,
+) -> JointTrajectory:
+    """The corrected trajectory: the request's header, joint order and ``time_from_start``."""
+    given = list(request.joint_names)
+    order = [list(names).index(n) for n in given]
+    msg = JointTrajectory(header=request.header, joint_names=given)
+    for i, point in enumerate(request.points[: len(positions)]):
+        out = JointTrajectoryPoint(time_from_start=point.time_from_start)
+        out.positions = positions[i, order].tolist()
+        if velocities is not None:
+            out.velocities = velocities[i, order].tolist()
+        if accelerations is not None:
+            out.accelerations = accelerations[i, order].tolist()
+        msg.points.append(out)
+    return msg

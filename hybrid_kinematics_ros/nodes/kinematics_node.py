@@ -15,24 +15,28 @@ from __future__ import annotations
 import signal
 import sys
 import threading
-from pathlib import Path
+import time
 
 import numpy as np
 import rclpy
+import torch
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
-from hybrid_kinematics_interfaces.srv import ComputeFK, ComputeIK
+from hybrid_kinematics_interfaces.srv import CompensateTrajectory, ComputeFK, ComputeIK
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+from hybrid_kinematics_ros.ik.compensate import MAX_JOINT_CORRECTION_RAD, compensate
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
+from hybrid_kinematics_ros.kinematics.paths import resolve_path
 from hybrid_kinematics_ros.nodes.convert import (
     RequestError,
     joint_state_msg,
@@ -42,8 +46,11 @@ from hybrid_kinematics_ros.nodes.convert import (
     pose_msg,
     pose_msgs,
     stamp_is_zero,
+    trajectory_arrays,
+    trajectory_msg,
 )
 from hybrid_kinematics_ros.nodes.runtime import StartupError, read_only_parameter, run_node
+from hybrid_kinematics_ros.nodes.stats import RequestStats
 
 LOAD_ERRORS = (DataError, KinematicsError, CalibrationError, OSError)
 MAX_SOLUTIONS = 16
@@ -57,14 +64,39 @@ class KinematicsNode(Node):
         def declare(name: str, default, description: str):
             return read_only_parameter(self, name, default, description)
 
-        self.model_dir = declare("model_dir", "", "trained model directory; empty: analytic URDF kinematics only")
-        self.urdf_path = declare("urdf_path", "", "URDF file (or give robot_description)")
+        self.model_dir = declare(
+            "model_dir", "", "trained model directory (or package://pkg/path); empty: analytic URDF kinematics only"
+        )
+        self.urdf_path = declare("urdf_path", "", "URDF file or package://pkg/path (or give robot_description)")
         self.robot_description = declare("robot_description", "", "URDF text (used when urdf_path is empty)")
         self.base_link = declare("base_link", "", "base link of the chain (default: the model's)")
         self.tip_link = declare("tip_link", "", "tip link of the chain (default: the model's)")
         topic = declare("joint_states_topic", "/joint_states", "joint states to turn into corrected poses")
         publish = declare("publish_corrected_pose", True, "publish ~/corrected_pose for each joint state")
         self.ik_timeout_ms = declare("ik_timeout_ms", 50.0, "time budget per IK solution")
+        self.ik_request_budget_ms = declare(
+            "ik_request_budget_ms",
+            0.0,
+            "total time budget of one IK request, all seeds and solutions (0: max_solutions x ik_timeout_ms)",
+        )
+        self.compensation_tolerance = (
+            declare("compensation_tolerance_mm", 1e-5, "compensate_trajectory: hybrid FK vs the plan's URDF pose"),
+            declare("compensation_tolerance_deg", 1e-5, "compensate_trajectory: orientation tolerance"),
+        )
+        self.max_joint_correction = declare(
+            "max_joint_correction_rad",
+            MAX_JOINT_CORRECTION_RAD,
+            "compensate_trajectory: a larger correction of a point (a singularity, another branch) fails it",
+        )
+        torch_threads = declare(
+            "torch_threads",
+            1,
+            "threads of torch's batched net inference; 0: torch's default (one per core, which on a busy machine "
+            "with this node's three executor threads is 2-4x slower for a 1000-point trajectory)",
+        )
+        if torch_threads > 0:
+            torch.set_num_threads(torch_threads)
+        diagnostics_period = declare("diagnostics_period_s", 1.0, "period of /diagnostics (s); 0: off")
         self.range_policy = declare(
             "out_of_range_policy",
             "warn",
@@ -80,7 +112,9 @@ class KinematicsNode(Node):
 
         self._lock = threading.Lock()
         self.model, self.solver = self._load()
+        self.compensator = self._compensator(self.model)
         self._latest: np.ndarray | None = None
+        self.stats = RequestStats()
 
         # Replies share one writer; with the default depth of 10, a burst from many clients can overwrite a
         # reply before a slow client has taken it, and that call is never answered.
@@ -90,6 +124,7 @@ class KinematicsNode(Node):
         own = self.get_fully_qualified_name()
         self.ik_node.create_service(ComputeIK, f"{own}/compute_ik", self._on_ik, qos_profile=SERVICE_QOS)
         self.ik_node.create_service(Trigger, f"{own}/reload", self._on_reload)
+        self.ik_node.create_service(CompensateTrajectory, f"{own}/compensate_trajectory", self._on_compensate)
         self.pose_node = Node(f"{self.get_name()}_pose", namespace=self.get_namespace(), context=self.context)
         self.pose_pub = (
             self.pose_node.create_publisher(PoseStamped, f"{own}/corrected_pose", QoSProfile(depth=100))
@@ -99,18 +134,25 @@ class KinematicsNode(Node):
         # best effort (matches reliable and best-effort publishers) with a deep queue for bursts
         joint_qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.BEST_EFFORT)
         self.pose_node.create_subscription(JointState, topic, self._on_joint_state, joint_qos)
+        if diagnostics_period > 0:
+            self.diag_pub = self.pose_node.create_publisher(DiagnosticArray, "/diagnostics", 10)
+            self.pose_node.create_timer(diagnostics_period, self._publish_diagnostics)
         m = self.model
         kind = f"calibrated model {self.model_dir}" if m.is_corrected else "analytic URDF model (no model_dir)"
         self.get_logger().info(
             f"serving {kind}: {m.chain.base_link} -> {m.chain.tip_link}, joints {', '.join(m.joint_names)}"
         )
+        for warning in m.chain.inertial_warnings:
+            self.get_logger().warn(f"URDF: {warning}")
 
     # ------------------------------------------------------------------ loading
     def _urdf(self) -> str | None:
         if self.urdf_path:
-            if not Path(self.urdf_path).is_file():
-                raise StartupError(f"parameter urdf_path: {self.urdf_path} does not exist")
-            return Path(self.urdf_path).read_text()
+            path = resolve_path(self.urdf_path)
+            if not path.is_file():
+                where = "" if str(path) == self.urdf_path else f" ({path})"
+                raise StartupError(f"parameter urdf_path: {self.urdf_path}{where} does not exist")
+            return path.read_text(encoding="utf-8-sig")
         return self.robot_description or None
 
     def _load(self) -> tuple[HybridModel, IKSolver]:
@@ -139,8 +181,27 @@ class KinematicsNode(Node):
         options = IKOptions(timeout_s=self.ik_timeout_ms / 1e3, require_calibrated_range=self.range_policy == "refuse")
         return IKSolver(model, options)
 
+    def _compensator(self, model: HybridModel) -> IKSolver:
+        """The IK of compensate_trajectory: the node's options with the compensation's tolerances."""
+        mm, deg = self.compensation_tolerance
+        options = IKOptions(
+            timeout_s=self.ik_timeout_ms / 1e3,
+            require_calibrated_range=self.range_policy == "refuse",
+            position_tolerance_mm=mm,
+            orientation_tolerance_deg=deg,
+        )
+        return IKSolver(model, options)
+
     # ------------------------------------------------------------------ callbacks
     def _on_joint_state(self, msg: JointState) -> None:
+        try:
+            self._corrected_pose(msg)
+        except Exception as exc:  # one bad message must not end the topic
+            self.get_logger().error(
+                f"corrected_pose: internal error ({type(exc).__name__}): {exc}", throttle_duration_sec=5.0
+            )
+
+    def _corrected_pose(self, msg: JointState) -> None:
         model = self.model
         q = joints_from_msg_lenient(msg, model.joint_names)
         if q is None:
@@ -160,6 +221,7 @@ class KinematicsNode(Node):
             self.pose_pub.publish(pose_msg(model.fk_single(q), model.chain.base_link, msg.header.stamp))
 
     def _on_fk(self, request: ComputeFK.Request, response: ComputeFK.Response) -> ComputeFK.Response:
+        start = time.perf_counter()
         model = self.model
         try:
             if not request.joint_states:
@@ -192,9 +254,20 @@ class KinematicsNode(Node):
             )
         except (RequestError, KinematicsError, CalibrationError) as exc:
             response.success, response.message = False, str(exc)
+        except Exception as exc:  # a bug must cost one answer, never the service
+            self._unexpected("compute_fk", exc, response)
+        outside = response.in_calibrated_range.count(False) if response.success and model.nets else 0
+        self.stats.record("fk", time.perf_counter() - start, response.success, outside)
         return response
 
+    def _unexpected(self, service: str, exc: Exception, response) -> None:
+        """Any other exception: answer success=false with its message and keep serving."""
+        response.success = False
+        response.message = f"internal error ({type(exc).__name__}): {exc}"
+        self.get_logger().error(f"{service}: {response.message}", throttle_duration_sec=1.0)
+
     def _on_ik(self, request: ComputeIK.Request, response: ComputeIK.Response) -> ComputeIK.Response:
+        start = time.perf_counter()
         model, solver = self.model, self.solver
         try:
             target = matrix_from_msg(request.target, model.chain.base_link)
@@ -209,34 +282,110 @@ class KinematicsNode(Node):
                 results = [solver.solve(target, seed, analytic=request.analytic_only)]
             else:
                 extra = [self._latest] if self._latest is not None and seed is not self._latest else []
-                results = solver.solve_many(target, seed, k, extra, analytic=request.analytic_only)
+                budget_ms = self.ik_request_budget_ms if self.ik_request_budget_ms > 0 else k * self.ik_timeout_ms
+                deadline = start + budget_ms / 1e3
+                results = solver.solve_many(target, seed, k, extra, analytic=request.analytic_only, deadline=deadline)
             good = [r for r in results if r.success]
             now = self.get_clock().now().to_msg()
             response.solutions = [joint_state_msg(r.q, model.joint_names, now) for r in good]
             response.position_error_mm = [float(r.position_error_mm) for r in good]
             response.orientation_error_deg = [float(r.orientation_error_deg) for r in good]
+            response.in_calibrated_range = [bool(r.in_calibrated_range) for r in good]
             response.success = bool(good)
             if good:
                 response.message = f"{len(good)} solution(s)"
             else:
-                response.message = results[0].message if results else "no solution found from any seed"
-        except (RequestError, IKError, KinematicsError) as exc:
+                response.message = (
+                    results[0].message if results else "no solution found from any seed within the time budget"
+                )
+        except (RequestError, IKError, KinematicsError, CalibrationError) as exc:
             response.success, response.message = False, str(exc)
+        except Exception as exc:  # a bug must cost one answer, never the service
+            self._unexpected("compute_ik", exc, response)
+        if not response.success:
+            response.solutions, response.position_error_mm, response.orientation_error_deg = [], [], []
+            response.in_calibrated_range = []
+        outside = response.in_calibrated_range.count(False) if model.nets else 0
+        self.stats.record("ik", time.perf_counter() - start, response.success, outside)
+        return response
+
+    def _on_compensate(
+        self, request: CompensateTrajectory.Request, response: CompensateTrajectory.Response
+    ) -> CompensateTrajectory.Response:
+        """The corrected trajectory; on failure, the points before ``failed_index``."""
+        model, solver = self.model, self.compensator
+        response.failed_index = -1
+        try:
+            q, t, qd, qdd = trajectory_arrays(request.trajectory, model.joint_names)
+            result = compensate(
+                solver,
+                q,
+                t,
+                qd,
+                qdd,
+                require_calibrated_range=model.range_policy == "refuse",
+                max_joint_correction_rad=self.max_joint_correction,
+            )
+            keep = len(q) if result.success else result.failed_index
+            response.trajectory = trajectory_msg(
+                request.trajectory,
+                model.joint_names,
+                result.positions[:keep],
+                None if result.velocities is None else result.velocities[:keep],
+                None if result.accelerations is None else result.accelerations[:keep],
+            )
+            response.position_error_mm = result.position_error_mm.tolist()
+            response.orientation_error_deg = result.orientation_error_deg.tolist()
+            response.in_calibrated_range = result.in_calibrated_range.tolist()
+            response.failed_index = result.failed_index
+            response.success = result.success
+            outside = int(np.sum(~result.in_calibrated_range)) if model.nets else 0
+            response.message = (
+                result.message
+                if not result.success
+                else f"{len(q)} points corrected" + (f"; {outside} outside the calibrated range" if outside else "")
+            )
+        except (RequestError, IKError, KinematicsError, CalibrationError) as exc:
+            response.success, response.message = False, str(exc)
+        except Exception as exc:  # a bug must cost one answer, never the service
+            self._unexpected("compensate_trajectory", exc, response)
         return response
 
     def _on_reload(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Load ``model_dir`` again; on failure the old model keeps serving."""
         try:
             model, solver = self._load()
-        except StartupError as exc:
-            response.success, response.message = False, f"reload failed, still serving the old model: {exc}"
+        except Exception as exc:  # StartupError, or a bug: either way the old model serves on
+            detail = str(exc) if isinstance(exc, StartupError) else f"internal error ({type(exc).__name__}): {exc}"
+            response.success, response.message = False, f"reload failed, still serving the old model: {detail}"
             self.get_logger().error(response.message)
             return response
+        compensator = self._compensator(model)
         with self._lock:
-            self.model, self.solver = model, solver
+            self.model, self.solver, self.compensator = model, solver, compensator
         response.success, response.message = True, f"reloaded {self.model_dir or 'the URDF model'}"
         self.get_logger().info(response.message)
         return response
+
+    def _publish_diagnostics(self) -> None:
+        model = self.model
+        values = {
+            "model": str(self.model_dir) if self.model_dir else "analytic URDF model",
+            "chain": f"{model.chain.base_link} -> {model.chain.tip_link}",
+            "range_policy": model.range_policy,
+            "coverage_radius_rad": str(model.coverage_radius or 0.0),
+            **self.stats.snapshot(),
+        }
+        status = DiagnosticStatus(
+            level=DiagnosticStatus.OK,
+            name=f"{self.get_name()}: hybrid kinematics",
+            hardware_id=model.chain.base_link,
+            message="calibrated model" if model.is_corrected else "analytic URDF model",
+            values=[KeyValue(key=k, value=v) for k, v in values.items()],
+        )
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.pose_node.get_clock().now().to_msg()
+        self.diag_pub.publish(msg)
 
     @property
     def companions(self) -> tuple[Node, Node]:
@@ -258,8 +407,15 @@ def main(args: list[str] | None = None) -> int:
         signal.signal(sig, lambda *_: stopping.set())
 
     def spin_loop(executor) -> None:
+        """The callbacks answer every exception themselves; this guard is the last line, so that a thread
+        never ends while the others serve (a node half-deaf)."""
         while rclpy.ok() and not stopping.is_set():
-            executor.spin_once(timeout_sec=0.1)
+            try:
+                executor.spin_once(timeout_sec=0.1)
+            except Exception as exc:
+                if not rclpy.ok() or stopping.is_set():
+                    break
+                rclpy.logging.get_logger("kinematics_node").error(f"spin: {type(exc).__name__}: {exc}")
 
     def spin(executor) -> None:
         node = executor.get_nodes()[0]

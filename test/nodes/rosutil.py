@@ -27,14 +27,21 @@ def executable(name: str) -> Path:
 
 def start(name: str, *ros_args: str, log: Path | None = None) -> subprocess.Popen:
     """Start an installed executable the way ``ros2 run`` would, in its own process group."""
+    return start_command([str(executable(name)), "--ros-args", *ros_args], log=log)
+
+
+def start_command(
+    argv: list[str], log: Path | None = None, cwd: Path = ROOT, env: dict[str, str] | None = None
+) -> subprocess.Popen:
+    """Start any command in its own process group; it is stopped after the test like ``start``'s."""
     out = open(log, "w") if log else subprocess.DEVNULL  # noqa: SIM115 - closed with the process
     proc = subprocess.Popen(
-        [str(executable(name)), "--ros-args", *ros_args],
+        argv,
         stdout=out,
         stderr=subprocess.STDOUT,
-        cwd=ROOT,
+        cwd=cwd,
         start_new_session=True,
-        env=os.environ.copy(),
+        env=os.environ.copy() if env is None else env,
     )
     STARTED.append(proc)
     if log:

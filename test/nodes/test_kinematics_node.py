@@ -215,13 +215,13 @@ def test_refuses_to_start_for_another_urdf(ros, trained, tmp_path):
 
 
 def test_in_process_node_with_defaults_file(ros):
-    """config/kinematics.yaml's parameters, with the URDF path made absolute, serve the embedded UR10."""
+    """config/kinematics.yaml's parameters as they are (the URDF as a package:// path) serve the embedded UR10."""
     import yaml
 
     from hybrid_kinematics_ros.nodes.kinematics_node import KinematicsNode
 
     params = yaml.safe_load((CONFIG_DIR / "kinematics.yaml").read_text())["kinematics_node"]["ros__parameters"]
-    params["urdf_path"] = str(CONFIG_DIR.parent / params["urdf_path"])
+    assert params["urdf_path"].startswith("package://hybrid_kinematics_ros/")
     overrides = [rclpy.parameter.Parameter(k, value=v) for k, v in params.items()]
     node = KinematicsNode("kinematics_in_process", parameter_overrides=overrides)
     client = Client("in_process_client")

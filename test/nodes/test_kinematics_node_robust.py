@@ -1,0 +1,209 @@
+"""A node that never goes half-deaf: unexpected exceptions cost one answer, IK requests keep a total time
+budget, IK solutions say whether they lie in the calibrated range, and /diagnostics reports the serving.
+
+In-process nodes (real rclpy, one executor spinning the node, its companions and the client): a core
+function is made to raise where no request can make it raise today."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from std_srvs.srv import Trigger
+
+from hybrid_kinematics_interfaces.srv import CompensateTrajectory, ComputeFK, ComputeIK
+from test.nodes.rosutil import Client
+from test.nodes.test_kinematics_node import fk_request, ik_request
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.fixture(scope="module")
+def ros():
+    rclpy.init()
+    yield
+    rclpy.shutdown()
+
+
+def in_process(name: str, model_dir, **params):
+    """A kinematics node and a client on one executor."""
+    from hybrid_kinematics_ros.nodes.kinematics_node import KinematicsNode
+
+    overrides = [rclpy.parameter.Parameter("model_dir", value=str(model_dir))]
+    overrides += [rclpy.parameter.Parameter(k, value=v) for k, v in params.items()]
+    node = KinematicsNode(name, parameter_overrides=overrides)
+    client = Client(f"{name}_client")
+    for n in (node, *node.companions):
+        client.executor.add_node(n)
+    return node, client
+
+
+def raise_once(exc: Exception, then):
+    calls = []
+
+    def fail(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            raise exc
+        return then(*args, **kwargs)
+
+    return fail
+
+
+def test_unexpected_exceptions_are_answered_and_every_service_keeps_serving(ros, trained, monkeypatch):
+    node, client = in_process("robust", trained[0], publish_corrected_pose=False)
+    model = node.model
+    q = np.array([0.3, -1.2, 1.3, -0.9, 1.1, 0.2])
+    T = model.fk(q)[0]
+    try:
+        fk = client.service(ComputeFK, "/robust/compute_fk")
+        ik = client.service(ComputeIK, "/robust/compute_ik")
+        reload = client.service(Trigger, "/robust/reload")
+        # what no request reaches today: a LinAlgError deep in the solver, a bug in FK, a failing reload
+        singular = np.linalg.LinAlgError("Singular matrix")
+        monkeypatch.setattr(node.solver, "solve", raise_once(singular, node.solver.solve))
+        monkeypatch.setattr(node.solver, "solve_many", raise_once(singular, node.solver.solve_many))
+        monkeypatch.setattr(node, "_load", raise_once(MemoryError("cannot allocate"), node._load))
+        for k in (1, 4):
+            failed = client.call(ik, ik_request(T, q + 0.05, model.joint_names, k), resend_after=60)
+            assert not failed.success and failed.message == "internal error (LinAlgError): Singular matrix"
+            assert failed.solutions == [] and list(failed.in_calibrated_range) == []
+            answered = client.call(ik, ik_request(T, q + 0.05, model.joint_names, k))
+            assert answered.success, answered.message
+        bug = IndexError("index 7 is out of bounds")
+        monkeypatch.setattr(node.model, "fk_single", raise_once(bug, model.fk_single))
+        bad_fk = client.call(fk, fk_request([q], model.joint_names), resend_after=60)
+        assert not bad_fk.success and "IndexError" in bad_fk.message and "index 7" in bad_fk.message
+        assert client.call(fk, fk_request([q], model.joint_names)).success
+        bad_reload = client.call(reload, Trigger.Request(), resend_after=60)
+        assert not bad_reload.success and "still serving the old model" in bad_reload.message
+        assert "MemoryError" in bad_reload.message
+        assert client.call(ik, ik_request(T, q + 0.05, model.joint_names)).success
+        assert client.call(reload, Trigger.Request()).success
+    finally:
+        client.close()
+        node.destroy_node()
+
+
+def test_ik_request_budget_and_in_calibrated_range(ros, trained):
+    model = trained[1]
+    node, client = in_process("budget", trained[0], publish_corrected_pose=False, ik_request_budget_ms=1e-3)
+    inside = np.array([0.3, -1.2, 1.3, -0.9, 1.1, 0.2])
+    outside = inside.copy()  # beyond the trained range, inside the joint limits
+    j = int(np.argmax(model.chain.upper - model.trained_upper))
+    outside[j] = 0.5 * (model.trained_upper[j] + model.chain.upper[j])
+    assert not model.in_calibrated_range(outside)[0]
+    try:
+        ik = client.service(ComputeIK, "/budget/compute_ik")
+        # a budget that is over before the first seed: an answer at once, not 65 seeds later
+        starved = client.call(ik, ik_request(model.fk(inside)[0], inside, model.joint_names, 16))
+        assert not starved.success and "time budget" in starved.message
+        # one solution keeps the per-solution budget (ik_timeout_ms)
+        for q, expected in ((inside, True), (outside, False)):
+            resp = client.call(ik, ik_request(model.fk(q)[0], q, model.joint_names))
+            assert resp.success, resp.message
+            assert np.abs(np.array(resp.solutions[0].position) - q).max() < 1e-3
+            assert list(resp.in_calibrated_range) == [expected]
+    finally:
+        client.close()
+        node.destroy_node()
+
+
+def test_diagnostics_report_the_serving(ros, trained):
+    model = trained[1]
+    node, client = in_process("diag", trained[0], publish_corrected_pose=False, diagnostics_period_s=0.2)
+    inside = np.array([0.3, -1.2, 1.3, -0.9, 1.1, 0.2])
+    outside = inside.copy()
+    outside[2] = model.trained_upper[2] + 0.05
+    received: list[DiagnosticArray] = []
+    client.node.create_subscription(DiagnosticArray, "/diagnostics", received.append, 10)
+    try:
+        fk = client.service(ComputeFK, "/diag/compute_fk")
+        ik = client.service(ComputeIK, "/diag/compute_ik")
+        for _ in range(3):
+            assert client.call(fk, fk_request([inside, outside], model.joint_names), resend_after=60).success
+        assert client.call(ik, ik_request(model.fk(inside)[0], inside, model.joint_names), resend_after=60).success
+
+        def latest() -> dict[str, str] | None:
+            for msg in reversed(received):
+                for status in msg.status:
+                    if status.name == "diag: hybrid kinematics":
+                        return {kv.key: kv.value for kv in status.values}
+            return None
+
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and (latest() is None or latest()["ik_requests_served"] != "1"):
+            client.spin_for(0.1)
+        values = latest()
+        assert values is not None, "no /diagnostics from the node"
+        assert values["model"] == str(trained[0]) and values["range_policy"] == "warn"
+        assert values["fk_requests_served"] == "3" and values["ik_requests_served"] == "1"
+        assert values["out_of_range_count"] == "3"  # one configuration of each FK request
+        p50, p90, p99 = (float(values[f"fk_latency_p{p}_ms"]) for p in (50, 90, 99))
+        assert 0 < p50 <= p90 <= p99
+        assert float(values["ik_latency_p50_ms"]) > 0
+    finally:
+        client.close()
+        node.destroy_node()
+
+
+def trajectory_request(t, q, names, qd=None, order=None):
+    from builtin_interfaces.msg import Duration
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    order = list(range(len(names))) if order is None else order
+    msg = JointTrajectory(joint_names=[names[i] for i in order])
+    for k, tk in enumerate(t):
+        point = JointTrajectoryPoint(positions=q[k, order].tolist())
+        if qd is not None:
+            point.velocities = qd[k, order].tolist()
+        point.time_from_start = Duration(sec=int(tk), nanosec=round((tk - int(tk)) * 1e9))
+        msg.points.append(point)
+    req = CompensateTrajectory.Request()
+    req.trajectory = msg
+    return req
+
+
+def test_compensate_trajectory_service(ros, trained):
+    from hybrid_kinematics_ros.ik.compensate import compensate
+    from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
+    from test.ik.test_compensate import A, B, plan
+
+    model = trained[1]
+    node, client = in_process("comp", trained[0], publish_corrected_pose=False)
+    t, q, qd, _ = plan(A, B, n=200)
+    order = [3, 0, 5, 1, 4, 2]  # a planner's own joint order
+    try:
+        srv = client.service(CompensateTrajectory, "/comp/compensate_trajectory")
+        resp = client.call(srv, trajectory_request(t, q, model.joint_names, qd, order))
+        assert resp.success and resp.failed_index == -1, resp.message
+        assert list(resp.trajectory.joint_names) == [model.joint_names[i] for i in order]
+        got = np.array([p.positions for p in resp.trajectory.points])[:, np.argsort(order)]
+        tight = IKOptions(position_tolerance_mm=1e-5, orientation_tolerance_deg=1e-5)  # the node's defaults
+        expected = compensate(IKSolver(model, tight), q, t, qd)
+        np.testing.assert_allclose(got, expected.positions, atol=1e-9)
+        vel = np.array([p.velocities for p in resp.trajectory.points])[:, np.argsort(order)]
+        np.testing.assert_allclose(vel, expected.velocities, atol=1e-9)
+        stamps = [(p.time_from_start.sec, p.time_from_start.nanosec) for p in resp.trajectory.points]
+        sent = trajectory_request(t, q, model.joint_names).trajectory.points
+        assert stamps == [(p.time_from_start.sec, p.time_from_start.nanosec) for p in sent]
+        assert max(resp.position_error_mm) <= 1e-5 and all(resp.in_calibrated_range)
+        # the wrist crosses its singularity: corrected, or the first point that cannot be is named
+        a, b = A.copy(), B.copy()
+        a[4], b[4] = 0.6, -0.6
+        t2, q2, _, _ = plan(a, b, n=401)
+        singular = client.call(srv, trajectory_request(t2, q2, model.joint_names))
+        if not singular.success:
+            k = singular.failed_index
+            assert k >= 0 and abs(q2[k, 4]) < 0.2 and f"point {k}" in singular.message
+            assert len(singular.trajectory.points) == k
+        bad = trajectory_request(t[:3], q[:3, :5], model.joint_names[:5])
+        answer = client.call(srv, bad)
+        assert not answer.success and "missing joint_6" in answer.message
+        assert client.call(srv, trajectory_request(t, q, model.joint_names)).success  # still serving
+    finally:
+        client.close()
+        node.destroy_node()
