@@ -14,6 +14,7 @@ import pytest
 
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.fit import fit, split
+from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
@@ -59,3 +60,31 @@ def trained(ur10, virtual_pairs, tmp_path_factory):
     preset = replace(train.PRESETS["fast"], arch="mlp:64x2:silu")
     model, manifest = fit(ur10.chain, tr, va, te, out, preset, SECONDS / 60.0, seed=0)
     return out, model, manifest, te
+
+
+# A cell whose robot grows with its temperature: models trained with and without that channel.
+EXPANSION_PER_K = 2e-4  # a strong thermal growth of the whole arm about its base, so the test is quick
+THERMAL_PRESET = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=300)
+
+
+def thermal_pairs(ur10, count: int, seed: int) -> Pairs:
+    cell = VirtualCell.from_config(ur10, noise=False)
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(0.9 * ur10.chain.lower, 0.9 * ur10.chain.upper, (count, 6))
+    temperature = rng.uniform(18.0, 28.0, count)
+    T = cell.measure(q, rng)
+    T[:, :3, 3] *= (1.0 + EXPANSION_PER_K * (temperature - 23.0))[:, None]
+    stamps = 10**9 + 10**7 * np.arange(count)
+    return Pairs(q, T, stamps, ur10.chain.joint_names, "base_link", conditions={"temperature": temperature})
+
+
+@pytest.fixture(scope="session")
+def thermal_models(ur10, tmp_path_factory):
+    tr, va, _ = split(thermal_pairs(ur10, 3000, seed=1), seed=0)
+    test = thermal_pairs(ur10, 500, seed=2)
+    out = {}
+    for name, conditions in (("plain", ()), ("thermal", ("temperature",))):
+        path = tmp_path_factory.mktemp("conditions") / name
+        fit(ur10.chain, tr, va, test, path, THERMAL_PRESET, 5.0, conditions=conditions, parametric=True)
+        out[name] = HybridModel.load(path)
+    return out, test

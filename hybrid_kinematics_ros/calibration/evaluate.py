@@ -63,7 +63,7 @@ def pose_errors_of(model: HybridModel, pairs: Pairs) -> dict[str, tuple[np.ndarr
     models = {"analytic": model.fk(pairs.q, analytic=True)}
     if model.has_parametric:
         models["parametric"] = model.fk(pairs.q, nets=False)
-    models["hybrid"] = model.fk(pairs.q)
+    models["hybrid"] = model.fk(pairs.q, conditions=model.conditions_of(pairs.conditions, len(pairs)))
     return {name: target_errors(pairs, T) for name, T in models.items()}
 
 

@@ -163,13 +163,15 @@ def fit(
     payload: tuple[float, np.ndarray] = (0.0, np.zeros(3)),
     log: Callable[[str], None] = lambda _: None,
     shared_targets: Sequence[Sequence[str]] = (),
+    conditions: Sequence[str] = (),
 ) -> tuple[HybridModel, dict[str, Any]]:
     """Reference, identify, train both nets within ``max_minutes`` (side by side), write the model directory.
 
     Each set of pairs may come from several tracker stations (one :class:`Pairs` per frame). Every
     tracker frame is referenced first (:func:`reference_all`); with ``parametric`` the elasto-geometric
     stage is identified next, from all stations together, and the nets learn what it leaves.
-    Position-only pairs train the position net alone.
+    Position-only pairs train the position net alone. ``conditions`` names condition channels of the
+    pairs (``temperature``, say) that the nets take as inputs beside the joints.
     """
     manifest: dict[str, Any] = {}
     raw = [[p] if isinstance(p, Pairs) else list(p) for p in (train_pairs, val_pairs, test_pairs)]
@@ -202,6 +204,10 @@ def fit(
     norm_lower, norm_upper = (chain.lower, chain.upper) if preset.full_range else (lower, upper)
     norm_lower = np.where(np.isfinite(norm_lower), norm_lower, lower)
     norm_upper = np.where(np.isfinite(norm_upper), norm_upper, upper)
+    x_train, x_val = (_net_inputs(p, conditions) for p in (train_pairs, val_pairs))
+    if conditions:  # condition columns follow the joints, normalised over the range seen in training
+        c = x_train[:, chain.dof :]
+        norm_lower, norm_upper = np.r_[norm_lower, c.min(axis=0)], np.r_[norm_upper, c.max(axis=0)]
     y_train = train.residual_targets(base, train_pairs.q, train_pairs.T, target)
     y_val = train.residual_targets(base, val_pairs.q, val_pairs.T, _target_offsets(val_pairs))
     arch = arch or {}
@@ -212,15 +218,16 @@ def fit(
         jobs[kind] = train.NetJob(
             kind,
             p,
-            train_pairs.q,
+            x_train,
             y_train[kind],
-            val_pairs.q,
+            x_val,
             y_val[kind],
             norm_lower,
             norm_upper,
             train.joint1_axis(chain),
             60.0 * max_minutes,
             seed + seed_offset,
+            chain.dof,
         )
     start = time.perf_counter()
     nets, histories = train.train_pair(jobs, progress=progress, parallel=parallel)
@@ -236,6 +243,11 @@ def fit(
             "position_only": position_only,
         }
     )
+    if conditions:
+        manifest["conditions"] = {
+            name: {"default": float(np.mean(train_pairs.conditions[name])), "lower": float(lo), "upper": float(hi)}
+            for name, lo, hi in zip(conditions, norm_lower[chain.dof :], norm_upper[chain.dof :], strict=True)
+        }
     model = HybridModel(chain, nets, manifest)
     metrics = evaluate(model, test_pairs)  # eager nets here; the saved TorchScript is checked against them
     manifest.update(
@@ -261,6 +273,17 @@ def fit(
         manifest["note"] = "position-only data: orientation is not corrected (no orientation net)"
     save_model_dir(out, manifest, chain.urdf_text, nets, coverage=thinned(train_pairs.q))
     return HybridModel.load(out), manifest
+
+
+def _net_inputs(pairs: Pairs, conditions: Sequence[str]) -> np.ndarray:
+    """``(N, n + k)``: the joints, then the named condition channels."""
+    missing = [c for c in conditions if c not in pairs.conditions]
+    if missing:
+        raise CalibrationError(
+            f"the pairs carry no {', '.join(missing)} channel (they carry {', '.join(pairs.conditions) or 'none'}); "
+            "import or record them with it, or train without it"
+        )
+    return np.column_stack([pairs.q, *(pairs.conditions[c] for c in conditions)])
 
 
 def _target_offsets(pairs: Pairs) -> np.ndarray | None:

@@ -82,6 +82,9 @@ class HybridModel:
         refs = [Referencing.from_manifest(r) for r in ([section] if isinstance(section, dict) else section)]
         self.referencings = {r.frame_id: r for r in refs}  # one per tracker station
         self.referencing = refs[0] if refs else None  # the first station's
+        conditions = self.manifest.get("conditions") or {}
+        self.condition_names = tuple(conditions)  # condition channels the nets take after the joints
+        self.condition_values = np.array([float(conditions[c]["default"]) for c in self.condition_names])
 
     @property
     def range_policy(self) -> str:
@@ -216,9 +219,42 @@ class HybridModel:
         lower, upper = self._range
         return ((q >= lower) & (q <= upper)).all(axis=1)
 
-    def residuals(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(Δp, ω)``, each ``(B, 3)`` in m and rad; zeros where a net is absent."""
-        qt = torch.as_tensor(np.atleast_2d(q), dtype=torch.float64)
+    def set_condition(self, name: str, value: float) -> None:
+        """The current value of a condition channel (e.g. the cell's temperature), used from now on."""
+        if name not in self.condition_names:
+            raise CalibrationError(
+                f"the model takes no condition '{name}' (it takes {', '.join(self.condition_names) or 'none'})"
+            )
+        if not np.isfinite(value):
+            raise CalibrationError(f"condition '{name}' = {value} is not a finite number")
+        self.condition_values[self.condition_names.index(name)] = float(value)
+
+    def conditions_of(self, pairs_conditions: dict[str, np.ndarray], count: int) -> np.ndarray | None:
+        """``(count, k)``: the model's condition channels from measured ones (evaluation); None if it has none."""
+        if not self.condition_names:
+            return None
+        missing = [c for c in self.condition_names if c not in pairs_conditions]
+        if missing:
+            raise CalibrationError(
+                f"the model takes {', '.join(self.condition_names)}, but the pairs carry no {', '.join(missing)}"
+            )
+        return np.column_stack([np.broadcast_to(pairs_conditions[c], (count,)) for c in self.condition_names])
+
+    def _inputs(self, q: np.ndarray, conditions: np.ndarray | None = None) -> np.ndarray:
+        """The nets' input: the joints, then the condition channels (given per row, else the current values)."""
+        if not self.condition_names:
+            return q
+        if q.ndim == 1:
+            return np.r_[q, self.condition_values if conditions is None else conditions]
+        c = np.broadcast_to(
+            self.condition_values if conditions is None else conditions, (len(q), len(self.condition_names))
+        )
+        return np.column_stack([q, c])
+
+    def residuals(self, q: np.ndarray, conditions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(Δp, ω)``, each ``(B, 3)`` in m and rad; zeros where a net is absent. ``conditions (B, k)``:
+        the condition channels per configuration, else the current values."""
+        qt = torch.as_tensor(self._inputs(np.atleast_2d(q), conditions), dtype=torch.float64)
         zeros = np.zeros((qt.shape[0], 3))
         with torch.no_grad():
             dp = self.nets["position"](qt).numpy() if "position" in self.nets else zeros
@@ -233,15 +269,18 @@ class HybridModel:
             out[:, :3, :3] = Rotation.from_rotvec(w).as_matrix() @ out[:, :3, :3]
         return out
 
-    def fk(self, q: np.ndarray, analytic: bool = False, nets: bool = True) -> np.ndarray:
-        """Tip poses ``(B, 4, 4)``: hybrid; the URDF model alone when ``analytic``; no nets when not ``nets``."""
+    def fk(
+        self, q: np.ndarray, analytic: bool = False, nets: bool = True, conditions: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Tip poses ``(B, 4, 4)``: hybrid; the URDF model alone when ``analytic``; no nets when not ``nets``.
+        ``conditions (B, k)``: the condition channels per configuration (else the current values)."""
         q = fk.check_joints(self.chain, q)
         if analytic:
             return fk.fk(self.chain, q)
         T = self.base.fk(q)
         if not nets or not self.nets:
             return T
-        dp, w = self.residuals(q)
+        dp, w = self.residuals(q, conditions)
         mask = np.asarray(self._nets_apply(q), dtype=float).reshape(-1, 1)
         return self.correct(T, dp * mask, w * mask)
 
@@ -255,10 +294,11 @@ class HybridModel:
             return T
         if not all(self._fast.values()):
             return self.correct(T[None], *self.residuals(q[None]))[0]
+        x = self._inputs(q)
         if "position" in self._fast:
-            T[:3, 3] += self._fast["position"](q)
+            T[:3, 3] += self._fast["position"](x)
         if "orientation" in self._fast:
-            T[:3, :3] = exp_so3(self._fast["orientation"](q)) @ T[:3, :3]
+            T[:3, :3] = exp_so3(self._fast["orientation"](x)) @ T[:3, :3]
         return T
 
     def fk_and_jacobian(self, q: np.ndarray, analytic: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -272,12 +312,12 @@ class HybridModel:
         T, J = self.base.fk_and_jacobian(q)
         if not self.nets:
             return T, J
-        qt = torch.tensor(q, requires_grad=True)
+        qt = torch.tensor(self._inputs(q), requires_grad=True)
         grads, values = {}, {}
         for kind, net in self.nets.items():
             out = net(qt)
             rows = [torch.autograd.grad(out[:, i].sum(), qt, retain_graph=i < 2)[0] for i in range(3)]
-            grads[kind] = torch.stack(rows, dim=1).numpy()
+            grads[kind] = torch.stack(rows, dim=1).numpy()[:, :, : self.chain.dof]
             values[kind] = out.detach().numpy()
         zeros = np.zeros((len(q), 3))
         dp, w = values.get("position", zeros), values.get("orientation", zeros)
@@ -305,12 +345,14 @@ class HybridModel:
         if not all(self._fast.values()):
             T, J = self.fk_and_jacobian(q[None])
             return T[0], J[0]
+        x, n = self._inputs(q), self.chain.dof
         if "position" in self._fast:
-            dp, ddp = self._fast["position"].value_and_jacobian(q)
+            dp, ddp = self._fast["position"].value_and_jacobian(x)
             T[:3, 3] += dp
-            J[:3] += ddp
+            J[:3] += ddp[:, :n]
         if "orientation" in self._fast:
-            w, dw = self._fast["orientation"].value_and_jacobian(q)
+            w, dw = self._fast["orientation"].value_and_jacobian(x)
+            dw = dw[:, :n]
             r = exp_so3(w)
             T[:3, :3] = r @ T[:3, :3]
             J[3:] = r @ J[3:] + left_jacobian_so3(w) @ dw

@@ -6,6 +6,10 @@ of the output, and (optionally) turning the residual from a frame that rotates w
 the base frame. Gravity does not change when the robot turns about a vertical joint 1, so in that frame
 the residual hardly depends on ``q1`` and is easier to learn.
 
+Condition channels (temperature, say) are extra input columns after the joints: min-max normalised like
+them, without ``sin``/``cos`` features. The input is then ``(B, n + k)``; :class:`HybridModel` appends the
+current values.
+
 Architectures are named: the paper's ``D1``, ``D4``, ``D4w``, ``D4W`` (ReLU MLPs) and ``Rw``, ``Rd``
 (ResNets of dense and identity blocks after Chen et al.), and ``mlp:WxD[:act]`` for plain MLPs.
 """
@@ -93,7 +97,8 @@ def build_body(arch: str, n_in: int, out: int = 3) -> nn.Module:
 
 
 class ResidualNet(nn.Module):
-    """Joints ``(B, n)`` rad (any float dtype) to a residual ``(B, 3)`` float64 in m or rad."""
+    """Joints ``(B, n)`` rad (any float dtype), then any condition columns, to a residual ``(B, 3)`` float64
+    in m or rad. ``lower``/``upper`` span every input column; ``n_joints`` says how many are joints."""
 
     def __init__(
         self,
@@ -104,9 +109,12 @@ class ResidualNet(nn.Module):
         target_scale: np.ndarray,
         sincos: bool = True,
         joint1_axis: np.ndarray | None = None,
+        n_joints: int | None = None,
     ) -> None:
         super().__init__()
-        n = len(lower)
+        n_in = len(lower)
+        n = n_in if n_joints is None else n_joints
+        self.n_joints = n
         span = np.maximum(np.asarray(upper) - np.asarray(lower), 1e-9)
         self.register_buffer("center", torch.tensor(0.5 * (np.asarray(upper) + np.asarray(lower)), dtype=torch.float64))
         self.register_buffer("half_span", torch.tensor(0.5 * span, dtype=torch.float64))
@@ -116,14 +124,15 @@ class ResidualNet(nn.Module):
         self.register_buffer("axis", torch.tensor(axis, dtype=torch.float64))
         self.sincos = sincos
         self.turn = joint1_axis is not None
-        self.body = build_body(arch, 3 * n if sincos else n)
+        self.body = build_body(arch, n_in + 2 * n if sincos else n_in)
 
     def features(self, q: torch.Tensor) -> torch.Tensor:
         # features in float64, then the float32 network: no quantisation of large joint values
         q64 = q.to(torch.float64)
         x = (q64 - self.center) / self.half_span
         if self.sincos:
-            x = torch.cat([x, torch.sin(q64), torch.cos(q64)], dim=1)
+            joints = q64[:, : self.n_joints]
+            x = torch.cat([x, torch.sin(joints), torch.cos(joints)], dim=1)
         return x.to(torch.float32)
 
     @torch.jit.ignore
@@ -184,6 +193,7 @@ class NumpyResidual:
         self.scale = module.target_scale.numpy()
         self.axis = module.axis.numpy()
         self.sincos = bool(module.sincos)  # ScriptModules keep plain attributes
+        self.n_joints = int(getattr(module, "n_joints", len(self.center)))
         self.turn = bool(module.turn)
         self.layers = layers
         k = self.axis
@@ -209,7 +219,8 @@ class NumpyResidual:
     def __call__(self, q: np.ndarray) -> np.ndarray:
         x = (q - self.center) / self.half_span
         if self.sincos:
-            x = np.concatenate([x, np.sin(q), np.cos(q)], axis=-1)
+            joints = q[..., : self.n_joints]
+            x = np.concatenate([x, np.sin(joints), np.cos(joints)], axis=-1)
         x = x.astype(np.float32)
         for kind, a, b in self.layers:
             x = x @ a + b if kind == "linear" else a(x)
@@ -228,12 +239,16 @@ class NumpyResidual:
         return r * c + (r @ self.kx.T) * s + (r @ self.kk) * (1.0 - c)
 
     def value_and_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Residual ``(3,)`` and its derivative ``(3, n)`` for one configuration ``(n,)`` (forward mode)."""
+        """Residual ``(3,)`` and its derivative ``(3, n)`` for one input ``(n,)`` (forward mode); with
+        condition columns the derivative covers them too."""
         x = (q - self.center) / self.half_span
-        jac = np.diag(1.0 / self.half_span)  # (n, features): row j is d(features)/d(q_j)
+        jac = np.diag(1.0 / self.half_span)  # (inputs, features): row j is d(features)/d(q_j)
         if self.sincos:
-            x = np.concatenate([x, np.sin(q), np.cos(q)])
-            jac = np.concatenate([jac, np.diag(np.cos(q)), np.diag(-np.sin(q))], axis=1)
+            joints = q[: self.n_joints]
+            x = np.concatenate([x, np.sin(joints), np.cos(joints)])
+            trig = np.zeros((len(q), 2 * self.n_joints))
+            trig[: self.n_joints] = np.concatenate([np.diag(np.cos(joints)), np.diag(-np.sin(joints))], axis=1)
+            jac = np.concatenate([jac, trig], axis=1)
         x = x.astype(np.float32)
         jac = jac.astype(np.float32)
         for kind, a, b in self.layers:

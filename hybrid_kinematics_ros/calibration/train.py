@@ -84,6 +84,7 @@ class NetJob:
     axis: np.ndarray | None
     max_seconds: float
     seed: int
+    n_joints: int | None = None  # q_* hold condition columns after the joints when fewer than their width
 
 
 def build_net(job: NetJob) -> ResidualNet:
@@ -92,7 +93,9 @@ def build_net(job: NetJob) -> ResidualNet:
     local = to_joint1_frame(job.y_train, job.q_train[:, 0], axis)
     mean = local.mean(axis=0)
     scale = float(np.sqrt(np.mean(np.sum((local - mean) ** 2, axis=1)) / 3.0)) or 1.0
-    return ResidualNet(p.arch, job.lower, job.upper, mean, np.full(3, scale), sincos=p.sincos, joint1_axis=axis)
+    return ResidualNet(
+        p.arch, job.lower, job.upper, mean, np.full(3, scale), sincos=p.sincos, joint1_axis=axis, n_joints=job.n_joints
+    )
 
 
 def _validation_error(net: ResidualNet, q: torch.Tensor, y: torch.Tensor) -> float:

@@ -51,6 +51,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--val-bag", nargs="+", help="separate validation bag(s); default: 10%% of --bag")
     p.add_argument("--test-bag", nargs="+", help="separate test bag(s); default: 10%% of --bag")
     p.add_argument(
+        "--condition",
+        action="append",
+        metavar="NAME",
+        help="a condition channel of the pairs (e.g. temperature) that the nets take as an input beside the joints; "
+        "the node then needs its current value (parameter conditions.NAME); repeat for several",
+    )
+    p.add_argument(
         "--shared-target",
         action="append",
         metavar="FRAME,FRAME[,...]",
@@ -192,6 +199,7 @@ def run(args: argparse.Namespace) -> int:
             payload=payload_from_args(args),
             log=progress.write,
             shared_targets=[names.split(",") for names in args.shared_target or []],
+            conditions=args.condition or (),
         )
     finally:
         progress.close()

@@ -92,7 +92,7 @@ def save_model_dir(
         for kind, net in nets.items():
             module = net if isinstance(net, torch.jit.ScriptModule) else torch.jit.script(net)
             module.save(str(tmp / NET_FILES[kind]))
-            _check_saved(net, tmp / NET_FILES[kind], len(manifest.get("joint_names", [])))
+            _check_saved(net, tmp / NET_FILES[kind], net_inputs(manifest))
             files[kind] = {"file": NET_FILES[kind], "sha256": sha256_file(tmp / NET_FILES[kind])}
         extra = {}
         if coverage is not None:
@@ -123,8 +123,13 @@ def save_model_dir(
         raise
 
 
+def net_inputs(manifest: dict[str, Any]) -> int:
+    """Input columns of the nets: the joints, then the condition channels (``train --condition``)."""
+    return len(manifest.get("joint_names", [])) + len(manifest.get("conditions") or {})
+
+
 def _check_saved(net: torch.nn.Module, file: Path, dof: int) -> None:
-    """The saved TorchScript must reproduce the net it came from."""
+    """The saved TorchScript must reproduce the net it came from (``dof``: its input columns)."""
     if not dof:
         return
     q = torch.linspace(-2.0, 2.0, 7 * dof, dtype=torch.float64).reshape(7, dof)
@@ -187,7 +192,7 @@ def load_model_dir(path: Path | str) -> ModelFiles:
         try:
             nets[kind] = torch.jit.load(str(file), map_location="cpu")
             with torch.no_grad():
-                out = nets[kind](torch.zeros(1, len(manifest["joint_names"]), dtype=torch.float64))
+                out = nets[kind](torch.zeros(1, net_inputs(manifest), dtype=torch.float64))
         except Exception as exc:  # TorchScript raises RuntimeError and others
             raise DataError(f"{file} is not a usable TorchScript residual net: {exc}") from exc
         if tuple(out.shape) != (1, 3) or not torch.all(torch.isfinite(out)):

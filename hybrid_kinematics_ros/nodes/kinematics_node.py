@@ -22,6 +22,7 @@ import rclpy
 import torch
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -112,6 +113,12 @@ class KinematicsNode(Node):
 
         self._lock = threading.Lock()
         self.model, self.solver = self._load()
+        # A model trained with condition channels (hybrid-kinematics train --condition temperature) needs
+        # their current values: parameters conditions.NAME, settable at run time; unset: the training mean.
+        for name in self.model.condition_names:
+            self.declare_parameter(f"conditions.{name}", float("nan"))
+        self._apply_conditions(self.model)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         self.compensator = self._compensator(self.model)
         self._latest: np.ndarray | None = None
         self.stats = RequestStats()
@@ -176,6 +183,24 @@ class KinematicsNode(Node):
         except LOAD_ERRORS as exc:
             raise StartupError(str(exc)) from exc
         return model, self._solver(model)
+
+    def _apply_conditions(self, model: HybridModel) -> None:
+        for name in model.condition_names:
+            key = f"conditions.{name}"
+            value = self.get_parameter(key).value if self.has_parameter(key) else float("nan")
+            if value is not None and np.isfinite(value):
+                model.set_condition(name, float(value))
+
+    def _on_set_parameters(self, params: list) -> SetParametersResult:
+        for p in params:
+            if not p.name.startswith("conditions."):
+                continue
+            try:
+                with self._lock:
+                    self.model.set_condition(p.name.removeprefix("conditions."), float(p.value))
+            except (CalibrationError, TypeError, ValueError) as exc:
+                return SetParametersResult(successful=False, reason=f"{p.name}: {exc}")
+        return SetParametersResult(successful=True)
 
     def _solver(self, model: HybridModel) -> IKSolver:
         options = IKOptions(timeout_s=self.ik_timeout_ms / 1e3, require_calibrated_range=self.range_policy == "refuse")
@@ -361,6 +386,7 @@ class KinematicsNode(Node):
             self.get_logger().error(response.message)
             return response
         compensator = self._compensator(model)
+        self._apply_conditions(model)
         with self._lock:
             self.model, self.solver, self.compensator = model, solver, compensator
         response.success, response.message = True, f"reloaded {self.model_dir or 'the URDF model'}"

@@ -16,7 +16,7 @@ from std_srvs.srv import Trigger
 
 from hybrid_kinematics_interfaces.srv import CompensateTrajectory, ComputeFK, ComputeIK
 from test.nodes.rosutil import Client
-from test.nodes.test_kinematics_node import fk_request, ik_request
+from test.nodes.test_kinematics_node import fk_request, ik_request, poses_of
 
 pytestmark = pytest.mark.ros
 
@@ -204,6 +204,44 @@ def test_compensate_trajectory_service(ros, trained):
         answer = client.call(srv, bad)
         assert not answer.success and "missing joint_6" in answer.message
         assert client.call(srv, trajectory_request(t, q, model.joint_names)).success  # still serving
+    finally:
+        client.close()
+        node.destroy_node()
+
+
+def test_condition_channels_come_from_parameters_settable_at_run_time(ros, thermal_models):
+    """A model trained with the temperature channel serves with the node's conditions.temperature."""
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+
+    from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+
+    path = thermal_models[0]["thermal"].path
+    core = HybridModel.load(path)
+    q = np.array([0.3, -1.2, 1.3, -0.9, 1.1, 0.2])
+    node, client = in_process("thermal", path, publish_corrected_pose=False, **{"conditions.temperature": 27.0})
+
+    def served():
+        answer = client.call(fk, fk_request([q], core.joint_names))
+        assert answer.success, answer.message
+        return poses_of(answer)[0]
+
+    def set_temperature(value: float):
+        value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
+        request = SetParameters.Request(parameters=[Parameter(name="conditions.temperature", value=value)])
+        return client.call(params, request).results[0]
+
+    try:
+        fk = client.service(ComputeFK, "/thermal/compute_fk")
+        params = client.service(SetParameters, "/thermal/set_parameters")
+        core.set_condition("temperature", 27.0)
+        np.testing.assert_allclose(served(), core.fk(q)[0], atol=1e-9)
+        assert set_temperature(19.0).successful
+        core.set_condition("temperature", 19.0)
+        np.testing.assert_allclose(served(), core.fk(q)[0], atol=1e-9)
+        refused = set_temperature(float("nan"))
+        assert not refused.successful and "not a finite number" in refused.reason
+        np.testing.assert_allclose(served(), core.fk(q)[0], atol=1e-9)  # still 19 °C
     finally:
         client.close()
         node.destroy_node()
