@@ -67,12 +67,16 @@ def repeatability_mm(pairs: Pairs) -> tuple[float, int]:
     return 1e3 * float(np.mean(spread)), groups
 
 
-def rows_for(cfg, train_sets, test_sets, recipes, minutes, epochs, seed=0):
-    """Fit each recipe once; errors of every model on each test set, in the tracker frame at the probe."""
+def rows_for(cfg, train_sets, test_sets, recipes, minutes, steps, seed=0):
+    """Fit each recipe (preset, condition channels) once; errors of every model on each test set, in the
+    tracker frame at the probe. ``steps``: optimiser steps per net, the budget that load does not change
+    (the paper's recipe stops early on validation, or at ``minutes``)."""
     out: dict[str, dict[str, dict]] = {}
     seconds = {}
-    for recipe, preset in recipes.items():
+    for recipe, (preset, conditions) in recipes.items():
         tr, va = zip(*[split(p, seed, (0.1, 0.0))[:2] for p in train_sets], strict=True)
+        per_epoch = max(1, sum(len(p) for p in tr) // preset.batch)
+        epochs = preset.max_epochs if preset.patience else max(1, steps // per_epoch)
         with tempfile.TemporaryDirectory() as tmp:
             start = time.perf_counter()
             model, manifest = fit(
@@ -86,6 +90,7 @@ def rows_for(cfg, train_sets, test_sets, recipes, minutes, epochs, seed=0):
                 seed=seed,
                 parametric=True,
                 payload=(cfg.payload_mass, cfg.payload_com),
+                conditions=conditions,
             )
             seconds[recipe] = time.perf_counter() - start
         geometry = model_from_manifest(cfg.chain, manifest["parametric"], rigid=True)
@@ -95,7 +100,7 @@ def rows_for(cfg, train_sets, test_sets, recipes, minutes, epochs, seed=0):
                 "URDF model": model.fk(base.q, analytic=True),
                 "geometry only": geometry.fk(base.q),
                 "parametric stage": model.fk(base.q, nets=False),
-                f"hybrid, {recipe}": model.fk(base.q),
+                f"hybrid, {recipe}": model.fk(base.q, conditions=model.conditions_of(base.conditions, len(base))),
             }
             for label, T in models.items():
                 out.setdefault(name, {})[label] = error_stats(*target_errors(base, T))
@@ -126,11 +131,15 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("parts", nargs="*", default=["A", "C"])
     parser.add_argument("--minutes", type=float, default=10.0, help="wall-clock cap per model")
-    parser.add_argument("--epochs", type=int, default=300, help="training epochs per net (the real budget)")
+    parser.add_argument("--steps", type=int, default=20_000, help="optimiser steps per net (our recipe's budget)")
     args = parser.parse_args()
     cfg = load_robot_config("ur10")
     series = {name: load_series(name, cfg.chain.joint_names) for name in SERIES}
-    recipes = {"ours": train.PRESETS["fast"], "paper": train.PRESETS["paper"]}
+    recipes = {
+        "ours": (train.PRESETS["fast"], ()),
+        "ours + temperature": (train.PRESETS["fast"], ("temperature",)),
+        "paper": (train.PRESETS["paper"], ()),
+    }
     held = {name: split(p, 0, (0.0, 0.2)) for name, p in series.items()}  # train, _, test (a fifth, blocks)
     body = [
         "Real UR10 (ipa-robot-accuracy), tracker frame, at the probe; held-out fifth of each series in "
@@ -142,10 +151,10 @@ def main() -> None:
     timing = []
     for part in args.parts:
         if part in ("A", "C"):
-            results, seconds = rows_for(cfg, [held[part][0]], {part: held[part][2]}, recipes, args.minutes, args.epochs)
+            results, seconds = rows_for(cfg, [held[part][0]], {part: held[part][2]}, recipes, args.minutes, args.steps)
         elif part == "CB":
             results, seconds = rows_for(
-                cfg, [series["C"]], {"B (trained on C)": series["B"]}, recipes, args.minutes, args.epochs
+                cfg, [series["C"]], {"B (trained on C)": series["B"]}, recipes, args.minutes, args.steps
             )
         elif part == "all":
             results, seconds = rows_for(
@@ -154,7 +163,7 @@ def main() -> None:
                 {f"{n} (all)": held[n][2] for n in SERIES},
                 recipes,
                 args.minutes,
-                args.epochs,
+                args.steps,
             )
         elif part == "curve":
             results, seconds = {}, {}
@@ -167,7 +176,7 @@ def main() -> None:
                     {f"A, {count} train": held["A"][2]},
                     {"ours": recipes["ours"]},
                     args.minutes,
-                    args.epochs,
+                    args.steps,
                 )
                 results.update(r)
                 seconds.update({f"{count}": s["ours"]})
