@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hybrid_kinematics_ros.calibration.hybrid import RANGE_POLICIES, HybridModel
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
@@ -31,6 +32,22 @@ def add_coverage_arg(p: argparse.ArgumentParser) -> None:
         help="the calibrated range is where a training configuration lies within this distance (joint space, "
         "rad), instead of the trained joint ranges; `evaluate` suggests one",
     )
+
+
+def add_range_args(p: argparse.ArgumentParser) -> None:
+    """``--out-of-range`` and ``--coverage-radius``: what the model does outside its calibrated range."""
+    p.add_argument(
+        "--out-of-range",
+        choices=RANGE_POLICIES,
+        default="warn",
+        help="outside the calibrated range: warn (default), parametric (no nets there) or refuse",
+    )
+    add_coverage_arg(p)
+
+
+def apply_range_args(model: HybridModel, args: argparse.Namespace) -> None:
+    model.range_policy = args.out_of_range
+    model.coverage_radius = args.coverage_radius
 
 
 def chain_from_args(args: argparse.Namespace) -> Chain:

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hybrid_kinematics_ros.calibration.hybrid import RANGE_POLICIES, HybridModel
-from hybrid_kinematics_ros.cli.common import add_coverage_arg, read_csv, write_csv
+from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+from hybrid_kinematics_ros.cli.common import add_range_args, apply_range_args, read_csv, write_csv
 from hybrid_kinematics_ros.ik.compensate import MAX_JOINT_CORRECTION_RAD, compensate
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
@@ -32,20 +32,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tolerance-mm", type=float, default=1e-6, help="hybrid FK vs the plan's URDF pose (mm)")
     p.add_argument("--tolerance-deg", type=float, default=1e-6, help="orientation tolerance (deg)")
     p.add_argument("--max-correction", type=float, default=MAX_JOINT_CORRECTION_RAD, metavar="RAD")
-    p.add_argument(
-        "--out-of-range",
-        choices=RANGE_POLICIES,
-        default="warn",
-        help="outside the calibrated range: warn (default), parametric (no nets there) or refuse (fail the point)",
-    )
-    add_coverage_arg(p)
+    add_range_args(p)
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     model = HybridModel.load(args.model)
-    model.range_policy = args.out_of_range
-    model.coverage_radius = args.coverage_radius
+    apply_range_args(model, args)
     names = list(model.joint_names)
     header, _ = read_csv(args.joints)
     _, values = read_csv(args.joints, (TIME_COLUMN, *names))

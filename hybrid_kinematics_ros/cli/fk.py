@@ -8,11 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from hybrid_kinematics_ros.calibration.hybrid import RANGE_POLICIES, HybridModel
+from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.cli.common import (
     POSE_COLUMNS,
-    add_coverage_arg,
+    add_range_args,
     add_robot_args,
+    apply_range_args,
     chain_from_args,
     read_csv,
     write_csv,
@@ -27,20 +28,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--joints", required=True, type=Path, help="CSV whose header names the joints (radians)")
     p.add_argument("--out", required=True, type=Path, help="poses CSV to write")
     p.add_argument("--analytic", action="store_true", help="uncorrected URDF kinematics")
-    p.add_argument(
-        "--out-of-range",
-        choices=RANGE_POLICIES,
-        default="warn",
-        help="outside the trained joint range: warn (default), parametric (no nets there) or refuse",
-    )
-    add_coverage_arg(p)
+    add_range_args(p)
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     model = HybridModel.load(args.model) if args.model else HybridModel.analytic_only(chain_from_args(args))
-    model.range_policy = args.out_of_range
-    model.coverage_radius = args.coverage_radius
+    apply_range_args(model, args)
     _, q = read_csv(args.joints, model.joint_names)
     if not args.analytic:
         model.check_range(q)
