@@ -341,8 +341,9 @@ def identify(
                 target,
                 orientation_length,
             )
-            jac[: len(r0), on] = block * scale[cols[on]]
-            jac[len(r0) :, on] = np.diag(prior[cols[on]])
+            first = int(np.argmax(on))  # the cyclic parameters come last
+            jac[: len(r0), first:] = block * scale[cols[on]]
+            jac[len(r0) :, first:] = np.diag(prior[cols[on]])
         return jac
 
     everything = np.ones(len(params), dtype=bool)
@@ -365,6 +366,8 @@ def identify(
             f_scale=robust_scale,
             x_scale="jac",
             max_nfev=max_nfev,
+            # hundreds of cyclic coefficients: iterative trust-region steps instead of an SVD per iteration
+            tr_solver="lsmr" if np.sum(subset & cyclic) else "exact",
         )
 
     fit = solve(active, np.zeros(int(active.sum())))
