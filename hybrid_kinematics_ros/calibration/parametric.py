@@ -5,7 +5,13 @@ Parameters (all small, starting from the nominal URDF):
 - zero offsets of every joint;
 - joint compliances against the gravity torques computed from the URDF inertials and the payload;
 - link bending: a rotation per Nm of joint torque about the two axes perpendicular to each joint axis;
-- a small rigid transform (x, y, z, rx, ry, rz) of every joint origin and of the flange.
+- a small rigid transform (x, y, z, rx, ry, rz) of every joint origin and of the flange (its rotation
+  also tilts the joint's axis: axis misalignment needs no parameters of its own);
+- cyclic joint errors: a Fourier series (harmonics 1 … K) in each joint's own angle, the transmission and
+  encoder errors of real joints. On a real UR10 (ipa-robot-accuracy) they are most of what the other
+  parameters leave: a few arcseconds to an arcminute at 10-40 cycles per turn. Hundreds of coefficients
+  are more than the data pins down where a joint barely moved, so they carry a ridge prior
+  (``HARMONIC_PRIOR``) towards zero.
 
 Many of these are not identifiable from end-effector poses (a zero offset is the same as turning the joint
 origin about the joint axis; parallel axes leave some translations free). Identifiability is decided by
@@ -16,10 +22,12 @@ with a robust loss.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.linalg import solve_triangular
 from scipy.optimize import least_squares
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
@@ -31,20 +39,43 @@ ORIENTATION_LENGTH = 1.0  # m per rad: weighs orientation residuals against posi
 RANK_TOLERANCE = 1e-6  # pivots below this fraction of the largest are unidentifiable
 ROBUST_SCALE = 1e-3  # m: residuals well above this are down-weighted (soft L1)
 # Scaled unit of each kind of parameter, in SI: what one unit of the optimiser's variable means.
-SCALE = {"zero": 1e-3, "compliance": 1e-4, "bending": 1e-6, "translation": 1e-3, "rotation": 1e-3}
-UNITS = {"zero": "rad", "compliance": "rad/Nm", "bending": "rad/Nm", "translation": "m", "rotation": "rad"}
+HARMONICS = 40  # cyclic joint errors: harmonics 1 … HARMONICS of each joint's angle (0: none)
+# Ridge prior of each cyclic coefficient, in pairs: it weighs as much as this many poses seen 1 m from the joint.
+HARMONIC_PRIOR = 30.0
+SCALE = {
+    "zero": 1e-3,
+    "compliance": 1e-4,
+    "bending": 1e-6,
+    "translation": 1e-3,
+    "rotation": 1e-3,
+    "harmonic": 1e-4,
+}
+UNITS = {
+    "zero": "rad",
+    "compliance": "rad/Nm",
+    "bending": "rad/Nm",
+    "translation": "m",
+    "rotation": "rad",
+    "harmonic": "rad",
+}
+KINDS = tuple(SCALE)
+# What robot_calibration or pybotics fit, and what a URDF can carry: joint offsets and joint origins.
+GEOMETRY_KINDS = ("zero", "translation", "rotation")
 
 
 @dataclass(frozen=True)
 class Parameter:
     name: str
     kind: str
-    index: int  # joint (zero, compliance, bending) or frame (translation, rotation; n is the flange)
-    component: int
+    index: int  # joint (zero, compliance, bending, harmonic) or frame (translation, rotation; n is the flange)
+    component: int  # harmonic: 2 (f - 1) for sin(f q), 2 (f - 1) + 1 for cos(f q)
 
 
-def parameter_list(chain: Chain) -> list[Parameter]:
-    """Every candidate parameter, in the order pivoting prefers when two are equivalent (earlier wins)."""
+def parameter_list(chain: Chain, harmonics: int = 0) -> list[Parameter]:
+    """Every candidate parameter, in the order pivoting prefers when two are equivalent (earlier wins).
+
+    The cyclic joint errors come last: a geometric parameter with the same effect is the one kept.
+    """
     names = chain.joint_names
     out = [Parameter(f"zero offset {j}", "zero", k, 0) for k, j in enumerate(names)]
     out += [Parameter(f"compliance {j}", "compliance", k, 0) for k, j in enumerate(names)]
@@ -53,6 +84,12 @@ def parameter_list(chain: Chain) -> list[Parameter]:
     for k, frame in enumerate(frames):
         out += [Parameter(f"{frame} {c}", "translation", k, i) for i, c in enumerate("xyz")]
         out += [Parameter(f"{frame} r{c}", "rotation", k, i) for i, c in enumerate("xyz")]
+    for k, j in enumerate(names):
+        for f in range(1, harmonics + 1):
+            out += [
+                Parameter(f"joint error {j} {t}({f} q)", "harmonic", k, 2 * (f - 1) + i)
+                for i, t in enumerate(("sin", "cos"))
+            ]
     return out
 
 
@@ -63,8 +100,12 @@ def build_model(
     n = chain.dof
     zero, compliance, bend_uv = np.zeros(n), np.zeros(n), np.zeros((n, 2))
     delta = np.zeros((n + 1, 6))
+    k_max = max((p.component // 2 + 1 for p in params if p.kind == "harmonic"), default=0)
+    cyclic = np.zeros((n, k_max, 2))
     for p, v in zip(params, values, strict=True):
-        if p.kind == "zero":
+        if p.kind == "harmonic":
+            cyclic[p.index, p.component // 2, p.component % 2] = v
+        elif p.kind == "zero":
             zero[p.index] = v
         elif p.kind == "compliance":
             compliance[p.index] = v
@@ -75,13 +116,26 @@ def build_model(
     moved = se3.from_rotvec(delta[:, :3], delta[:, 3:])
     geometry = chain.with_geometry(chain.pre @ moved[:n], chain.post @ moved[n])
     bending = np.einsum("kc,kci->ki", bend_uv, bending_basis(chain))
-    return ElasticChain(geometry, zero, compliance, bending, float(payload_mass), np.asarray(payload_com, float))
+    return ElasticChain(
+        geometry,
+        zero,
+        compliance,
+        bending,
+        float(payload_mass),
+        np.asarray(payload_com, float),
+        joint_error=cyclic if np.any(cyclic) else None,
+    )
 
 
 def pose_residuals(
-    model: ElasticChain, q: np.ndarray, T: np.ndarray, position_only: bool, target: np.ndarray | None = None
+    model: ElasticChain,
+    q: np.ndarray,
+    T: np.ndarray,
+    position_only: bool,
+    target: np.ndarray | None = None,
+    orientation_length: float = ORIENTATION_LENGTH,
 ) -> np.ndarray:
-    """``(N, 3)`` or ``(N, 6)``: measured minus modelled position (m), then rotation (rad × 1 m).
+    """``(N, 3)`` or ``(N, 6)``: measured minus modelled position (m), then rotation (rad × ``orientation_length`` m).
 
     Position-only: ``T`` holds measured points at ``target`` (m, tip frame; None: the tip itself).
     """
@@ -90,7 +144,33 @@ def pose_residuals(
         return T[:, :3, 3] - se3.point_at(pred, target)
     dp = T[:, :3, 3] - pred[:, :3, 3]
     w = se3.rotvec(T[:, :3, :3] @ np.swapaxes(pred[:, :3, :3], 1, 2))
-    return np.concatenate([dp, ORIENTATION_LENGTH * w], axis=1)
+    return np.concatenate([dp, orientation_length * w], axis=1)
+
+
+def _joint_error_jacobian(
+    model: ElasticChain,
+    q: np.ndarray,
+    basis: np.ndarray,
+    joints: np.ndarray,
+    position_only: bool,
+    target: np.ndarray | None,
+    orientation_length: float,
+) -> np.ndarray:
+    """``(N × width, m)``: derivatives of :func:`pose_residuals` by cyclic joint-error coefficients (rad).
+
+    ``model`` without cyclic errors, at the joints ``q`` they shift to; ``basis (N, m)``: each coefficient's
+    ``sin(f q)`` or ``cos(f q)`` and ``joints (m,)`` its joint. The coefficients enter through the joint
+    angles, so each column is the joint's Jacobian column times its basis function: one Jacobian instead
+    of a model evaluation per coefficient.
+    """
+    tips, jac = model.fk_and_jacobian(q)
+    lin, ang = jac[:, :3], jac[:, 3:]
+    if position_only:
+        arm = se3.point_at(tips, target) - tips[:, :3, 3]  # tip to target, per pair
+        rows = lin + np.cross(ang, arm[:, :, None], axisa=1, axisb=1, axisc=1)
+    else:
+        rows = np.concatenate([lin, orientation_length * ang], axis=1)
+    return -(rows[:, :, joints] * basis[:, None, :]).reshape(-1, len(joints))
 
 
 @dataclass
@@ -98,12 +178,21 @@ class ParametricResult:
     model: ElasticChain
     params: list[Parameter]
     values: np.ndarray  # SI, zero where unidentifiable
-    rigid_values: np.ndarray  # the best fit without compliance and bending: what a URDF can carry
+    rigid_values: np.ndarray  # the best fit of the geometry alone (GEOMETRY_KINDS): what a URDF can carry
     identifiable: np.ndarray  # bool per parameter
     reasons: dict[str, str]  # unidentifiable parameter name -> why
     rms_before: dict[str, float]
     rms_after: dict[str, float]
     position_only: bool
+    nominal: Chain | None = None  # the chain the parameters are relative to
+
+    def geometry_model(self) -> ElasticChain:
+        """The geometry-only calibration (joint offsets and joint origins, no compliance, bending or
+        cyclic errors): what robot_calibration or pybotics give, and what a URDF export carries."""
+        if self.nominal is None:
+            raise CalibrationError("this result does not know its nominal chain")
+        m = self.model
+        return build_model(self.nominal, self.params, self.rigid_values, m.payload_mass, m.payload_com)
 
     def manifest(self) -> dict[str, Any]:
         m = self.model
@@ -160,52 +249,135 @@ def identify(
     max_pairs: int = 5000,
     seed: int = 0,
     target: np.ndarray | None = None,
+    max_nfev: int = 30,
+    kinds: Sequence[str] | None = None,
+    harmonics: int = HARMONICS,
+    harmonic_prior: float = HARMONIC_PRIOR,
+    orientation_length: float = ORIENTATION_LENGTH,
+    robust_scale: float = ROBUST_SCALE,
 ) -> ParametricResult:
     """Identify the elasto-geometric parameters from joints ``q (N, n)`` and measured base-frame poses ``T``.
 
     Position-only: ``T`` holds the measured target points and ``target`` (m, ``(3,)`` or ``(N, 3)``) their
     offset in the tip frame, which makes the flange's rotation observable.
 
-    At most ``max_pairs`` pairs (drawn reproducibly) enter the fit: a few thousand pin down the ~80
+    At most ``max_pairs`` pairs (drawn reproducibly) enter the fit: a few thousand pin down the
     parameters far below the tracker noise, and the cost grows with the count.
+
+    ``kinds``: the kinds of parameter to fit (default all of :data:`KINDS`; :data:`GEOMETRY_KINDS` is a
+    geometry-only calibration); the others stay zero. ``harmonics``: how many harmonics of the cyclic
+    joint errors (0: none), each coefficient held towards zero by ``harmonic_prior`` (in pairs).
     """
     com = np.zeros(3) if payload_com is None else np.asarray(payload_com, dtype=float)
     if len(q) < 20:
         raise CalibrationError(f"only {len(q)} pairs: the parametric stage needs at least 20")
+    chosen = KINDS if kinds is None else tuple(kinds)
+    unknown = sorted(set(chosen) - set(KINDS))
+    if unknown:
+        raise CalibrationError(f"unknown parameter kinds {unknown}; choose from {list(KINDS)}")
+    if "harmonic" not in chosen:
+        harmonics = 0
     pick = np.random.default_rng(seed).permutation(len(q))[:max_pairs]
     q_fit, T_fit = q[pick], T[pick]
     if target is not None and np.ndim(target) == 2:  # one offset per pair (several tracker stations)
         target = np.asarray(target)[pick]
-    params = parameter_list(chain)
+    params = parameter_list(chain, harmonics)
     scale = np.array([SCALE[p.kind] for p in params])
+    cyclic = np.array([p.kind == "harmonic" for p in params])
+    joints = np.array([p.index for p in params])
+    components = np.array([p.component for p in params])
+    prior = np.sqrt(harmonic_prior) * scale  # residual (m) per scaled unit of a cyclic coefficient, × 1 m
+    # Each cyclic coefficient's basis function at the fitted joints, (N, m): computed once, not per evaluation.
+    f = components[cyclic] // 2 + 1
+    phase = q_fit[:, joints[cyclic]] * f
+    basis = np.where(components[cyclic] % 2 == 0, np.sin(phase), np.cos(phase))
+    position = np.cumsum(cyclic) - 1  # column of a cyclic parameter in ``basis``
 
-    def residual(z: np.ndarray, active: np.ndarray) -> np.ndarray:
+    def values_at(z: np.ndarray, active: np.ndarray) -> np.ndarray:
         values = np.zeros(len(params))
         values[active] = z * scale[active]
-        model = build_model(chain, params, values, payload_mass, com)
-        return pose_residuals(model, q_fit, T_fit, position_only, target).ravel()
+        return values
+
+    def shifted_joints(values: np.ndarray, active: np.ndarray) -> np.ndarray:
+        """The fitted joints shifted by the cyclic errors (the model itself is then built without them)."""
+        on = active & cyclic
+        if not on.any():
+            return q_fit
+        return q_fit + (basis[:, position[on]] * values[on]) @ (joints[on][:, None] == np.arange(chain.dof))
+
+    def model_at(z: np.ndarray, active: np.ndarray) -> tuple[ElasticChain, np.ndarray]:
+        """The model without its cyclic errors, and the joints they shift the fitted ones to."""
+        values = values_at(z, active)
+        return build_model(chain, params, np.where(cyclic, 0.0, values), payload_mass, com), shifted_joints(
+            values, active
+        )
+
+    def pose_part(model: ElasticChain, shifted: np.ndarray) -> np.ndarray:
+        return pose_residuals(model, shifted, T_fit, position_only, target, orientation_length).ravel()
+
+    def residual(z: np.ndarray, active: np.ndarray) -> np.ndarray:
+        return np.concatenate([pose_part(*model_at(z, active)), prior[active & cyclic] * z[cyclic[active]]])
+
+    def jacobian(z: np.ndarray, active: np.ndarray) -> np.ndarray:
+        """Forward differences for the geometric and elastic parameters, closed form for the cyclic ones."""
+        model, shifted = model_at(z, active)
+        r0 = pose_part(model, shifted)
+        cols = np.flatnonzero(active)
+        jac = np.zeros((len(r0) + int(np.sum(active & cyclic)), len(cols)))
+        step = 1e-3
+        for i, c in enumerate(cols):
+            if cyclic[c]:
+                continue
+            zi = z.copy()
+            zi[i] += step
+            moved = build_model(chain, params, np.where(cyclic, 0.0, values_at(zi, active)), payload_mass, com)
+            jac[: len(r0), i] = (pose_part(moved, shifted) - r0) / step
+        on = cyclic[cols]
+        if on.any():
+            block = _joint_error_jacobian(
+                model,
+                shifted,
+                basis[:, position[cols[on]]],
+                joints[cols[on]],
+                position_only,
+                target,
+                orientation_length,
+            )
+            first = int(np.argmax(on))  # the cyclic parameters come last
+            jac[: len(r0), first:] = block * scale[cols[on]]
+            jac[len(r0) :, first:] = np.diag(prior[cols[on]])
+        return jac
 
     everything = np.ones(len(params), dtype=bool)
-    r0 = residual(np.zeros(len(params)), everything)
-    step = 1e-3
-    jac = np.empty((len(r0), len(params)))
-    for i in range(len(params)):
-        z = np.zeros(len(params))
-        z[i] = step
-        jac[:, i] = (residual(z, everything) - r0) / step
-    active, reasons = _identifiable(jac, params, position_only)
+    r0 = pose_part(*model_at(np.zeros(len(params)), everything))
+    jac = jacobian(np.zeros(len(params)), everything)[: len(r0)]
+    wanted = np.array([p.kind in chosen for p in params])
+    active, reasons = _identifiable(
+        jac[:, wanted], [p for p, w in zip(params, wanted, strict=True) if w], position_only
+    )
+    active = _expand(active, wanted)
+    reasons.update({p.name: "not fitted (kinds)" for p, w in zip(params, wanted, strict=True) if not w})
 
     def solve(subset: np.ndarray, start: np.ndarray):
         return least_squares(
-            residual, start, args=(subset,), loss="soft_l1", f_scale=ROBUST_SCALE, x_scale="jac", max_nfev=30
+            residual,
+            start,
+            jac=jacobian,
+            args=(subset,),
+            loss="soft_l1",
+            f_scale=robust_scale,
+            x_scale="jac",
+            max_nfev=max_nfev,
+            # hundreds of cyclic coefficients: iterative trust-region steps instead of an SVD per iteration
+            tr_solver="lsmr" if np.sum(subset & cyclic) else "exact",
         )
 
     fit = solve(active, np.zeros(int(active.sum())))
     values = np.zeros(len(params))
     values[active] = fit.x * scale[active]
     model = build_model(chain, params, values, payload_mass, com)
-    # The same without compliance and bending, for a URDF export: the geometry then absorbs what it can.
-    geometric = active & np.array([p.kind not in ("compliance", "bending") for p in params])
+    # The same with the geometry alone, for a URDF export: the geometry then absorbs what it can.
+    geometric = active & np.array([p.kind in GEOMETRY_KINDS for p in params])
     rigid_values = np.zeros(len(params))
     rigid_values[geometric] = solve(geometric, values[geometric] / scale[geometric]).x * scale[geometric]
     width = 3 if position_only else 6
@@ -217,9 +389,16 @@ def identify(
         identifiable=active,
         reasons=reasons,
         rms_before=_rms(r0.reshape(-1, width)),
-        rms_after=_rms(fit.fun.reshape(-1, width)),
+        rms_after=_rms(fit.fun[: len(r0)].reshape(-1, width)),
         position_only=position_only,
+        nominal=chain,
     )
+
+
+def _expand(mask: np.ndarray, where: np.ndarray) -> np.ndarray:
+    out = np.zeros(len(where), dtype=bool)
+    out[where] = mask
+    return out
 
 
 def _identifiable(jac: np.ndarray, params: list[Parameter], position_only: bool) -> tuple[np.ndarray, dict]:
@@ -227,25 +406,34 @@ def _identifiable(jac: np.ndarray, params: list[Parameter], position_only: bool)
 
     Columns are taken in the order of ``params`` (Gram-Schmidt, i.e. QR in that order): a column that
     adds less than ``RANK_TOLERANCE`` of its norm to the span of those already kept depends on them, so
-    of two equivalent parameters the earlier, more meaningful one (a zero offset, say) is kept.
+    of two equivalent parameters the earlier, more meaningful one (a zero offset, say) is kept. The
+    triangular factor gives each dependent column as a combination of the kept ones.
     """
     norms = np.linalg.norm(jac, axis=0)
     what = "positions" if position_only else "poses"
     reasons: dict[str, str] = {}
-    basis = np.zeros((jac.shape[0], 0))
+    basis = np.zeros((jac.shape[0], jac.shape[1]))
+    rmat = np.zeros((jac.shape[1], jac.shape[1]))  # kept normalised columns = basis[:, :k] @ rmat[:k, :k]
     kept: list[int] = []
     for j, p in enumerate(params):
         if norms[j] <= RANK_TOLERANCE * norms.max():
             reasons[p.name] = f"does not change the measured {what}"
             continue
+        k = len(kept)
         col = jac[:, j] / norms[j]
+        proj = np.zeros(k)
         for _ in range(2):  # re-orthogonalise once: classical Gram-Schmidt loses orthogonality otherwise
-            col = col - basis @ (basis.T @ col)
-        if np.linalg.norm(col) > RANK_TOLERANCE:
-            basis = np.column_stack([basis, col / np.linalg.norm(col)])
+            step = basis[:, :k].T @ col
+            col = col - basis[:, :k] @ step
+            proj += step
+        size = np.linalg.norm(col)
+        if size > RANK_TOLERANCE:
+            basis[:, k] = col / size
+            rmat[:k, k] = proj
+            rmat[k, k] = size
             kept.append(j)
             continue
-        coef = np.linalg.lstsq(jac[:, kept], jac[:, j], rcond=None)[0]  # in the scaled units of each
+        coef = solve_triangular(rmat[:k, :k], proj) * norms[j] / norms[kept]  # in the scaled units of each
         top = np.argsort(-np.abs(coef))[:3]
         terms = ", ".join(f"{coef[i]:+.3g} × {params[kept[i]].name}" for i in top if abs(coef[i]) > 1e-3)
         reasons[p.name] = f"same effect as {terms}"

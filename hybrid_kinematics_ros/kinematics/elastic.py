@@ -4,6 +4,8 @@ This one model serves two masters: the virtual cell's ground truth (which adds g
 and the parametric calibration stage (which identifies its parameters from data). Effects:
 
 - joint zero offsets: ``q_eff = q + zero_offset``;
+- cyclic joint errors (transmission and encoder errors): ``q_eff += Σ_f a_f sin(f q) + b_f cos(f q)``, a
+  Fourier series in each joint's own commanded angle (``joint_error``, harmonics ``f = 1 … K``);
 - joint compliance: the gravity torque ``τ`` about each joint (URDF inertials plus the payload) turns
   the joint by ``c τ / (1 + r (τ/τ_ref)²)`` (``r = 0``: a linear spring);
 - bending: the link after joint k turns by the rotation vector ``b_k τ_k`` (in the joint's frame, after
@@ -37,6 +39,29 @@ class ElasticChain:
     payload_com: np.ndarray = field(default_factory=lambda: np.zeros(3))  # in the tip frame
     cubic_ratio: float = 0.0
     torque_ref: float = 100.0
+    joint_error: np.ndarray | None = None  # (n, K, 2) rad: sin and cos coefficients of harmonics 1 … K
+
+    def corrected_joints(self, q: np.ndarray) -> np.ndarray:
+        """Commanded joints ``(B, n)`` plus zero offsets and cyclic joint errors: what the rigid links reach."""
+        q = np.asarray(q, dtype=float)
+        out = q + self.zero_offset
+        if self.has_joint_error:
+            out = out + self._cyclic(q)[0]
+        return out
+
+    @cached_property
+    def has_joint_error(self) -> bool:
+        return self.joint_error is not None and bool(np.any(self.joint_error))
+
+    def _cyclic(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The cyclic joint errors ``(..., n)`` at commanded ``q`` and their slopes ``d error / d q``."""
+        coef = np.asarray(self.joint_error, dtype=float)
+        f = np.arange(1, coef.shape[1] + 1)
+        phase = q[..., None] * f  # (..., n, K)
+        sin, cos = np.sin(phase), np.cos(phase)
+        value = np.sum(coef[..., 0] * sin + coef[..., 1] * cos, axis=-1)
+        slope = np.sum(f * (coef[..., 0] * cos - coef[..., 1] * sin), axis=-1)
+        return value, slope
 
     @classmethod
     def rigid(cls, chain: Chain, payload_mass: float = 0.0, payload_com: np.ndarray | None = None) -> ElasticChain:
@@ -54,7 +79,7 @@ class ElasticChain:
 
     @property
     def is_rigid(self) -> bool:
-        return not (np.any(self.zero_offset) or self.is_elastic)
+        return not (np.any(self.zero_offset) or self.is_elastic or self.has_joint_error)
 
     @cached_property
     def is_elastic(self) -> bool:
@@ -82,7 +107,7 @@ class ElasticChain:
 
     def effective_joints(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Joint values the links really reach, and the gravity torques ``(B, n)`` (zeros when rigid)."""
-        q_eff = np.atleast_2d(q) + self.zero_offset
+        q_eff = self.corrected_joints(np.atleast_2d(q))
         if not self.is_elastic:
             return q_eff, np.zeros_like(q_eff)
         torque = self.gravity_torques(q_eff)
@@ -93,7 +118,7 @@ class ElasticChain:
         """Tip poses ``(B, 4, 4)`` for commanded joints ``(B, n)``."""
         q = fk.check_joints(self.chain, q)
         if not self.is_elastic:
-            return fk.fk(self.chain, q + self.zero_offset)
+            return fk.fk(self.chain, self.corrected_joints(q))
         out = np.empty((len(q), 4, 4))
         for s in range(0, len(q), CHUNK):
             out[s : s + CHUNK] = self._frames(q[s : s + CHUNK])[1]
@@ -104,27 +129,33 @@ class ElasticChain:
 
         The Jacobian holds the deflections at their current values: it leaves out ``c ∂τ/∂q``, about 1e-3
         of the rigid terms for an industrial arm, which least squares on the exact poses does not need.
+        It is taken with respect to the commanded joints (the cyclic joint errors' slopes are included).
         """
         q = fk.check_joints(self.chain, q)
         if not self.is_elastic:
-            return fk.fk_and_jacobian(self.chain, q + self.zero_offset)
-        tips, jacs = np.empty((len(q), 4, 4)), np.empty((len(q), 6, self.dof))
-        for s in range(0, len(q), CHUNK):
-            motion, tips[s : s + CHUNK] = self._frames(q[s : s + CHUNK])
-            jacs[s : s + CHUNK] = self._jacobian(motion, tips[s : s + CHUNK])
+            tips, jacs = fk.fk_and_jacobian(self.chain, self.corrected_joints(q))
+        else:
+            tips, jacs = np.empty((len(q), 4, 4)), np.empty((len(q), 6, self.dof))
+            for s in range(0, len(q), CHUNK):
+                motion, tips[s : s + CHUNK] = self._frames(q[s : s + CHUNK])
+                jacs[s : s + CHUNK] = self._jacobian(motion, tips[s : s + CHUNK])
+        if self.has_joint_error:
+            jacs = jacs * (1.0 + self._cyclic(q)[1])[:, None, :]
         return tips, jacs
 
     def fk_single(self, q: np.ndarray) -> np.ndarray:
         """One pose ``(4, 4)`` for one configuration ``(n,)``."""
         if not self.is_elastic:
-            return fk.fk_single(self.chain, np.asarray(q, dtype=float) + self.zero_offset)
+            return fk.fk_single(self.chain, self.corrected_joints(q))
         return self._single(np.asarray(q, dtype=float))[1]
 
     def fk_and_jacobian_single(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One pose ``(4, 4)`` and its Jacobian ``(6, n)``, with the approximation of :meth:`fk_and_jacobian`."""
+        q = np.asarray(q, dtype=float)
         if not self.is_elastic:
-            return fk.fk_and_jacobian_single(self.chain, np.asarray(q, dtype=float) + self.zero_offset)
-        frames, tip, bend = self._single(np.asarray(q, dtype=float))
+            tip, jac = fk.fk_and_jacobian_single(self.chain, self.corrected_joints(q))
+            return tip, (jac * (1.0 + self._cyclic(q)[1]) if self.has_joint_error else jac)
+        frames, tip, bend = self._single(q)
         # Joint k turns about its axis in its frame before bending: R_k bend_kᵀ axis_k.
         z = np.einsum("kij,kj->ki", frames[:, :3, :3], np.einsum("kji,kj->ki", bend, self.chain.axes))
         lever = tip[:3, 3] - frames[:, :3, 3]
@@ -135,6 +166,8 @@ class ElasticChain:
         if prismatic.any():
             jac[:3, prismatic] = z[prismatic].T
             jac[3:, prismatic] = 0.0
+        if self.has_joint_error:
+            jac *= 1.0 + self._cyclic(q)[1]
         return tip, jac
 
     @cached_property
@@ -150,7 +183,7 @@ class ElasticChain:
         the moments' cross products into two sums, and the constant loads are cached.
         """
         chain = self.chain
-        q_eff = q + self.zero_offset
+        q_eff = self.corrected_joints(q)
         frames = self._rigid_frames(q_eff)
         tip = frames[-1] @ chain.post
         rot, origins = frames[:, :3, :3], frames[:, :3, 3]

@@ -8,7 +8,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from hybrid_kinematics_ros.calibration.parametric import identify, model_from_manifest
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
+from hybrid_kinematics_ros.calibration.parametric import GEOMETRY_KINDS, identify, model_from_manifest
 from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.simulation.truth import TrueRobot
@@ -112,3 +113,75 @@ def test_ik_through_the_parametric_model(cell, identified):
             pos, rot = se3.pose_errors(model.fk_single(result.q)[None], target[None])
             assert pos[0] < 1e-4 and rot[0] < 1e-4
     assert solved >= 29
+
+
+def _held_out(cfg, seed=11, count=400):
+    return np.random.default_rng(seed).uniform(cfg.chain.lower, cfg.chain.upper, (count, cfg.chain.dof))
+
+
+def test_cyclic_joint_errors_are_identified():
+    """The virtual cell's gear errors (harmonics 1 and 2 of each joint angle) are cyclic joint errors:
+    with harmonics the stage recovers them, without it they stay in the residual."""
+    cfg = load_robot_config("ur10")
+    robot = TrueRobot.from_config(cfg, enabled={"geometric": True, "gear": True, "compliance": False, "bending": False})
+    q = np.random.default_rng(3).uniform(cfg.chain.lower, cfg.chain.upper, (1200, cfg.chain.dof))
+    T = robot.fk(q)
+    kinds = ("zero", "translation", "rotation", "harmonic")
+    with_cyclic = identify(cfg.chain, q, T, kinds=kinds, harmonics=3, harmonic_prior=1e-3)
+    without = identify(cfg.chain, q, T, kinds=kinds, harmonics=0)
+    qt = _held_out(cfg)
+    pos, _ = se3.pose_errors(robot.fk(qt), with_cyclic.model.fk(qt))
+    pos0, _ = se3.pose_errors(robot.fk(qt), without.model.fk(qt))
+    assert pos0.mean() > 0.1  # mm: the gear errors matter
+    assert pos.mean() < pos0.mean() / 20
+    # the joint-6 error (about the flange axis, nothing else looks like it): amp · sin(f q + phase)
+    amp, phase = robot.gear_amplitude[5], robot.gear_phase[5]
+    expected = np.column_stack([amp * np.cos(phase), amp * np.sin(phase)])  # sin and cos coefficients
+    np.testing.assert_allclose(with_cyclic.model.joint_error[5, :2], expected, atol=0.05 * amp.max())
+    assert (
+        not with_cyclic.model.joint_error[:, 2].any()
+        or np.abs(with_cyclic.model.joint_error[:, 2]).max() < 0.05 * amp.max()
+    )
+
+
+def test_tilted_joint_axis_is_covered_by_the_origin_rotations():
+    """A joint axis that is not where the URDF says needs no parameter of its own: rotating the joint's
+    origin tilts its axis, and the stage recovers the tilted robot."""
+    from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
+
+    cfg = load_robot_config("ur10")
+    axes = cfg.chain.axes.copy()
+    axes[2] = axes[2] + np.array([np.radians(0.05), -np.radians(0.03), 0.0])  # joint 3 tilted by ~0.06°
+    axes[2] /= np.linalg.norm(axes[2])
+    truth = ElasticChain.rigid(replace(cfg.chain, axes=axes))
+    q = np.random.default_rng(4).uniform(cfg.chain.lower, cfg.chain.upper, (600, cfg.chain.dof))
+    result = identify(cfg.chain, q, truth.fk(q), kinds=GEOMETRY_KINDS)
+    qt = _held_out(cfg)
+    pos, rot = se3.pose_errors(truth.fk(qt), result.model.fk(qt))
+    nominal, _ = se3.pose_errors(truth.fk(qt), fk.fk(cfg.chain, qt))
+    assert nominal.mean() > 0.2  # mm
+    assert pos.max() < 1e-3 and rot.max() < 1e-4  # mm, degrees
+
+
+def test_geometry_only_calibration(cell, identified):
+    """kinds=GEOMETRY_KINDS fits joint offsets and origins only (what robot_calibration gives); the full
+    stage's geometry_model() is that same kind of model. On the compliant cell both leave the compliance."""
+    cfg, robot, q, T = cell
+    geometry = identify(cfg.chain, q, T, cfg.payload_mass, cfg.payload_com, max_pairs=1500, kinds=GEOMETRY_KINDS)
+    assert not geometry.model.is_elastic and not geometry.model.has_joint_error
+    assert geometry.reasons["compliance joint_2"] == "not fitted (kinds)"
+    served = identified.geometry_model()
+    assert not served.is_elastic and not served.has_joint_error
+    qt = _held_out(cfg)
+    truth = robot.fk(qt)
+    full, _ = se3.pose_errors(truth, identified.model.fk(qt))
+    geo, _ = se3.pose_errors(truth, geometry.model.fk(qt))
+    geo_served, _ = se3.pose_errors(truth, served.fk(qt))
+    assert full.mean() < geo.mean() / 100
+    assert abs(geo_served.mean() - geo.mean()) < 0.1 * geo.mean()
+
+
+def test_unknown_kind_is_refused(cell):
+    cfg, _, q, T = cell
+    with pytest.raises(CalibrationError, match="unknown parameter kinds"):
+        identify(cfg.chain, q, T, kinds=("zero", "gear"))

@@ -3,6 +3,8 @@ and a Jacobian close to finite differences (it leaves out the torque derivative 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -58,3 +60,39 @@ def test_jacobian_is_within_the_stated_approximation(elastic):
         numeric = np.concatenate([v, w], axis=1)
         # the left-out c·∂τ/∂q is a few 1e-3 of a column for these arms; a wrong axis would be O(1)
         np.testing.assert_allclose(J[:, :, j], numeric, atol=1e-2 * np.abs(numeric).max() + 1e-9)
+
+
+def _with_cyclic(elastic: ElasticChain, rigid: bool) -> ElasticChain:
+    """The chain with cyclic joint errors at harmonics 1-3 (about an arcminute), elastic or not."""
+    rng = np.random.default_rng(4)
+    coef = rng.normal(0.0, 3e-4, (elastic.dof, 3, 2))
+    base = ElasticChain.rigid(elastic.chain) if rigid else elastic
+    return replace(base, zero_offset=elastic.zero_offset, joint_error=coef)
+
+
+@pytest.mark.parametrize("rigid", [True, False])
+def test_cyclic_joint_errors_turn_the_joints(elastic, rigid):
+    """A cyclic joint error is a joint-angle shift: the chain at q equals the chain without it at the
+    shifted joints; the single-pose paths agree with the batch and the Jacobian is by the commanded joints."""
+    model = _with_cyclic(elastic, rigid)
+    q = joints(elastic.chain, 20, seed=3)
+    f = np.arange(1, 4)
+    shift = np.einsum("bnk,nk->bn", np.sin(q[..., None] * f), model.joint_error[..., 0]) + np.einsum(
+        "bnk,nk->bn", np.cos(q[..., None] * f), model.joint_error[..., 1]
+    )
+    plain = replace(model, joint_error=None)
+    np.testing.assert_allclose(model.fk(q), plain.fk(q + shift), atol=1e-14)
+    assert not model.is_rigid and model.has_joint_error
+    T, J = model.fk_and_jacobian(q)
+    for i in range(3):
+        np.testing.assert_allclose(model.fk_single(q[i]), T[i], atol=1e-14)
+        np.testing.assert_allclose(model.fk_and_jacobian_single(q[i])[1], J[i], atol=1e-12)
+    eps = 1e-6
+    for j in range(model.dof):
+        dq = np.zeros(model.dof)
+        dq[j] = eps
+        plus, minus = model.fk(q + dq), model.fk(q - dq)
+        numeric = (plus[:, :3, 3] - minus[:, :3, 3]) / (2 * eps)
+        # without the cyclic slope the columns would be off by f·a ≈ 1e-3 of their size
+        tol = (1e-2 if not rigid else 1e-6) * np.abs(numeric).max() + 1e-9
+        np.testing.assert_allclose(J[:, :3, j], numeric, atol=tol)
