@@ -17,6 +17,7 @@ from bench.report import table, write_section
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.fit import fit
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+from hybrid_kinematics_ros.ik.baselines import scipy_refine_solver, wang_baseline
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 
@@ -40,7 +41,7 @@ def paper_protocol(model: HybridModel, n: int, options: IKOptions) -> tuple[list
     for label, run in (
         (f"ours (LM, then bounded LM on the hybrid FK), {1e3 * options.timeout_s:.0f} ms budget", solver.solve),
         (f"ours, {1e3 * LONG_BUDGET_S:.0f} ms budget", patient.solve),
-        ("Wang et al. [26] baseline (compensated target, analytic IK)", solver.wang_baseline),
+        ("Wang et al. [26] baseline (compensated target, analytic IK)", lambda t: wang_baseline(solver, t)),
     ):
         results = [run(t) for t in targets]
         ok = np.array([r.success for r in results])
@@ -93,7 +94,7 @@ def main() -> None:
         # cost comparison on the UR10
         cost_rows = []
         for cost, refine in (("pose6", "scipy"), ("eq2", "scipy"), ("pose6", "lm")):
-            solver = IKSolver(ur10, replace(options, cost=cost, refine=refine))
+            solver = IKSolver(ur10, options) if refine == "lm" else scipy_refine_solver(ur10, options, cost)
             results = [solver.solve(t) for t in ur10_targets[:500]]
             cost_rows.append(
                 [

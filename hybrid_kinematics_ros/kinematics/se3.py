@@ -134,13 +134,6 @@ def pose_errors(t_a: np.ndarray, t_b: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return pos_mm, np.degrees(rotation_angle(rel))
 
 
-def ik_cost(t_a: np.ndarray, t_b: np.ndarray) -> np.ndarray:
-    """Paper eq. 2: the sum of squared element differences of the two matrices, translation in mm."""
-    scale = np.ones((4, 4))
-    scale[:3, 3] = 1e3
-    return np.sum(((np.asarray(t_a) - np.asarray(t_b)) * scale) ** 2, axis=(-2, -1))
-
-
 def fit_rigid(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares rigid transforms ``(B, 4, 4)`` with ``T · source ≈ target``, and the RMS residual ``(B,)``.
 

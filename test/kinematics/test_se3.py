@@ -62,16 +62,6 @@ def test_pose_errors_units_and_small_angles():
     assert rot_deg[0] == pytest.approx(np.degrees(1e-9), rel=1e-6)  # arccos would give 0 here
 
 
-def test_ik_cost_is_paper_eq2_in_mm():
-    a = se3.from_rotvec([0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
-    b = se3.from_rotvec([0.001, 0.0, 0.0], [0.0, 0.0, 0.0])
-    assert se3.ik_cost(a, b)[0] == pytest.approx(1.0)
-    r = Rotation.from_rotvec([0.0, 0.0, 0.01]).as_matrix()
-    c = a.copy()
-    c[0, :3, :3] = r
-    assert se3.ik_cost(a, c)[0] == pytest.approx(np.sum((np.eye(3) - r) ** 2))
-
-
 def test_non_unit_quaternion_is_refused():
     with pytest.raises(KinematicsError, match="unit quaternions"):
         se3.matrix_from_pose([0, 0, 0], [0, 0, 0, 2.0])

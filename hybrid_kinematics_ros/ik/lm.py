@@ -1,0 +1,114 @@
+"""The damped least-squares core every IK stage runs: Levenberg-Marquardt on the 6-vector pose error, projected
+onto the joint limits, with the rules that end a run which will not reach the target (a stall, a floor).
+
+Which FK and Jacobian it runs on (the URDF model, the hybrid model, or the hybrid pose with the URDF
+Jacobian) is the caller's choice, passed as one function.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics.chain import Chain
+
+FkJac = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+Limits = tuple[np.ndarray, np.ndarray, np.ndarray]  # lower, upper, revolute (bool)
+
+# Hand-set with the first solver (e7686a5): LM converges in a handful of steps from a good basin, so a run
+# still STALL_COST ((m or rad)²) away after STALL_ITERATIONS steps is stuck and another seed is cheaper.
+STALL_ITERATIONS = 12
+STALL_COST = 1e-6
+# A floor, not a solution (650d758, with test_lm_stops_on_a_floor_beyond_reach: a target 0.3 mm beyond the
+# UR10's reach ends in < 20 steps instead of 100): FLOOR_STEPS steps in a row that each keep more than
+# FLOOR_RATIO of the cost, within STALL_COST of the target.
+FLOOR_RATIO, FLOOR_STEPS = 0.98, 3
+# Marquardt's damping schedule: divide on a good step, multiply on a bad one, give up past LAMBDA_MAX.
+LAMBDA_DOWN, LAMBDA_UP, LAMBDA_MIN, LAMBDA_MAX = 5.0, 8.0, 1e-12, 1e8
+
+
+def log_so3(r: np.ndarray) -> np.ndarray:
+    """Rotation vector of one rotation matrix; accurate near zero, scipy near π."""
+    skew = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    s = 0.5 * np.sqrt(skew @ skew)
+    c = 0.5 * (np.trace(r) - 1.0)
+    angle = np.arctan2(s, c)
+    if angle < 1e-9:
+        return 0.5 * skew
+    if angle > 3.0:
+        return se3.rotvec(r[None])[0]
+    return angle / (2.0 * s) * skew
+
+
+def error6(target: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``[p_t − p; log(R_t Rᵀ)]`` in m and rad, base frame."""
+    return np.concatenate([target[:3, 3] - T[:3, 3], log_so3(target[:3, :3] @ T[:3, :3].T)])
+
+
+def joint_limits(chain: Chain) -> Limits:
+    """The chain's limits for the solvers: an unlimited joint gets ±2π (every angle, once)."""
+    lower = np.where(np.isfinite(chain.lower), chain.lower, -2 * np.pi)
+    upper = np.where(np.isfinite(chain.upper), chain.upper, 2 * np.pi)
+    return lower, upper, chain.revolute
+
+
+def project(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, revolute: np.ndarray) -> np.ndarray:
+    """Into the limits: wrap revolute joints by 2π where that lands inside, clip the rest."""
+    two_pi = 2.0 * np.pi
+    q = np.where(revolute & (q > upper) & (q - two_pi >= lower), q - two_pi, q)
+    q = np.where(revolute & (q < lower) & (q + two_pi <= upper), q + two_pi, q)
+    return np.clip(q, lower, upper)
+
+
+def lm_solve(
+    fk_jac: FkJac,
+    target: np.ndarray,
+    seed: np.ndarray,
+    limits: Limits,
+    tol_m: float,
+    tol_rad: float,
+    max_iterations: int,
+    deadline: float,
+    damping: float = 1e-3,
+) -> tuple[np.ndarray, float, float, int]:
+    """Levenberg-Marquardt on the pose error, projected onto the joint limits.
+
+    ``limits`` is ``(lower, upper, revolute)``. Returns the joints, the position (m) and rotation (rad)
+    errors, and the iterations used. Gives up early when it stalls far from the target, or when the cost
+    settles on a floor above the tolerance (within a millimetre, a few steps that each gain under 2 %).
+    ``damping`` is the starting λ: small when the seed is known to be close (Gauss-Newton steps at once).
+    """
+    lower, upper, revolute = limits
+    q = project(seed, lower, upper, revolute)
+    T, J = fk_jac(q)
+    e = error6(target, T)
+    cost = e @ e
+    lam = damping
+    iterations = slow = 0
+    while iterations < max_iterations:
+        if np.sqrt(e[:3] @ e[:3]) <= tol_m and np.sqrt(e[3:] @ e[3:]) <= tol_rad:
+            break
+        if time.perf_counter() > deadline or (iterations >= STALL_ITERATIONS and cost > STALL_COST):
+            break
+        iterations += 1
+        jtj = J.T @ J
+        step = np.linalg.solve(jtj + lam * (np.diag(np.diag(jtj)) + 1e-9 * np.eye(len(q))), J.T @ e)
+        q_new = project(q + step, lower, upper, revolute)
+        T_new, J_new = fk_jac(q_new)
+        e_new = error6(target, T_new)
+        cost_new = e_new @ e_new
+        if cost_new < cost:
+            # a floor, not a solution: the target lies beyond this model's reach here, or in a local minimum
+            slow = slow + 1 if cost_new > FLOOR_RATIO * cost and cost_new < STALL_COST else 0
+            q, T, J, e, cost = q_new, T_new, J_new, e_new, cost_new
+            lam = max(lam / LAMBDA_DOWN, LAMBDA_MIN)
+            if slow >= FLOOR_STEPS:
+                break
+        else:
+            lam = lam * LAMBDA_UP
+            if lam >= LAMBDA_MAX:
+                break
+    return q, float(np.sqrt(e[:3] @ e[:3])), float(np.sqrt(e[3:] @ e[3:])), iterations
