@@ -78,7 +78,9 @@ class IKSolver:
     ``refiner``: another hybrid refinement (the baselines'); by default projected LM in a box.
     """
 
-    def __init__(self, model: HybridModel, options: IKOptions | None = None, refiner: HybridRefiner | None = None):
+    def __init__(
+        self, model: HybridModel, options: IKOptions | None = None, refiner: HybridRefiner | None = None
+    ) -> None:
         self.model = model
         self.options = o = options or IKOptions()
         self.limits = joint_limits(model.chain)
