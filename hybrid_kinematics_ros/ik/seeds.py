@@ -73,7 +73,7 @@ def valley_seeds(
     trade off), and LM settles in a local minimum of it tenths of a radian from the solution."""
     if q is None or position_error_mm > VALLEY_MM:
         return []
-    _, sv, vt = np.linalg.svd(model.fk_and_jacobian_single(q)[1])
+    _, sv, vt = np.linalg.svd(model.fk_and_jacobian_single(q)[1], full_matrices=False)  # 7 joints: not the null space
     if sv[-1] > VALLEY_SINGULAR:
         return []
     return [project(q + step * vt[-1], *limits) for step in VALLEY_STEPS_RAD]

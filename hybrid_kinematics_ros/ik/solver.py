@@ -17,6 +17,11 @@ Several solutions come from several seeds, deduplicated modulo 2π on revolute j
 representative nearest the seed) and ordered by distance to the seed. Every result says whether it
 reached the target; a miss is never returned as a success. The methods we compare against are in
 :mod:`~hybrid_kinematics_ros.ik.baselines`.
+
+Redundant arms (7 joints) are solved, not refused. Every LM step is the damped least-squares correction, the
+smallest joint motion that reduces the pose error, so the answer keeps the seed's position along the
+self-motion: the null-space choice is "near the seed", with no further objective. A model without
+corrections (or ``analytic=True``) has no hybrid stages: its classical stage gets the whole budget.
 """
 
 from __future__ import annotations
@@ -73,7 +78,9 @@ class IKSolver:
     ``refiner``: another hybrid refinement (the baselines'); by default projected LM in a box.
     """
 
-    def __init__(self, model: HybridModel, options: IKOptions | None = None, refiner: HybridRefiner | None = None):
+    def __init__(
+        self, model: HybridModel, options: IKOptions | None = None, refiner: HybridRefiner | None = None
+    ) -> None:
         self.model = model
         self.options = o = options or IKOptions()
         self.limits = joint_limits(model.chain)
@@ -99,14 +106,16 @@ class IKSolver:
             raise IKError(f"the seed must have {dof} finite joint values, got {seed.shape}")
         return target, seed
 
-    def classical(self, target: np.ndarray, seed: np.ndarray, deadline: float) -> tuple[np.ndarray, float, float, int]:
-        """Stage 1 from one seed, then restarts while time remains: the joints, the errors (m, rad), the
-        attempts."""
+    def classical(
+        self, target: np.ndarray, seed: np.ndarray, deadline: float, restarts: int = seeding.TABLE_RESTARTS
+    ) -> tuple[np.ndarray, float, float, int]:
+        """Stage 1 from one seed, then restarts while time remains, from the ``restarts`` table configurations
+        nearest the target, then random ones: the joints, the errors (m, rad), the attempts."""
         tol_m, tol_rad = self.inner_tol
         best = None
         attempt_seed = seed
         attempts = 0
-        nearest = iter(self.seeds.nearest(target, seeding.TABLE_RESTARTS))
+        nearest = iter(self.seeds.nearest(target, restarts))
         while True:
             attempts += 1
             q, ep, er, _ = lm_solve(
@@ -118,6 +127,7 @@ class IKSolver:
                 tol_rad,
                 self.options.max_iterations,
                 deadline,
+                stop_crawl=attempts > 1,  # the caller's seed runs its course: it decides the branch
             )
             if best is None or ep + er < best[1] + best[2]:
                 best = (q, ep, er)
@@ -137,6 +147,11 @@ class IKSolver:
         o = self.options
         deadline = start + o.timeout_s
         stats = {"attempts": 0, "refinements": 0}
+        if analytic or not self.model.is_corrected:
+            # no hybrid stages to keep time for, and the branch search would only rerun the same URDF-model LM
+            # from the same table seeds: the classical stage gets the whole budget and all of those seeds
+            q, _, _, stats["attempts"] = self.classical(target, seed, deadline, 2 * seeding.TABLE_RESTARTS)
+            return self.result(q, target, analytic, start, stats)
         q0, _, _, attempts = self.classical(target, seed, start + CLASSICAL_SHARE * o.timeout_s)
         stats["attempts"] += attempts
         best = self._from_branch(target, q0, analytic, start, deadline, stats)
