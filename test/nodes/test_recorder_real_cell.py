@@ -1,0 +1,110 @@
+"""The recorder against a simulated cell that looks like a real one: a tracker standing in its own frame,
+a plain reflector, noisy encoders, a best-effort driver. One simulated cell per test (they share topics)."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import time
+
+import pytest
+import rclpy
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray
+from std_srvs.srv import Trigger
+
+from hybrid_kinematics_ros.io.pairs import read_pairs
+from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR
+from test.nodes.rosutil import Client, start, stop
+
+pytestmark = pytest.mark.ros
+OFFSET = 0.0123
+PLACED = [
+    "-p",
+    "base_to_tracker_xyz:=[2.4, -1.1, 0.35]",
+    "-p",
+    "base_to_tracker_rpy:=[0.01, -0.02, 2.2]",
+    "-p",
+    "flange_to_target_xyz:=[0.03, 0.02, 0.08]",
+    "-p",
+    "flange_to_target_rpy:=[0.3, 0.1, -0.5]",
+]
+
+
+@pytest.fixture
+def client():
+    rclpy.init()
+    c = Client("real_cell_test_client")
+    yield c
+    c.close()
+    rclpy.shutdown()
+
+
+def record(client, tmp_path, name: str, seconds: float, sim_args=(), recorder_args=()):
+    """Run a sim cell and a recorder for ``seconds`` of received poses, stop with SIGINT; return the
+    recorder's diagnostics (key-values and level, while recording), the bag's metadata and both logs."""
+    sim = start(
+        "sim_cell_node",
+        "--params-file",
+        str(CONFIG_DIR / "sim_cell.yaml"),
+        "-p",
+        f"tracker_clock_offset_s:={OFFSET}",
+        *sim_args,
+        log=tmp_path / "sim.log",
+    )
+    node = f"recorder_{name}"
+    proc = start(
+        "recorder_node",
+        "-r",
+        f"__node:={node}",
+        "-p",
+        f"output_dir:={tmp_path}",
+        "-p",
+        f"bag_name:={name}",
+        *recorder_args,
+        log=tmp_path / f"{name}.log",
+    )
+    try:
+        client.service(Trigger, f"/{node}/stop")  # up
+        diagnostics = []
+        sub = client.node.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
+
+        def ours():
+            return [
+                ({kv.key: kv.value for kv in s.values}, s.level, s.message)
+                for m in diagnostics
+                for s in m.status
+                if s.name == node and s.message != "idle"
+            ]
+
+        def received() -> int:
+            return max((int(d.get("tracker_poses", 0)) for d, _, _ in ours()), default=0)
+
+        deadline = time.monotonic() + seconds * 4 + 60
+        while received() < seconds * 3000 * 0.9 and time.monotonic() < deadline:
+            client.spin_for(0.5)
+        client.node.destroy_subscription(sub)
+        assert stop(proc, signal.SIGINT, timeout=120) == 0, (tmp_path / f"{name}.log").read_text()
+    finally:
+        stop(proc)
+        stop(sim)
+    meta = yaml.safe_load((tmp_path / name / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    return ours(), meta, (tmp_path / f"{name}.log").read_text()
+
+
+def align_cli(tmp_path, name: str, *extra: str) -> dict:
+    out = tmp_path / f"{name}_pairs"
+    command = ["hybrid-kinematics", "align", "--bag", str(tmp_path / name), "--out", str(out), "--robot", "ur10"]
+    cli = subprocess.run([*command, *extra], capture_output=True, text=True, check=False)
+    assert cli.returncode == 0, cli.stderr
+    return json.loads(cli.stdout.strip().splitlines()[-1])
+
+
+def test_tracker_in_its_own_frame_gives_the_offset_live_and_offline(client, tmp_path):
+    _, meta, log = record(client, tmp_path, "placed", 30.0, PLACED)
+    live = float(meta["custom_data"]["clock_offset_s"])
+    assert abs(live - OFFSET) < 2e-4, log
+    offline = align_cli(tmp_path, "placed")
+    assert abs(offline["clock_offset_ms"] - 1e3 * OFFSET) < 0.2, offline
+    assert len(read_pairs(tmp_path / "placed_pairs")) > 0.5 * 30 * 110
