@@ -1,14 +1,15 @@
 """Time alignment of a 110 Hz joint stream with a 3 kHz tracker stream into calibration pairs.
 
-The tracker stamps its samples with its own clock, ``t_tracker = t_robot + offset``. The offset is found
-from the data: the tip speed computed from the joints (nominal FK) and the speed measured by the tracker
-are the same curve in two clocks, so the best shift between them is the offset. A coarse grid search
-over the speed profiles is refined by a bounded scalar minimisation on the interpolated curves.
+The tracker stamps its samples with its own clock, ``t_tracker = t_robot + offset + skew · t``, and measures
+in its own frame. Both clock parameters are found from the data (:func:`estimate_clock`): first from the tip
+speed, which is the same in every frame, then, with the tracker frame fitted, from the positions jointly with
+a model of the nominal FK's error.
 
 Each joint stamp then gets the tracker pose interpolated at that instant (linear in position, slerp in
-rotation) from the two bracketing samples. There is no extrapolation, no bridging of gaps longer than
-``max_gap_s`` (a broken beam), and no sample taken while the joints move faster than ``max_joint_speed``.
-Every rejection is counted by reason.
+rotation; position only for a plain reflector, whose quaternions are zero) from the two bracketing samples.
+Unusable raw samples (NaN, repeated stamps, non-unit quaternions) are dropped first. There is no
+extrapolation, no bridging of gaps longer than ``max_gap_s`` (a broken beam), and no sample taken while the
+joints move faster than ``max_joint_speed``. Every rejection is counted by reason.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import minimize_scalar
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.io.pairs import Pairs
@@ -355,12 +356,7 @@ def align(
         rec.truncated,
         rec.counts,
     )
-    rejected: Counter = Counter()
-    norms = np.linalg.norm(rec.quats, axis=1)
-    good = np.all(np.isfinite(rec.positions), axis=1) & np.isfinite(norms) & (np.abs(norms - 1) < 1e-3)
-    rejected["tracker_sample_invalid"] += int((~good).sum())
-    rec.positions, rec.pose_stamps = rec.positions[good], rec.pose_stamps[good]
-    rec.quats = rec.quats[good] / norms[good, None]
+    rec, rejected, position_only = clean(rec)
     if o.offset_s is not None:
         clock = Clock(o.offset_s, o.skew_ppm * 1e-6, int(rec.joint_stamps[0]))
     else:
@@ -378,7 +374,7 @@ def align(
     long_gap = ~outside & (gap > o.max_gap_s)
     rejected["tracker_gap"] += int(long_gap.sum())
     speed = np.abs(np.gradient(rec.q, rec.joint_stamps * NS, axis=0)).max(axis=1)
-    fast = ~outside & ~long_gap & (speed > o.max_joint_speed)
+    fast = ~outside & ~long_gap & ~(speed <= o.max_joint_speed)  # NaN is fast, not slow
     rejected["moving_too_fast"] += int(fast.sum())
     keep = ~outside & ~long_gap & ~fast
     if not keep.any():
@@ -387,14 +383,61 @@ def align(
     span = (rec.pose_stamps[a] - rec.pose_stamps[b]).astype(float)
     w = np.where(span > 0, (tq - rec.pose_stamps[b]) / np.where(span > 0, span, 1.0), 0.0)
     position = (1 - w)[:, None] * rec.positions[b] + w[:, None] * rec.positions[a]
-    rb, ra = Rotation.from_quat(rec.quats[b]), Rotation.from_quat(rec.quats[a])
-    rotation = rb * Rotation.from_rotvec((rb.inv() * ra).as_rotvec() * w[:, None])  # slerp per pair
-    T = matrix_from_pose(position, rotation.as_quat())
-    pairs = Pairs(rec.q[keep], T, rec.joint_stamps[keep], chain.joint_names, frame_id or rec.pose_frame)
+    if position_only:
+        quat = np.tile([0.0, 0.0, 0.0, 1.0], (len(position), 1))  # identity placeholders, as read_pairs makes them
+    else:
+        t0 = rec.pose_stamps[0]
+        slerp = Slerp((rec.pose_stamps - t0) * NS, Rotation.from_quat(rec.quats))
+        quat = slerp((tq - t0) * NS).as_quat()
+    T = matrix_from_pose(position, quat)
+    frame = frame_id or rec.pose_frame
+    pairs = Pairs(rec.q[keep], T, rec.joint_stamps[keep], chain.joint_names, frame, position_only=position_only)
     if o.still_min_s > 0:
         pairs = static_pairs(pairs, speed[keep], o)
     offset = float(clock.offset_at(rec.joint_stamps[:1])[0])
     return AlignResult(pairs, offset, +rejected, clock.skew_ppm)
+
+
+def clean(rec: RawRecording) -> tuple[RawRecording, Counter, bool]:
+    """Drop unusable raw samples, counted by reason as :func:`read_pairs` does: non-finite values, repeated
+    stamps (the first is kept; a zero time step makes derivatives NaN), and quaternions off unit length.
+
+    Zero quaternions on every finite sample mean a plain reflector: position only (the third value).
+    """
+    rejected: Counter = Counter()
+    jt, q = _unique_stamps(rec.joint_stamps, rec.q, "joint_state", rejected)
+    finite = np.all(np.isfinite(q), axis=1)
+    rejected["joint_state_nan_or_inf"] += int(np.sum(~finite))
+    jt, q = jt[finite], q[finite]
+    values = np.hstack([rec.positions, rec.quats])
+    pt, values = _unique_stamps(rec.pose_stamps, values, "tracker", rejected)
+    finite = np.all(np.isfinite(values[:, :3]), axis=1)
+    position_only = bool(np.any(finite)) and bool(np.all(values[finite, 3:] == 0.0))
+    if not position_only:
+        finite &= np.all(np.isfinite(values[:, 3:]), axis=1)
+    rejected["tracker_nan_or_inf"] += int(np.sum(~finite))
+    pt, values = pt[finite], values[finite]
+    if not position_only:
+        norms = np.linalg.norm(values[:, 3:], axis=1)
+        unit = np.abs(norms - 1.0) < 1e-3
+        rejected["tracker_non_unit_quaternion"] += int(np.sum(~unit))
+        pt, values = pt[unit], values[unit]
+        values[:, 3:] /= norms[unit, None]
+    if not len(jt) or not len(pt):
+        raise CalibrationError(f"no usable samples: {len(jt)} joint states, {len(pt)} tracker poses; {dict(+rejected)}")
+    cleaned = RawRecording(
+        jt, rec.joint_names, q, pt, rec.pose_frame, values[:, :3], values[:, 3:], rec.truncated, rec.counts
+    )
+    return cleaned, rejected, position_only
+
+
+def _unique_stamps(stamps: np.ndarray, values: np.ndarray, what: str, rejected: Counter) -> tuple:
+    """Samples sorted by stamp with repeated stamps dropped (the first kept)."""
+    order = np.argsort(stamps, kind="stable")
+    stamps, values = stamps[order], values[order]
+    first = np.r_[True, np.diff(stamps) != 0]
+    rejected[f"{what}_duplicate_stamp"] += int(np.sum(~first))
+    return stamps[first], values[first]
 
 
 def static_pairs(pairs: Pairs, speed: np.ndarray, o: AlignOptions) -> Pairs:
@@ -415,4 +458,6 @@ def static_pairs(pairs: Pairs, speed: np.ndarray, o: AlignOptions) -> Pairs:
         stamps.append(pairs.stamps[(start + end) // 2])
     if not q:
         raise CalibrationError(f"static mode: no still window of at least {o.still_min_s} s")
-    return Pairs(np.array(q), np.array(T), np.array(stamps), pairs.joint_names, pairs.frame_id)
+    return Pairs(
+        np.array(q), np.array(T), np.array(stamps), pairs.joint_names, pairs.frame_id, position_only=pairs.position_only
+    )

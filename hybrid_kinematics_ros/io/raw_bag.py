@@ -273,6 +273,8 @@ def write_pairs_into(writer: BagWriter, pairs: Pairs) -> None:
     writer.add_topic(JOINTS_TOPIC, JOINT_STATE)
     writer.add_topic(POSE_TOPIC, POSE_STAMPED)
     positions, quats = pose_from_matrix(pairs.T)
+    if pairs.position_only:
+        quats = np.zeros_like(quats)  # the contract's "no orientation"
     for q, p, quat, ns in zip(pairs.q, positions, quats, pairs.stamps, strict=True):
         ns = int(ns)
         writer.write_msg(JOINTS_TOPIC, ns, joint_state_msg(ns, pairs.joint_names, q))

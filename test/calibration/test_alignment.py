@@ -150,3 +150,52 @@ def test_robot_standing_still_cannot_give_an_offset():
     )
     with pytest.raises(CalibrationError, match="does not move"):
         estimate_offset(cfg.chain, still)
+
+
+def position_only(rec):
+    """The same recording from a plain reflector: the contract's zero quaternions."""
+    return RawRecording(
+        rec.joint_stamps,
+        rec.joint_names,
+        rec.q,
+        rec.pose_stamps,
+        rec.pose_frame,
+        rec.positions,
+        np.zeros_like(rec.quats),
+        False,
+        Counter(),
+    )
+
+
+def test_position_only_recordings_align_without_orientation():
+    cfg, cell, _, rec = recording(noise=False)
+    plain = position_only(rec)
+    for options in (AlignOptions(), AlignOptions(offset_s=0.0123), AlignOptions(offset_s=0.0123, still_min_s=0.2)):
+        result = align(cfg.chain, plain, options, frame_id="base_link")
+        assert result.pairs.position_only and abs(result.offset_s - 0.0123) < 2e-4
+        np.testing.assert_array_equal(
+            result.pairs.T[:, :3, :3], np.broadcast_to(np.eye(3), result.pairs.T[:, :3, :3].shape)
+        )
+        if options == AlignOptions(offset_s=0.0123):  # the estimate is ±0.1 ms: some µm at these speeds
+            pos, _ = se3.pose_errors(result.pairs.T, cell.robot.fk(result.pairs.q))
+            assert np.mean(pos) < 0.001  # mm
+
+
+def test_bad_raw_samples_are_dropped_and_counted_by_reason():
+    cfg, _, _, rec = recording(noise=False, seconds=20)
+    n = len(rec.joint_stamps)
+    rec.joint_stamps[101] = rec.joint_stamps[100]  # a duplicate stamp: np.gradient divides by zero
+    rec.q[200, 2] = np.nan  # NaN joints crashed FK
+    rec.positions[5000] = np.nan
+    rec.pose_stamps[7001] = rec.pose_stamps[7000]
+    rec.quats[9000] = [0.0, 0.0, 0.0, 2.0]
+    for options in (AlignOptions(offset_s=0.0123), AlignOptions()):
+        result = align(cfg.chain, rec, options)
+        assert result.rejected["joint_state_duplicate_stamp"] == 1
+        assert result.rejected["joint_state_nan_or_inf"] == 1
+        assert result.rejected["tracker_nan_or_inf"] == 1
+        assert result.rejected["tracker_duplicate_stamp"] == 1
+        assert result.rejected["tracker_non_unit_quaternion"] == 1
+        assert np.all(np.isfinite(result.pairs.T)) and np.all(np.isfinite(result.pairs.q))
+        assert len(result.pairs) >= n - 2 - result.rejected["moving_too_fast"]
+        assert abs(result.offset_s - 0.0123) < 2e-4

@@ -108,3 +108,13 @@ def test_tracker_in_its_own_frame_gives_the_offset_live_and_offline(client, tmp_
     offline = align_cli(tmp_path, "placed")
     assert abs(offline["clock_offset_ms"] - 1e3 * OFFSET) < 0.2, offline
     assert len(read_pairs(tmp_path / "placed_pairs")) > 0.5 * 30 * 110
+
+
+def test_plain_reflector_is_recorded_and_aligned_position_only(client, tmp_path):
+    _, meta, log = record(client, tmp_path, "plain", 25.0, ["-p", "plain_reflector:=true"])
+    assert "clock_offset_s" in meta["custom_data"], log
+    assert abs(float(meta["custom_data"]["clock_offset_s"]) - OFFSET) < 2e-4, log
+    pairs = read_pairs(tmp_path / "plain")
+    assert pairs.position_only and len(pairs) > 0.5 * 25 * 110
+    offline = align_cli(tmp_path, "plain", "--offset-s", str(OFFSET))  # was an IndexError
+    assert read_pairs(tmp_path / "plain_pairs").position_only and offline["pairs"] == len(pairs)
