@@ -124,6 +124,7 @@ class RecorderNode(Node):
             writer.custom_data.update(
                 {
                     "clock_offset_s": repr(result.offset_s),
+                    "clock_skew_ppm": repr(result.skew_ppm),
                     "pairs": str(len(result.pairs)),
                     **{f"rejected_{k}": str(v) for k, v in result.rejected.items()},
                 }
@@ -131,7 +132,8 @@ class RecorderNode(Node):
             write_pairs_into(writer, result.pairs)
             self.last_offset, self.last_rejected, self.last_pairs = result.offset_s, result.rejected, len(result.pairs)
             message += (
-                f" with {len(result.pairs)} pairs; clock offset {result.offset_s * 1e3:.3f} ms; "
+                f" with {len(result.pairs)} pairs; clock offset {result.offset_s * 1e3:.3f} ms, "
+                f"skew {result.skew_ppm:.2f} ppm; "
                 f"rejected {dict(result.rejected)}"
             )
         except (CalibrationError, DataError, ValueError) as exc:

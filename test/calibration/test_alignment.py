@@ -199,3 +199,13 @@ def test_bad_raw_samples_are_dropped_and_counted_by_reason():
         assert np.all(np.isfinite(result.pairs.T)) and np.all(np.isfinite(result.pairs.q))
         assert len(result.pairs) >= n - 2 - result.rejected["moving_too_fast"]
         assert abs(result.offset_s - 0.0123) < 2e-4
+
+
+def test_clock_drift_of_20_ppm_over_ten_minutes():
+    """20 ppm is 12 ms after 10 minutes. The tracker runs at 500 Hz here to keep the test quick."""
+    cfg, _, _, rec = recording(seconds=600.0, drift_ppm=20.0, frames=PLACED, waypoints=200, tracker_hz=500.0)
+    result = align(cfg.chain, rec)
+    assert abs(result.skew_ppm - 20.0) < 2.0, result.skew_ppm
+    t = (rec.joint_stamps - rec.joint_stamps[0]) * 1e-9
+    found = result.offset_s + result.skew_ppm * 1e-6 * t
+    assert np.max(np.abs(found - (0.0123 + 20e-6 * t))) < 2e-4
