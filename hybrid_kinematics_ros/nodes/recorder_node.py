@@ -103,6 +103,7 @@ class RecorderNode(Node):
         writer.add_topic(self.joints_topic, JOINT_STATE)
         writer.add_topic(self.pose_topic, POSE_STAMPED)
         self.joints = Columns(self.chain.dof)
+        self.joint_rx = Columns(0)  # receive times (ns) of the joint states, the log time of their pairs
         self.poses = Columns(7)
         self.names: list[str] | None = None
         self.frame = ""
@@ -113,12 +114,18 @@ class RecorderNode(Node):
         return writer.path
 
     def stop(self) -> str:
-        """Align what was recorded, append the pairs, close the bag; the raw data is kept whatever happens."""
+        """Close the raw data, then align it and add the pairs; the raw data is kept whatever happens.
+
+        The raw file is completed before the alignment starts: a SIGTERM's grace period (or a SIGKILL
+        after it) during a long alignment costs the pairs at most, never recorded data.
+        """
         writer, self.writer = self.writer, None
         if writer is None:
             raise DataError("not recording")
         message = f"closed {writer.path}"
         try:
+            writer.split()  # the raw file: complete on disk
+            self.get_logger().info(f"raw recording finalised ({dict(writer.counts)}); aligning")
             rec = self._recording()
             result = align(self.chain, rec, self.options, self.pairs_frame or None)
             writer.custom_data.update(
@@ -129,19 +136,28 @@ class RecorderNode(Node):
                     **{f"rejected_{k}": str(v) for k, v in result.rejected.items()},
                 }
             )
-            write_pairs_into(writer, result.pairs)
+            write_pairs_into(writer, result.pairs, self._receive_times(result.pairs.stamps))
             self.last_offset, self.last_rejected, self.last_pairs = result.offset_s, result.rejected, len(result.pairs)
             message += (
                 f" with {len(result.pairs)} pairs; clock offset {result.offset_s * 1e3:.3f} ms, "
-                f"skew {result.skew_ppm:.2f} ppm; "
-                f"rejected {dict(result.rejected)}"
+                f"skew {result.skew_ppm:.2f} ppm; rejected {dict(result.rejected)}"
             )
         except (CalibrationError, DataError, ValueError) as exc:
             message += f" without pairs ({exc}); align it later with hybrid-kinematics align"
         finally:
-            writer.close()
+            with contextlib.suppress(DataError):  # a write failure is reported already
+                writer.close()
         self.get_logger().info(message)
         return message
+
+    def _receive_times(self, stamps: np.ndarray) -> np.ndarray:
+        """Log times of pairs: the receive time of the joint state each comes from, so that pairs and raw
+        topics share one time base in the bag (``starting_time``, ``duration``, playback order)."""
+        jt, rx = self.joints.view()[0], self.joint_rx.view()[0]
+        order = np.argsort(jt, kind="stable")
+        jt, rx = jt[order], rx[order]
+        index = np.clip(np.searchsorted(jt, stamps), 0, len(jt) - 1)
+        return np.where(jt[index] == stamps, rx[index], stamps)
 
     def _recording(self, last_s: float | None = None) -> RawRecording:
         """Everything recorded so far, or about the last ``last_s`` seconds of it (a copy either way)."""
@@ -182,6 +198,7 @@ class RecorderNode(Node):
             msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec,
             [msg.position[index[n]] for n in self.chain.joint_names],
         )
+        self.joint_rx.append(now, ())
 
     def _on_pose(self, raw: bytes) -> None:
         if self.writer is None:

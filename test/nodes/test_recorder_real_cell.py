@@ -3,15 +3,21 @@ a plain reflector, noisy encoders, a best-effort driver. One simulated cell per 
 
 from __future__ import annotations
 
+import ast
 import json
+import re
 import signal
 import subprocess
 import time
+from collections import Counter
 
 import pytest
 import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.serialization import deserialize_message
+from rosbags.rosbag2 import Reader
+from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from hybrid_kinematics_ros.io.pairs import read_pairs
@@ -41,9 +47,10 @@ def client():
     rclpy.shutdown()
 
 
-def record(client, tmp_path, name: str, seconds: float, sim_args=(), recorder_args=()):
+def record(client, tmp_path, name: str, seconds: float, sim_args=(), recorder_args=(), kill_when: str = ""):
     """Run a sim cell and a recorder for ``seconds`` of received poses, stop with SIGINT; return the
-    recorder's diagnostics (key-values and level, while recording), the bag's metadata and both logs."""
+    recorder's diagnostics (key-values, level and message, while recording), the bag's metadata and the
+    recorder's log. ``kill_when``: SIGKILL the recorder once its log shows this text after the SIGINT."""
     sim = start(
         "sim_cell_node",
         "--params-file",
@@ -85,7 +92,15 @@ def record(client, tmp_path, name: str, seconds: float, sim_args=(), recorder_ar
         while received() < seconds * 3000 * 0.9 and time.monotonic() < deadline:
             client.spin_for(0.5)
         client.node.destroy_subscription(sub)
-        assert stop(proc, signal.SIGINT, timeout=120) == 0, (tmp_path / f"{name}.log").read_text()
+        if kill_when:
+            log = tmp_path / f"{name}.log"
+            proc.send_signal(signal.SIGINT)
+            while kill_when not in log.read_text() and proc.poll() is None:
+                time.sleep(0.01)
+            proc.kill()
+            proc.wait()
+        else:
+            assert stop(proc, signal.SIGINT, timeout=120) == 0, (tmp_path / f"{name}.log").read_text()
     finally:
         stop(proc)
         stop(sim)
@@ -119,3 +134,27 @@ def test_plain_reflector_is_recorded_and_aligned_position_only(client, tmp_path)
     assert pairs.position_only and len(pairs) > 0.5 * 25 * 110
     offline = align_cli(tmp_path, "plain", "--offset-s", str(OFFSET))  # was an IndexError
     assert read_pairs(tmp_path / "plain_pairs").position_only and offline["pairs"] == len(pairs)
+
+
+def test_raw_data_is_final_before_the_alignment_and_pairs_share_its_time_base(client, tmp_path):
+    # killed while it aligns (after a SIGTERM's grace period, say): the raw data is all there
+    _, _, log = record(client, tmp_path, "killed", 15.0, kill_when="; aligning")
+    said = ast.literal_eval(re.search(r"raw recording finalised \((\{.*?\})\)", log).group(1))
+    reader = Reader(tmp_path / "killed")
+    reader.open()
+    found = Counter(c.topic for c, _, _ in reader.messages())
+    assert reader.message_count == found.total() and {t: found[t] for t in said} == said, (found, said)
+    reader.close()
+    # stopped normally: a pair is logged when its joint state was received, in the raw topics' time base
+    record(client, tmp_path, "timed", 10.0)
+    reader = Reader(tmp_path / "timed")
+    reader.open()
+    received, logged = {}, []
+    for conn, log_ns, raw in reader.messages():
+        if conn.topic in ("/joint_states", "/calibration/joint_states"):
+            stamp = deserialize_message(raw, JointState).header.stamp
+            key = stamp.sec * 10**9 + stamp.nanosec
+            (received.__setitem__(key, log_ns) if conn.topic == "/joint_states" else logged.append((key, log_ns)))
+    assert logged and all(received[k] == t for k, t in logged)
+    assert reader.start_time == min(received.values()) and reader.end_time >= max(received.values())
+    reader.close()
