@@ -18,6 +18,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.ndimage import maximum_filter1d, minimum_filter1d
 from scipy.optimize import minimize_scalar
 from scipy.spatial.transform import Rotation, Slerp
 
@@ -38,7 +39,10 @@ class AlignOptions:
     offset_s: float | None = None  # known tracker-minus-robot clock offset at the first joint stamp; None: estimate
     skew_ppm: float = 0.0  # with offset_s: the known tracker clock's skew against the robot's
     max_offset_s: float = 0.5  # search range of the estimate
-    still_speed: float = 1e-4  # rad/s: below this the robot stands still (static mode)
+    # static mode: still while no joint moves more than this within still_window_s (or 6 sigma of the
+    # encoder noise measured in the data, if more): a few counts of a 20-bit encoder (6e-6 rad a count)
+    still_tolerance_rad: float = 2e-5
+    still_window_s: float = 0.1
     still_min_s: float = 0.0  # > 0: static mode, one averaged pair per still window at least this long
 
 
@@ -393,7 +397,7 @@ def align(
     frame = frame_id or rec.pose_frame
     pairs = Pairs(rec.q[keep], T, rec.joint_stamps[keep], chain.joint_names, frame, position_only=position_only)
     if o.still_min_s > 0:
-        pairs = static_pairs(pairs, speed[keep], o)
+        pairs = static_pairs(pairs, still_mask(rec.q, rec.joint_stamps, o)[keep], o)
     offset = float(clock.offset_at(rec.joint_stamps[:1])[0])
     return AlignResult(pairs, offset, +rejected, clock.skew_ppm)
 
@@ -440,9 +444,29 @@ def _unique_stamps(stamps: np.ndarray, values: np.ndarray, what: str, rejected: 
     return stamps[first], values[first]
 
 
-def static_pairs(pairs: Pairs, speed: np.ndarray, o: AlignOptions) -> Pairs:
+def still_mask(q: np.ndarray, stamps: np.ndarray, o: AlignOptions) -> np.ndarray:
+    """True where the robot stands still: no joint moves more than a tolerance within ``still_window_s``.
+
+    A speed threshold does not work on real encoders: a 110 Hz difference of readings quantised to 6e-6
+    rad is 7e-4 rad/s of noise, above any sensible "still" speed. The displacement within a window is
+    bounded by a few counts instead. The tolerance is ``still_tolerance_rad`` or 6 σ of the encoder
+    noise, whichever is larger; σ comes from the second differences of the readings (white noise gives
+    them a variance of 6 σ²; their median absolute deviation ignores the motion, which is smooth).
+    """
+    if len(q) < 3:
+        return np.zeros(len(q), dtype=bool)
+    period = float(np.median(np.diff(stamps))) * NS
+    size = max(3, round(o.still_window_s / max(period, 1e-9)) | 1)  # odd: a centred window
+    second = np.diff(q, 2, axis=0)
+    mad = np.median(np.abs(second - np.median(second, axis=0)), axis=0)
+    sigma = 1.4826 * mad / np.sqrt(6.0)
+    tolerance = np.maximum(o.still_tolerance_rad, 6.0 * sigma)
+    spread = maximum_filter1d(q, size, axis=0, mode="nearest") - minimum_filter1d(q, size, axis=0, mode="nearest")
+    return np.all(spread <= tolerance, axis=1)
+
+
+def static_pairs(pairs: Pairs, still: np.ndarray, o: AlignOptions) -> Pairs:
     """Static mode (the paper's industrial experiment): one pair per still window, averaged over it."""
-    still = speed < o.still_speed
     edges = np.flatnonzero(np.diff(np.r_[0, still.astype(int), 0]))
     q, T, stamps = [], [], []
     for start, end in zip(edges[::2], edges[1::2], strict=True):

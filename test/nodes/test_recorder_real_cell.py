@@ -11,6 +11,7 @@ import subprocess
 import time
 from collections import Counter
 
+import numpy as np
 import pytest
 import rclpy
 import yaml
@@ -21,7 +22,9 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from hybrid_kinematics_ros.io.pairs import read_pairs
-from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR
+from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR, load_robot_config
+from hybrid_kinematics_ros.simulation.truth import TrueRobot
 from test.nodes.rosutil import Client, start, stop
 
 pytestmark = pytest.mark.ros
@@ -158,3 +161,21 @@ def test_raw_data_is_final_before_the_alignment_and_pairs_share_its_time_base(cl
     assert logged and all(received[k] == t for k, t in logged)
     assert reader.start_time == min(received.values()) and reader.end_time >= max(received.values())
     reader.close()
+
+
+def test_static_mode_with_noisy_quantised_encoders(client, tmp_path):
+    encoder = ["-p", "encoder_noise_rad:=2e-6", "-p", f"encoder_resolution_rad:={2 * np.pi / 2**20!r}"]
+    _, meta, log = record(
+        client,
+        tmp_path,
+        "static",
+        20.0,
+        [*encoder, "-p", "speed:=1.0"],  # moves of 2-4 s: about 5 dwells of 0.3 s in 20 s
+        ["-p", "static_min_s:=0.2", "-p", "max_joint_speed:=5.0", "-p", f"clock_offset_s:={OFFSET}"],
+    )
+    assert "pairs" in meta["custom_data"], log  # was: static mode: no still window
+    pairs = read_pairs(tmp_path / "static")
+    assert len(pairs) >= 3 and len(pairs) == int(meta["custom_data"]["pairs"])
+    cfg = load_robot_config("ur10")
+    pos, _ = se3.pose_errors(pairs.T, TrueRobot.from_config(cfg).fk(pairs.q))
+    assert np.mean(pos) < 0.02, pos  # mm: a still window's average
