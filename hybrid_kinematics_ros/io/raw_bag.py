@@ -9,6 +9,7 @@ the ``mcap`` stream reader, which also returns everything up to a truncated tail
 from __future__ import annotations
 
 import copy
+import errno
 import os
 import struct
 from collections import Counter
@@ -104,6 +105,7 @@ class BagWriter:
         self.closed = False
         self.custom_data: dict[str, str] = {"writer": "hybrid_kinematics_ros"}
         self.fd = -1
+        self._committed: tuple = (Counter(), [], None, 0)
         self._open_file()
 
     def __enter__(self) -> BagWriter:
@@ -151,14 +153,29 @@ class BagWriter:
         # the two only within those microseconds (about 1e-5 of the time at one chunk a second)
         staged = self.sync_metadata(stage=True)
         try:
-            os.pwrite(self.fd, data, self.pending.base)
+            # the space first: when the disk is full (or a size limit is hit) this fails and leaves the file
+            # as it was, valid up to its last trailer; a short pwrite would have cut the trailer
+            os.posix_fallocate(self.fd, self.pending.base, len(data))
+            if os.pwrite(self.fd, data, self.pending.base) != len(data):
+                raise OSError(errno.ENOSPC, "short write")
             if final:
                 os.ftruncate(self.fd, self.pending.base + len(data))
             staged.replace(self.path / "metadata.yaml")
         except OSError as exc:
+            self._restore()  # the counts of what is on disk, for the metadata.yaml written on close
             raise DataError(f"cannot write to {self.path}: {exc.strerror}; the data written so far is kept") from exc
         self.pending.base += len(self.pending.buf)
         self.pending.buf.clear()
+        self._committed = (
+            Counter(self.counts),
+            [{**f, "counts": Counter(f["counts"])} for f in self.files],
+            self.first_ns,
+            self.last_ns,
+        )
+
+    def _restore(self) -> None:
+        counts, files, self.first_ns, self.last_ns = self._committed
+        self.counts, self.files = Counter(counts), [{**f, "counts": Counter(f["counts"])} for f in files]
 
     def add_topic(self, topic: str, msgtype: str) -> None:
         if topic in self.topics:
@@ -192,8 +209,10 @@ class BagWriter:
         os.fsync(self.fd)
 
     def _finish_file(self) -> None:
-        self.writer.finish()
+        if self.fd < 0:  # a write failed while the last file was finished: what is on disk stays as it is
+            return
         try:
+            self.writer.finish()
             self._commit(final=True)
         finally:
             os.close(self.fd)

@@ -4,7 +4,9 @@ Messages arrive serialised (``raw=True``) and go straight into the bag; their st
 into in-memory buffers. When a recording stops (``~/stop``, SIGINT or SIGTERM) the buffers are aligned
 by the same code as ``hybrid-kinematics align`` and the pairs are appended to the bag before it is
 closed. A killed recorder leaves a bag whose complete chunks read back, and which ``align`` turns into
-pairs. Diagnostics (rates, counts, rejections, the clock offset) are published once a second.
+pairs. Diagnostics (rates, counts, rejections, the clock offset) are published once a second; they
+WARN on lost messages, an unstable clock offset or frequent beam breaks, and are an ERROR once the bag
+cannot be written. Subscriptions are reliable unless a publisher is best-effort (``reliability: auto``).
 Subscriptions run on the EventsExecutor: the only executor here that keeps up with 3 kHz at low CPU.
 """
 
@@ -40,6 +42,8 @@ from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.nodes.runtime import StartupError, read_only_parameter, run_node
 
+RELIABILITY = {"auto": None, "reliable": ReliabilityPolicy.RELIABLE, "best_effort": ReliabilityPolicy.BEST_EFFORT}
+
 
 class RecorderNode(Node):
     def __init__(self, name: str = "recorder_node", **kwargs) -> None:
@@ -66,20 +70,29 @@ class RecorderNode(Node):
             self.chain = load_robot_config(robot).chain
         except KinematicsError as exc:
             raise StartupError(f"parameter robot: {exc}") from exc
-        qos = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
+        reliability = declare(
+            "reliability", "auto", "auto (reliable unless a publisher is best-effort), reliable or best_effort"
+        )
+        if reliability not in RELIABILITY:
+            raise StartupError(f"parameter reliability: {reliability!r} is not one of {sorted(RELIABILITY)}")
+        self.reliability = reliability
+        self.max_beam_breaks = declare("max_beam_breaks_per_min", 6.0, "more tracker gaps a minute: WARN")
+        self.offset_warn_s = declare("offset_warn_s", 1e-3, "running clock estimates further apart: WARN")
         self.lost: Counter = Counter()  # what the middleware reports as lost before it reached us
+        self.subscriptions_: dict[str, tuple] = {}  # topic -> (subscription, reliability, type, callback)
         for msgtype, topic, callback in (
             (JointState, self.joints_topic, self._on_joints),
             (PoseStamped, self.pose_topic, self._on_pose),
         ):
-            events = SubscriptionEventCallbacks(message_lost=lambda info, t=topic: self._on_lost(t, info))
-            self.create_subscription(msgtype, topic, callback, qos, raw=True, event_callbacks=events)
+            self._subscribe(topic, msgtype, callback, RELIABILITY[reliability if reliability != "auto" else "reliable"])
         self.create_service(Trigger, "~/start", self._on_start)
         self.create_service(Trigger, "~/stop", self._on_stop)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(1.0, self._diagnostics)
         self.writer: BagWriter | None = None
         self.last_offset: float | None = None
+        self.offsets: list[float] = []  # running estimates of this recording
+        self.write_error = ""
         self.last_rejected: Counter = Counter()
         self.last_pairs = 0
         self._offset_worker: threading.Thread | None = None
@@ -89,6 +102,32 @@ class RecorderNode(Node):
                 self.start(self.bag_name or None)
             except DataError as exc:  # an existing bag or an unwritable folder
                 raise StartupError(str(exc)) from exc
+
+    # ------------------------------------------------------------------ subscriptions
+    def _subscribe(self, topic: str, msgtype, callback, reliability: ReliabilityPolicy) -> None:
+        events = SubscriptionEventCallbacks(message_lost=lambda info, t=topic: self._on_lost(t, info))
+        qos = QoSProfile(depth=10000, reliability=reliability)
+        sub = self.create_subscription(msgtype, topic, callback, qos, raw=True, event_callbacks=events)
+        self.subscriptions_[topic] = (sub, reliability, msgtype, callback)
+
+    def _adapt_qos(self) -> None:
+        """``reliability: auto``: best-effort as soon as a publisher is best-effort (a reliable subscription
+        never matches one), reliable again when all are reliable, as rosbag2's adaptive QoS does."""
+        if self.reliability != "auto":
+            return
+        for topic, (sub, current, msgtype, callback) in list(self.subscriptions_.items()):
+            offered = [i.qos_profile.reliability for i in self.get_publishers_info_by_topic(topic)]
+            if not offered:
+                continue
+            wanted = (
+                ReliabilityPolicy.BEST_EFFORT
+                if ReliabilityPolicy.BEST_EFFORT in offered
+                else ReliabilityPolicy.RELIABLE
+            )
+            if wanted != current:
+                self.destroy_subscription(sub)
+                self._subscribe(topic, msgtype, callback, wanted)
+                self.get_logger().info(f"{topic}: subscribed {wanted.name.lower()}, as its publishers offer")
 
     # ------------------------------------------------------------------ recording
     def start(self, name: str | None = None) -> Path:
@@ -108,6 +147,10 @@ class RecorderNode(Node):
         self.names: list[str] | None = None
         self.frame = ""
         self.received = Counter()
+        self.beam_breaks = 0
+        self.last_pose_stamp: int | None = None
+        self.offsets = []
+        self.write_error = ""
         self.started = time.monotonic()
         self.writer = writer
         self.get_logger().info(f"recording into {writer.path}")
@@ -182,11 +225,22 @@ class RecorderNode(Node):
         )
 
     # ------------------------------------------------------------------ callbacks
+    def _write(self, topic: str, time_ns: int, raw: bytes) -> bool:
+        """Into the bag; a failure (disk full, file size limit) stops the recording's writes and is an ERROR."""
+        if self.writer is None or self.write_error:
+            return False
+        try:
+            self.writer.write(topic, time_ns, raw)
+        except DataError as exc:
+            self.write_error = str(exc)
+            self.get_logger().error(f"{exc}; not recording any more")
+            return False
+        return True
+
     def _on_joints(self, raw: bytes) -> None:
-        if self.writer is None:
-            return
         now = time.time_ns()
-        self.writer.write(self.joints_topic, now, raw)
+        if not self._write(self.joints_topic, now, raw):
+            return
         msg = deserialize_message(raw, JointState)
         self.received["joint_states"] += 1
         index = {n: i for i, n in enumerate(msg.name)}
@@ -201,9 +255,8 @@ class RecorderNode(Node):
         self.joint_rx.append(now, ())
 
     def _on_pose(self, raw: bytes) -> None:
-        if self.writer is None:
+        if not self._write(self.pose_topic, time.time_ns(), raw):
             return
-        self.writer.write(self.pose_topic, time.time_ns(), raw)
         self.received["tracker_poses"] += 1
         try:
             stamp, self.frame, values = decode_pose_stamped(raw)
@@ -213,6 +266,9 @@ class RecorderNode(Node):
             stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
             self.frame, values = msg.header.frame_id, (p.x, p.y, p.z, o.x, o.y, o.z, o.w)
         self.poses.append(stamp, values)
+        if self.last_pose_stamp is not None and stamp - self.last_pose_stamp > self.options.max_gap_s * 1e9:
+            self.beam_breaks += 1  # a gap alignment will not bridge
+        self.last_pose_stamp = stamp
 
     def _on_lost(self, topic: str, info) -> None:
         self.lost[topic] = info.total_count
@@ -251,13 +307,16 @@ class RecorderNode(Node):
         def estimate() -> None:
             with contextlib.suppress(CalibrationError, DataError, ValueError):  # too little motion: keep the last
                 self.last_offset = estimate_offset(self.chain, recent, self.options.max_offset_s)
+                self.offsets.append(self.last_offset)
 
         self._offset_worker = threading.Thread(target=estimate, name="offset_estimate", daemon=True)
         self._offset_worker.start()
 
     def _diagnostics(self) -> None:
+        self._adapt_qos()
         status = DiagnosticStatus(name=self.get_name(), hardware_id="laser_tracker")
         values = {"recording": str(self.writer is not None)}
+        problems: list[tuple[bytes, str]] = []
         if self.writer is not None:
             elapsed = max(time.monotonic() - self.started, 1e-9)
             values.update(
@@ -267,21 +326,41 @@ class RecorderNode(Node):
                     "tracker_poses": str(self.received["tracker_poses"]),
                     "joint_rate_hz": f"{self.received['joint_states'] / elapsed:.1f}",
                     "tracker_rate_hz": f"{self.received['tracker_poses'] / elapsed:.1f}",
+                    "beam_breaks": str(self.beam_breaks),
                 }
             )
             values.update({f"lost_{t}": str(n) for t, n in self.lost.items()})
+            problems = self._problems(elapsed)
             self._start_offset_estimate()
         if self.last_offset is not None:
             values["clock_offset_ms"] = f"{self.last_offset * 1e3:.3f}"
         values.update({f"rejected_{k}": str(v) for k, v in self.last_rejected.items()})
         if self.last_pairs:
             values["pairs_last_recording"] = str(self.last_pairs)
-        status.level = DiagnosticStatus.OK
+        status.level = max((level for level, _ in problems), default=DiagnosticStatus.OK)
         status.message = "recording" if self.writer is not None else "idle"
+        if problems:
+            status.message += ": " + "; ".join(text for _, text in problems)
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
         self.diag_pub.publish(msg)
+
+    def _problems(self, elapsed: float) -> list[tuple[bytes, str]]:
+        """What makes this recording WARN (data lost or doubtful) or ERROR (nothing written any more)."""
+        out = []
+        if self.write_error:
+            out.append((DiagnosticStatus.ERROR, f"write failed: {self.write_error}"))
+        lost = sum(self.lost.values())
+        if lost:
+            out.append((DiagnosticStatus.WARN, f"{lost} messages lost before they reached the recorder"))
+        per_min = 60.0 * self.beam_breaks / max(elapsed, 1.0)
+        if self.beam_breaks >= 3 and per_min > self.max_beam_breaks:
+            out.append((DiagnosticStatus.WARN, f"beam breaks {per_min:.1f}/min (more than {self.max_beam_breaks:g})"))
+        if len(self.offsets) >= 2 and abs(self.offsets[-1] - self.offsets[-2]) > self.offset_warn_s:
+            jump = 1e3 * abs(self.offsets[-1] - self.offsets[-2])
+            out.append((DiagnosticStatus.WARN, f"clock offset unstable: the last estimates differ by {jump:.2f} ms"))
+        return out
 
 
 def main(args: list[str] | None = None) -> int:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import ast
 import json
 import re
+import resource
 import signal
 import subprocess
 import time
@@ -15,7 +16,9 @@ import numpy as np
 import pytest
 import rclpy
 import yaml
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseStamped
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from rosbags.rosbag2 import Reader
 from sensor_msgs.msg import JointState
@@ -25,7 +28,7 @@ from hybrid_kinematics_ros.io.pairs import read_pairs
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR, load_robot_config
 from hybrid_kinematics_ros.simulation.truth import TrueRobot
-from test.nodes.rosutil import Client, start, stop
+from test.nodes.rosutil import STARTED, Client, executable, start, stop
 
 pytestmark = pytest.mark.ros
 OFFSET = 0.0123
@@ -179,3 +182,106 @@ def test_static_mode_with_noisy_quantised_encoders(client, tmp_path):
     cfg = load_robot_config("ur10")
     pos, _ = se3.pose_errors(pairs.T, TrueRobot.from_config(cfg).fk(pairs.q))
     assert np.mean(pos) < 0.02, pos  # mm: a still window's average
+
+
+def test_many_beam_breaks_warn(client, tmp_path):
+    # the sim breaks the beam once a second for 0.2 s; the default threshold is 6 a minute
+    status, _, _ = record(client, tmp_path, "breaks", 12.0, ["-p", "dropout_rate_hz:=1.0"])
+    warned = [message for _, level, message in status if level == DiagnosticStatus.WARN and "beam" in message]
+    assert warned, status[-3:]
+
+
+def test_best_effort_tracker_driver_is_recorded(client, tmp_path):
+    """A driver publishing best-effort: a reliable-only subscription never matched it."""
+    proc = start(
+        "recorder_node",
+        "-r",
+        "__node:=recorder_be",
+        "-p",
+        f"output_dir:={tmp_path}",
+        "-p",
+        "bag_name:=be",
+        log=tmp_path / "be.log",
+    )
+    best_effort = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+    pose_pub = client.node.create_publisher(PoseStamped, "/tracker/pose", best_effort)
+    joint_pub = client.node.create_publisher(JointState, "/joint_states", 10)
+
+    def publish() -> None:
+        stamp = client.node.get_clock().now().to_msg()
+        pose = PoseStamped()
+        pose.header.stamp, pose.header.frame_id = stamp, "tracker"
+        pose.pose.orientation.w = 1.0
+        pose_pub.publish(pose)
+        joints = JointState(name=[f"joint_{i}" for i in range(1, 7)], position=[0.0] * 6)
+        joints.header.stamp = stamp
+        joint_pub.publish(joints)
+
+    timer = client.node.create_timer(0.01, publish)
+    try:
+        client.service(Trigger, "/recorder_be/stop")
+        diagnostics = []
+        sub = client.node.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
+
+        def poses() -> int:
+            ours = [kv for m in diagnostics for s in m.status if s.name == "recorder_be" for kv in s.values]
+            return max((int(kv.value) for kv in ours if kv.key == "tracker_poses"), default=0)
+
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and poses() < 100:
+            client.spin_for(0.5)
+        client.node.destroy_subscription(sub)
+    finally:
+        client.node.destroy_timer(timer)
+        assert stop(proc) == 0
+    counts = received_counts(tmp_path / "be")
+    assert counts.get("/tracker/pose", 0) > 50 and counts.get("/joint_states", 0) > 50, counts
+
+
+def received_counts(bag) -> dict:
+    """Messages per topic that metadata.yaml says the bag holds (rewritten with every chunk)."""
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    return {t["topic_metadata"]["name"]: t["message_count"] for t in meta["topics_with_message_count"]}
+
+
+def test_a_write_failure_is_an_error_and_the_recorder_keeps_serving(client, tmp_path):
+    """A file size limit (as a full disk would) makes the bag unwritable after about 3 MB."""
+    limit = 3 * 2**20
+    log = tmp_path / "full.log"
+    command = [str(executable("recorder_node")), "--ros-args", "-r", "__node:=recorder_full"]
+    command += ["-p", f"output_dir:={tmp_path}", "-p", "bag_name:=full"]
+    sim = start("sim_cell_node", "--params-file", str(CONFIG_DIR / "sim_cell.yaml"), log=tmp_path / "sim.log")
+    with open(log, "w") as out:
+        proc = subprocess.Popen(
+            command,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit)),
+        )
+    STARTED.append(proc)
+    try:
+        stop_srv = client.service(Trigger, "/recorder_full/stop")
+        diagnostics = []
+        sub = client.node.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
+        deadline = time.monotonic() + 90.0
+        errors: list = []
+        while not errors and time.monotonic() < deadline:
+            client.spin_for(0.5)
+            errors = [
+                s
+                for m in diagnostics
+                for s in m.status
+                if s.name == "recorder_full" and s.level == DiagnosticStatus.ERROR
+            ]
+        client.node.destroy_subscription(sub)
+        assert errors and "write failed" in errors[-1].message, log.read_text()
+        answer = client.call(stop_srv, Trigger.Request(), timeout=60, resend_after=60)
+        assert answer.success, answer.message  # still serving
+    finally:
+        stop(proc)
+        stop(sim)
+    reader = Reader(tmp_path / "full")  # what was written before the failure is a valid bag
+    reader.open()
+    assert reader.message_count == sum(1 for _ in reader.messages()) > 3000
+    reader.close()
