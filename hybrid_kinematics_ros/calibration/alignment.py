@@ -400,7 +400,7 @@ def align(
     if o.still_min_s > 0:
         pairs = static_pairs(pairs, still_mask(rec.q, rec.joint_stamps, o)[keep], o)
     offset = float(clock.offset_at(rec.joint_stamps[:1])[0])
-    return AlignResult(pairs, offset, +rejected, clock.skew_ppm)
+    return AlignResult(pairs, offset, +rejected, float(clock.skew_ppm))
 
 
 def clean(rec: RawRecording) -> tuple[RawRecording, Counter, bool]:
