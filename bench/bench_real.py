@@ -19,9 +19,6 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from bench.report import table, write_section
 from hybrid_kinematics_ros.calibration import train
@@ -29,6 +26,7 @@ from hybrid_kinematics_ros.calibration.evaluate import error_stats, target_error
 from hybrid_kinematics_ros.calibration.fit import fit, split
 from hybrid_kinematics_ros.calibration.parametric import model_from_manifest
 from hybrid_kinematics_ros.calibration.referencing import to_base_frame
+from hybrid_kinematics_ros.calibration.report import repeated_poses
 from hybrid_kinematics_ros.io.importer import import_table, load_spec_dict, spec_from_dict
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
@@ -40,7 +38,6 @@ SERIES = {  # name: (file, import spec, stamp start override: B and C share a sp
     "C": ("Series_C/measurements_random_poses.csv", "ipa_robot_accuracy_bc", "2020-12-01T00:00:00"),
     "D": ("Series_D/measurements_iso_cubes.csv", "ipa_robot_accuracy_d", None),
 }
-REPEAT_TOLERANCE_RAD = 1e-3  # readings of a repeated pose agree to the encoders' noise, not exactly
 
 
 def load_series(name: str, joints: tuple[str, ...]) -> Pairs:
@@ -52,12 +49,8 @@ def load_series(name: str, joints: tuple[str, ...]) -> Pairs:
 
 
 def repeatability_mm(pairs: Pairs) -> tuple[float, int]:
-    """Mean distance of repeated measurements of one joint vector from their mean, and the group count.
-    Readings of one commanded pose differ by encoder noise (up to 1e-4 rad here), so a group is every
-    chain of readings closer than ``REPEAT_TOLERANCE_RAD``."""
-    links = cKDTree(pairs.q).query_pairs(REPEAT_TOLERANCE_RAD, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(links)), (links[:, 0], links[:, 1])), shape=(len(pairs), len(pairs)))
-    _, label = connected_components(graph, directed=False)
+    """Mean distance of repeated measurements of one commanded pose from their mean, and the pose count."""
+    label = repeated_poses(pairs.q)
     spread = []
     groups = 0
     for g in np.flatnonzero(np.bincount(label) >= 2):

@@ -14,24 +14,39 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.calibration.evaluate import evaluate, measured_targets, plot_distributions, pose_errors_of
 from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.io.pairs import Pairs
 
-REPEAT_DECIMALS = 6  # joints equal to 1e-6 rad are the same commanded pose
+# Readings of one commanded pose differ by a few encoder counts (6e-6 rad a count at 20 bits) and the
+# servo's error; commanded poses of an ISO 9283 cycle are degrees apart.
+REPEAT_TOLERANCE_RAD = 1e-4
 
 
-def iso9283(model: HybridModel, pairs: Pairs, min_repeats: int = 3) -> list[dict[str, Any]]:
+def repeated_poses(q: np.ndarray, tolerance_rad: float = REPEAT_TOLERANCE_RAD) -> np.ndarray:
+    """A group label per row: joint vectors within ``tolerance_rad`` of each other (every joint), directly
+    or through a chain of such neighbours, are one commanded pose."""
+    pairs_ = cKDTree(q).query_pairs(tolerance_rad, p=np.inf, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs_)), (pairs_[:, 0], pairs_[:, 1])), shape=(len(q), len(q)))
+    return connected_components(graph, directed=False)[1]
+
+
+def iso9283(
+    model: HybridModel, pairs: Pairs, min_repeats: int = 3, tolerance_rad: float = REPEAT_TOLERANCE_RAD
+) -> list[dict[str, Any]]:
     """Pose accuracy and repeatability (ISO 9283, positions) for each commanded pose measured repeatedly.
 
     AP is the distance from the barycentre of the measured positions to the commanded position (what the
     model says the joints reach), for the URDF and the hybrid model; RP is ``l̄ + 3 s_l`` with ``l`` the
     distances of the measurements to their barycentre, which no model changes.
     """
-    keys = np.round(pairs.q, REPEAT_DECIMALS)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inverse = repeated_poses(pairs.q, tolerance_rad)
+    counts = np.bincount(inverse)
     targets = measured_targets(pairs)
     out = []
     for group in np.flatnonzero(counts >= min_repeats):
@@ -39,7 +54,7 @@ def iso9283(model: HybridModel, pairs: Pairs, min_repeats: int = 3) -> list[dict
         measured = targets[rows, :3, 3]
         centre = measured.mean(axis=0)
         spread = np.linalg.norm(measured - centre, axis=1)
-        q = pairs.q[rows[:1]]
+        q = pairs.q[rows].mean(axis=0, keepdims=True)  # the commanded pose, as well as the readings tell
         entry = {"pose": len(out) + 1, "repeats": len(rows), "joints_rad": q[0].round(4).tolist()}
         for name, T in (("analytic", model.fk(q, analytic=True)), ("hybrid", model.fk(q))):
             entry[f"AP_{name}_mm"] = float(1e3 * np.linalg.norm(centre - (T[0] @ pairs.targets[rows[0]])[:3, 3]))

@@ -15,7 +15,12 @@ from hybrid_kinematics_ros.io.pairs import RAW_JOINTS_TOPIC, RAW_POSE_TOPIC, wri
 def add_align_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--joints-topic", default=RAW_JOINTS_TOPIC, help="raw joint-state topic")
     p.add_argument("--tracker-topic", default=RAW_POSE_TOPIC, help="raw tracker-pose topic")
-    p.add_argument("--offset-s", type=float, help="tracker-minus-robot clock offset (s); default: estimate it")
+    p.add_argument(
+        "--offset-s",
+        type=float,
+        help="tracker-minus-robot clock offset at the first joint state (s); default: estimate",
+    )
+    p.add_argument("--skew-ppm", type=float, default=0.0, help="with --offset-s: the tracker clock's skew (ppm)")
     p.add_argument("--max-gap-s", type=float, default=0.02, help="longest tracker gap to interpolate across (s)")
     p.add_argument("--max-joint-speed", type=float, default=1.0, help="reject samples above this joint speed (rad/s)")
     p.add_argument("--static-min-s", type=float, default=0.0, help="> 0: one averaged pair per still window")
@@ -27,6 +32,7 @@ def align_options(args: argparse.Namespace) -> AlignOptions:
         max_gap_s=args.max_gap_s,
         max_joint_speed=args.max_joint_speed,
         offset_s=args.offset_s,
+        skew_ppm=args.skew_ppm,
         still_min_s=args.static_min_s,
     )
 
@@ -50,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
                 "pairs": len(result.pairs),
                 "out": str(args.out),
                 "clock_offset_ms": result.offset_s * 1e3,
+                "clock_skew_ppm": result.skew_ppm,
                 "rejected": dict(result.rejected),
                 "frame_id": result.pairs.frame_id,
                 "truncated_recording": rec.truncated,

@@ -1,22 +1,24 @@
 """Crash-tolerant recording into a rosbag2 MCAP bag, and reading raw recordings back.
 
-The recorder writes serialised messages straight into an MCAP file (chunked, so a killed process loses
-at most the chunk in progress) and writes ``metadata.yaml`` when it opens the bag and again when it
-closes it. Reading goes through the ``mcap`` stream reader, which returns everything up to a truncated
-tail, so a bag left by SIGKILL reads back all its complete chunks.
+The recorder writes serialised messages straight into MCAP files that are valid at every chunk
+boundary (see :class:`BagWriter`), so a killed process loses at most the chunk in progress and leaves a
+bag that any MCAP reader opens, with a ``metadata.yaml`` that counts what is in it. Reading goes through
+the ``mcap`` stream reader, which also returns everything up to a truncated tail.
 """
 
 from __future__ import annotations
 
+import copy
+import errno
 import os
 import struct
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import BinaryIO
 
 import numpy as np
 import yaml
+from mcap.data_stream import RecordBuilder
 from mcap.exceptions import McapError
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
@@ -56,28 +58,55 @@ def decode_pose_stamped(data: bytes) -> tuple[int, str, tuple[float, ...]]:
     return sec * 1_000_000_000 + nanosec, frame, _POSE.unpack_from(data, start)
 
 
-class BagWriter:
-    """A rosbag2 bag (MCAP storage) written message by message. Use as a context manager."""
+class _Pending:
+    """The stream the mcap Writer writes into: bytes wait here until :class:`BagWriter` commits them."""
 
-    def __init__(self, path: str | Path, chunk_bytes: int = CHUNK_BYTES) -> None:
+    def __init__(self, base: int = 0) -> None:
+        self.base = base  # file offset of the first pending byte
+        self.buf = bytearray()
+
+    def write(self, data: bytes) -> int:
+        self.buf += data
+        return len(data)
+
+    def tell(self) -> int:
+        return self.base + len(self.buf)
+
+    def flush(self) -> None:
+        pass
+
+
+class BagWriter:
+    """A rosbag2 bag (MCAP storage) written message by message, valid on disk at every chunk boundary.
+
+    Each time the mcap Writer completes a chunk, the chunk goes to the file together with a summary and
+    footer (what ``finish`` would write) in one ``pwrite``; the next chunk overwrites that trailer. So a
+    SIGKILLed bag is a complete, indexed MCAP up to its last chunk, which rosbags and the mcap library
+    read as they are, and ``metadata.yaml``, rewritten at the same moment, holds its real message count.
+    The trailer lists every chunk of the file: files are split every ``file_chunks`` chunks (about 10
+    minutes at 3 kHz) to keep it small. ``split()`` starts the next file at once (the recorder closes the
+    raw data that way before it aligns). Use as a context manager.
+    """
+
+    def __init__(self, path: str | Path, chunk_bytes: int = CHUNK_BYTES, file_chunks: int = 600) -> None:
         self.path = Path(path)
         if self.path.exists():
             raise DataError(f"{self.path} exists already, not overwriting")
         try:
             self.path.mkdir(parents=True)
-            self.file: BinaryIO = open(self.path / f"{self.path.name}_0.mcap", "wb")  # noqa: SIM115
         except OSError as exc:
             raise DataError(f"cannot create bag {self.path}: {exc.strerror}") from exc
-        self.writer = Writer(self.file, chunk_size=chunk_bytes, compression=CompressionType.NONE)
-        self.writer.start(profile="ros2", library="hybrid_kinematics_ros")
-        self.channels: dict[str, tuple[int, str]] = {}
-        self.schemas: dict[str, int] = {}
+        self.chunk_bytes, self.file_chunks = chunk_bytes, file_chunks
+        self.topics: dict[str, str] = {}  # topic -> message type
+        self.files: list[dict] = []  # per file: name, counts, first/last log time
         self.counts: Counter = Counter()
         self.first_ns: int | None = None
         self.last_ns = 0
         self.closed = False
         self.custom_data: dict[str, str] = {"writer": "hybrid_kinematics_ros"}
-        self.sync_metadata()
+        self.fd = -1
+        self._committed: tuple = (Counter(), [], None, 0)
+        self._open_file()
 
     def __enter__(self) -> BagWriter:
         return self
@@ -85,73 +114,158 @@ class BagWriter:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def add_topic(self, topic: str, msgtype: str) -> None:
-        if topic in self.channels:
-            return
+    def _open_file(self) -> None:
+        name = f"{self.path.name}_{len(self.files)}.mcap"
+        try:
+            self.fd = os.open(self.path / name, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except OSError as exc:
+            raise DataError(f"cannot create {self.path / name}: {exc.strerror}") from exc
+        self.files.append({"name": name, "counts": Counter(), "first": None, "last": 0, "chunks": 0})
+        self.pending = _Pending()
+        self.writer = Writer(self.pending, chunk_size=self.chunk_bytes, compression=CompressionType.NONE)
+        self.writer.start(profile="ros2", library="hybrid_kinematics_ros")
+        self.schemas: dict[str, int] = {}
+        self.channels: dict[str, int] = {}
+        for topic, msgtype in self.topics.items():
+            self._register(topic, msgtype)
+        self._commit()
+
+    def _register(self, topic: str, msgtype: str) -> None:
         if msgtype not in self.schemas:
             text, _ = TYPESTORE.generate_msgdef(msgtype, ros_version=2)
             self.schemas[msgtype] = self.writer.register_schema(msgtype, "ros2msg", text.encode())
-        channel = self.writer.register_channel(topic, "cdr", self.schemas[msgtype])
-        self.channels[topic] = (channel, msgtype)
-        self.sync_metadata()
+        self.channels[topic] = self.writer.register_channel(topic, "cdr", self.schemas[msgtype])
+
+    def _trailer(self) -> bytes:
+        """What ``Writer.finish`` would append now, computed on a copy (the chunk builder is empty here)."""
+        copy_ = copy.copy(self.writer)
+        out = _Pending(self.pending.tell())
+        copy_._Writer__stream = out  # mcap has no public way to get the summary bytes before finish
+        copy_._Writer__record_builder = RecordBuilder()
+        copy_._Writer__summary_offsets = []
+        copy_.finish()
+        return bytes(out.buf)
+
+    def _commit(self, final: bool = False) -> None:
+        """Write the pending records (and, unless final, a trailer) where the last trailer began."""
+        data = bytes(self.pending.buf) + (b"" if final else self._trailer())
+        # metadata.yaml is prepared first and renamed into place right after the data: a kill can split
+        # the two only within those microseconds (about 1e-5 of the time at one chunk a second)
+        staged = self.sync_metadata(stage=True)
+        try:
+            # the space first: when the disk is full (or a size limit is hit) this fails and leaves the file
+            # as it was, valid up to its last trailer; a short pwrite would have cut the trailer
+            os.posix_fallocate(self.fd, self.pending.base, len(data))
+            if os.pwrite(self.fd, data, self.pending.base) != len(data):
+                raise OSError(errno.ENOSPC, "short write")
+            if final:
+                os.ftruncate(self.fd, self.pending.base + len(data))
+            staged.replace(self.path / "metadata.yaml")
+        except OSError as exc:
+            self._restore()  # the counts of what is on disk, for the metadata.yaml written on close
+            raise DataError(f"cannot write to {self.path}: {exc.strerror}; the data written so far is kept") from exc
+        self.pending.base += len(self.pending.buf)
+        self.pending.buf.clear()
+        self._committed = (
+            Counter(self.counts),
+            [{**f, "counts": Counter(f["counts"])} for f in self.files],
+            self.first_ns,
+            self.last_ns,
+        )
+
+    def _restore(self) -> None:
+        counts, files, self.first_ns, self.last_ns = self._committed
+        self.counts, self.files = Counter(counts), [{**f, "counts": Counter(f["counts"])} for f in files]
+
+    def add_topic(self, topic: str, msgtype: str) -> None:
+        if topic in self.topics:
+            return
+        self.topics[topic] = msgtype
+        self._register(topic, msgtype)
+        self._commit()
 
     def write(self, topic: str, time_ns: int, data: bytes) -> None:
         """Write one serialised (CDR) message; ``time_ns`` is the receive time, as rosbag2 records it."""
-        try:
-            self.writer.add_message(self.channels[topic][0], time_ns, bytes(data), time_ns)
-        except OSError as exc:
-            raise DataError(f"cannot write to {self.path}: {exc.strerror}; the data written so far is kept") from exc
-        self.counts[topic] += 1
+        if self.closed:
+            raise DataError(f"{self.path} is closed")
+        self.writer.add_message(self.channels[topic], time_ns, bytes(data), time_ns)
+        file = self.files[-1]
+        for counts, key in ((self.counts, topic), (file["counts"], topic)):
+            counts[key] += 1
+        file["first"] = time_ns if file["first"] is None else min(file["first"], time_ns)
+        file["last"] = max(file["last"], time_ns)
         self.first_ns = time_ns if self.first_ns is None else min(self.first_ns, time_ns)
         self.last_ns = max(self.last_ns, time_ns)
+        if self.pending.buf:  # the writer completed a chunk: it is on disk with its trailer at once
+            file["chunks"] += 1
+            self._commit()
+            if file["chunks"] >= self.file_chunks:
+                self.split()
 
     def write_msg(self, topic: str, time_ns: int, msg: object) -> None:
-        self.write(topic, time_ns, TYPESTORE.serialize_cdr(msg, self.channels[topic][1]))
+        self.write(topic, time_ns, TYPESTORE.serialize_cdr(msg, self.topics[topic]))
 
     def flush(self) -> None:
-        self.file.flush()
-        os.fsync(self.file.fileno())
+        os.fsync(self.fd)
+
+    def _finish_file(self) -> None:
+        if self.fd < 0:  # a write failed while the last file was finished: what is on disk stays as it is
+            return
+        try:
+            self.writer.finish()
+            self._commit(final=True)
+        finally:
+            os.close(self.fd)
+            self.fd = -1
+
+    def split(self) -> None:
+        """Complete the current file (summary, footer) and go on in a new one."""
+        self._finish_file()
+        self._open_file()
 
     def close(self) -> None:
         if self.closed:
             return
         self.closed = True
         try:
-            self.writer.finish()
-            self.file.close()
+            self._finish_file()
         finally:
             self.sync_metadata()
 
-    def sync_metadata(self) -> None:
-        write_metadata(
+    def sync_metadata(self, stage: bool = False) -> Path:
+        """Write ``metadata.yaml`` (or, with ``stage``, a temporary file to rename into place later)."""
+        return write_metadata(
             self.path,
-            f"{self.path.name}_0.mcap",
-            {t: (m, self.counts[t]) for t, (_, m) in self.channels.items()},
-            self.first_ns or 0,
-            self.last_ns,
+            [(f["name"], f["counts"], f["first"] or 0, f["last"]) for f in self.files],
+            self.topics,
             self.custom_data,
+            stage,
         )
 
 
 def write_metadata(
     path: Path,
-    mcap_name: str,
-    topics: dict[str, tuple[str, int]],
-    start: int,
-    end: int,
+    files: list[tuple[str, Counter, int, int]],
+    topics: dict[str, str],
     custom_data: dict[str, str] | None = None,
-) -> None:
-    """rosbag2's ``metadata.yaml`` (version 9), as ``ros2 bag info`` and rosbags read it."""
-    total = sum(count for _, count in topics.values())
-    duration = max(0, end - start)
+    stage: bool = False,
+) -> Path:
+    """rosbag2's ``metadata.yaml`` (version 9), as ``ros2 bag info`` and rosbags read it.
+
+    ``files``: ``(name, message counts by topic, first log time, last log time)`` of each MCAP file.
+    """
+    counts = sum((c for _, c, _, _ in files), Counter())
+    used = [(n, c, a, b) for n, c, a, b in files if c.total()]
+    start = min((a for _, _, a, _ in used), default=0)
+    end = max((b for _, _, _, b in used), default=0)
     info = {
         "rosbag2_bagfile_information": {
             "version": 9,
             "storage_identifier": "mcap",
-            "relative_file_paths": [mcap_name],
-            "duration": {"nanoseconds": duration},
+            "relative_file_paths": [name for name, _, _, _ in files],
+            "duration": {"nanoseconds": max(0, end - start)},
             "starting_time": {"nanoseconds_since_epoch": start},
-            "message_count": total,
+            "message_count": counts.total(),
             "topics_with_message_count": [
                 {
                     "topic_metadata": {
@@ -161,19 +275,20 @@ def write_metadata(
                         "offered_qos_profiles": [],
                         "type_description_hash": "",
                     },
-                    "message_count": count,
+                    "message_count": counts[topic],
                 }
-                for topic, (msgtype, count) in topics.items()
+                for topic, msgtype in topics.items()
             ],
             "compression_format": "",
             "compression_mode": "",
             "files": [
                 {
-                    "path": mcap_name,
-                    "starting_time": {"nanoseconds_since_epoch": start},
-                    "duration": {"nanoseconds": duration},
-                    "message_count": total,
+                    "path": name,
+                    "starting_time": {"nanoseconds_since_epoch": first},
+                    "duration": {"nanoseconds": max(0, last - first)},
+                    "message_count": c.total(),
                 }
+                for name, c, first, last in files
             ],
             "custom_data": dict(custom_data or {}),
             "ros_distro": "jazzy",
@@ -181,7 +296,7 @@ def write_metadata(
     }
     tmp = path / "metadata.yaml.tmp"
     tmp.write_text(yaml.safe_dump(info, sort_keys=False))
-    tmp.replace(path / "metadata.yaml")
+    return tmp if stage else tmp.replace(path / "metadata.yaml")
 
 
 @dataclass
@@ -199,13 +314,19 @@ class RawRecording:
     counts: Counter
 
 
+def _file_index(file: Path) -> tuple[int, str]:
+    tail = file.stem.rsplit("_", 1)[-1]
+    return (int(tail) if tail.isdigit() else -1, file.name)
+
+
 def iter_messages(path: str | Path):
     """``(topic, msgtype, log_time, data)`` of every complete message; stops quietly at a truncated tail.
 
     Returns a generator; its ``truncated`` state is reported through :func:`read_raw`.
     """
     path = Path(path)
-    files = sorted(path.glob("*.mcap")) if path.is_dir() else [path]
+    # in split order: name_2 before name_10
+    files = sorted(path.glob("*.mcap"), key=_file_index) if path.is_dir() else [path]
     if not files:
         raise DataError(f"{path} holds no .mcap file")
     for file in files:
@@ -268,13 +389,20 @@ def read_raw(path: str | Path, joints_topic: str, pose_topic: str) -> RawRecordi
     )
 
 
-def write_pairs_into(writer: BagWriter, pairs: Pairs) -> None:
-    """Append calibration pairs (the contract's two topics) to an open bag."""
+def write_pairs_into(writer: BagWriter, pairs: Pairs, log_ns: np.ndarray | None = None) -> None:
+    """Append calibration pairs (the contract's two topics) to an open bag.
+
+    ``log_ns``: the log time of each pair, e.g. the receive time of its joint state, so that pairs and raw
+    topics share one time base; default: the pairs' stamps.
+    """
     writer.add_topic(JOINTS_TOPIC, JOINT_STATE)
     writer.add_topic(POSE_TOPIC, POSE_STAMPED)
     positions, quats = pose_from_matrix(pairs.T)
-    for q, p, quat, ns in zip(pairs.q, positions, quats, pairs.stamps, strict=True):
-        ns = int(ns)
-        writer.write_msg(JOINTS_TOPIC, ns, joint_state_msg(ns, pairs.joint_names, q))
-        writer.write_msg(POSE_TOPIC, ns, pose_stamped_msg(ns, pairs.frame_id, p, quat))
+    if pairs.position_only:
+        quats = np.zeros_like(quats)  # the contract's "no orientation"
+    log_ns = pairs.stamps if log_ns is None else log_ns
+    for q, p, quat, ns, log in zip(pairs.q, positions, quats, pairs.stamps, log_ns, strict=True):
+        ns, log = int(ns), int(log)
+        writer.write_msg(JOINTS_TOPIC, log, joint_state_msg(ns, pairs.joint_names, q))
+        writer.write_msg(POSE_TOPIC, log, pose_stamped_msg(ns, pairs.frame_id, p, quat))
     writer.sync_metadata()

@@ -6,7 +6,8 @@ but takes a whole core from the recorder on a 2-core machine). Stamps are the sc
 lateness moves delivery, never the data. Computing a block makes the samples right after it up to about
 1 ms late; a producer thread does not help, because the computation holds the GIL. The tracker has its
 own clock (offset and drift against the robot's), noise, and beam breaks during which nothing is
-published.
+published. It may stand in its own frame, see a plain reflector (zero quaternions), and the joint
+readings may carry encoder noise and quantisation.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
 from hybrid_kinematics_ros.nodes.runtime import read_only_parameter, run_node
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
+from hybrid_kinematics_ros.simulation.tracker import Tracker
 from hybrid_kinematics_ros.simulation.trajectory import cube_waypoints, random_waypoints, through
 
 BLOCK_S = 0.01
@@ -58,8 +60,27 @@ class SimCellNode(Node):
             "wait_for_subscribers_s", 10.0, "wait up to this long for a subscriber on both topics before publishing"
         )
 
+        frames = {
+            "base_to_tracker": {
+                "xyz": declare("base_to_tracker_xyz", [0.0, 0.0, 0.0], "tracker frame in the robot base (m)"),
+                "rpy": declare("base_to_tracker_rpy", [0.0, 0.0, 0.0], "its roll, pitch, yaw (rad)"),
+            },
+            "flange_to_target": {
+                "xyz": declare("flange_to_target_xyz", [0.0, 0.0, 0.0], "tracker target on the flange (m)"),
+                "rpy": declare("flange_to_target_rpy", [0.0, 0.0, 0.0], "its roll, pitch, yaw (rad)"),
+            },
+        }
+        self.plain_reflector = declare(
+            "plain_reflector", False, "the target gives no orientation: publish zero quaternions"
+        )
+        self.encoder_noise = declare("encoder_noise_rad", 0.0, "joint encoder noise, standard deviation (rad)")
+        self.encoder_step = declare("encoder_resolution_rad", 0.0, "joint encoder quantisation step (rad); 0: none")
+
         cfg = load_robot_config(robot)
         self.cell = VirtualCell.from_config(cfg, noise=noise)
+        if any(np.any(np.asarray(v, dtype=float) != 0.0) for f in frames.values() for v in f.values()):
+            tracker = Tracker.from_config({**cfg.tracker, **frames}, noise=noise)
+            self.cell = VirtualCell(cfg, self.cell.robot, tracker)
         self.names = list(cfg.chain.joint_names)
         self.rng = np.random.default_rng(seed)
         if pattern == "cube":
@@ -125,9 +146,11 @@ class SimCellNode(Node):
             jk += len(tj)
             tk += len(tt)
             breaks = [b for b in breaks if b[1] > t0] + self._beam_breaks(t0, t0 + BLOCK_S)
-            qj = self.trajectory(tj)
+            qj = self._encoders(self.trajectory(tj))
             measured = self.cell.measure(self.trajectory(tt), self.rng)
             positions, quats = pose_from_matrix(measured)
+            if self.plain_reflector:
+                quats = np.zeros_like(quats)  # the contract's "no orientation"
             events = [(t, 0, i) for i, t in enumerate(tj)] + [(t, 1, i) for i, t in enumerate(tt)]
             events.sort()
             for t, kind, i in events:
@@ -148,6 +171,14 @@ class SimCellNode(Node):
                 if self._stop.is_set():
                     return
             t0 += BLOCK_S
+
+    def _encoders(self, q: np.ndarray) -> np.ndarray:
+        """Joint readings: the true joints with encoder noise, quantised to the encoder's resolution."""
+        if self.encoder_noise > 0.0:
+            q = q + self.rng.normal(0.0, self.encoder_noise, q.shape)
+        if self.encoder_step > 0.0:
+            q = np.round(q / self.encoder_step) * self.encoder_step
+        return q
 
     def _publish_joints(self, ns: int, q: np.ndarray) -> None:
         msg = JointState()

@@ -70,3 +70,18 @@ def test_report_renders_in_chromium(trained, test_bag, tmp_path):
     assert len(colours) > 100
     orange = np.all(np.abs(image.astype(int) - [255, 127, 14]) < 40, axis=2)
     assert orange.sum() > 500
+
+
+def test_iso9283_groups_repeated_poses_read_by_real_encoders(ur10):
+    """Readings of one commanded pose differ by encoder noise and quantisation (20 bits); grouping by
+    joints equal to 1e-6 rad found no repeated pose at all."""
+    from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+
+    rng = np.random.default_rng(5)
+    chain = ur10.chain
+    commanded = np.vstack([rng.uniform(-2, 2, (300, chain.dof)), np.repeat(rng.uniform(-2, 2, (8, chain.dof)), 6, 0)])
+    step = 2 * np.pi / 2**20
+    q = np.round((commanded + rng.normal(0, 2e-6, commanded.shape)) / step) * step
+    T = VirtualCell.from_config(ur10, noise=True).measure(commanded, rng)
+    entries = iso9283(HybridModel.analytic_only(chain), Pairs(q, T, np.arange(len(q)), chain.joint_names, "base_link"))
+    assert len(entries) == 8 and all(e["repeats"] == 6 for e in entries)

@@ -66,7 +66,7 @@ def recording_status(diagnostics: list, name: str) -> list[dict]:
         {kv.key: kv.value for kv in status.values}
         for msg in diagnostics
         for status in msg.status
-        if status.name == name and status.message == "recording"
+        if status.name == name and status.message.startswith("recording")
     ]
 
 
