@@ -124,15 +124,17 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("parts", nargs="*", default=["A", "C"])
     parser.add_argument("--minutes", type=float, default=10.0, help="wall-clock cap per model")
+    parser.add_argument("--recipes", default="ours,ours + temperature,paper", help="comma-separated hybrid rows")
     parser.add_argument("--steps", type=int, default=20_000, help="optimiser steps per net (our recipe's budget)")
     args = parser.parse_args()
     cfg = load_robot_config("ur10")
     series = {name: load_series(name, cfg.chain.joint_names) for name in SERIES}
-    recipes = {
+    every = {
         "ours": (train.PRESETS["fast"], ()),
         "ours + temperature": (train.PRESETS["fast"], ("temperature",)),
         "paper": (train.PRESETS["paper"], ()),
     }
+    recipes = {name: every[name] for name in args.recipes.split(",")}
     held = {name: split(p, 0, (0.0, 0.2)) for name, p in series.items()}  # train, _, test (a fifth, blocks)
     body = [
         "Real UR10 (ipa-robot-accuracy), tracker frame, at the probe; held-out fifth of each series in "
@@ -167,7 +169,7 @@ def main() -> None:
                     cfg,
                     [subset],
                     {f"A, {count} train": held["A"][2]},
-                    {"ours": recipes["ours"]},
+                    {"ours": every["ours"]},
                     args.minutes,
                     args.steps,
                 )
