@@ -253,11 +253,17 @@ def write_report(
     parts.append("<h2>Parametric stage</h2>")
     if par:
         fitted = [p for p in par["parameters"] if p["identifiable"]]
-        free = [p for p in par["parameters"] if not p["identifiable"]]
+        free = [p for p in par["parameters"] if not p["identifiable"] and p["kind"] != "harmonic"]
+        rows = [[p["name"], p["value"], p["unit"]] for p in fitted if p["kind"] != "harmonic"]
+        # hundreds of Fourier coefficients of the cyclic joint errors: one line per joint says their size
+        for joint in sorted({p["index"] for p in fitted if p["kind"] == "harmonic"}):
+            values = np.array([p["value"] for p in fitted if p["kind"] == "harmonic" and p["index"] == joint])
+            rms = np.degrees(np.sqrt(0.5 * np.sum(values**2))) * 3600.0
+            rows.append([f"cyclic error of joint {joint + 1}, rms over a turn ({len(values)} terms)", rms, "arcsec"])
         parts += [
             f"<p>{len(fitted)} of {len(par['parameters'])} parameters identified; rms position error "
             f"{par['rms_before']['position_mm']:.4f} → {par['rms_after']['position_mm']:.4f} mm.</p>",
-            _table(["parameter", "value", "unit"], [[p["name"], p["value"], p["unit"]] for p in fitted]),
+            _table(["parameter", "value", "unit"], rows),
             "<h3>Not identifiable</h3>",
             _table(["parameter", "why"], [[p["name"], p.get("reason", "")] for p in free]),
         ]
