@@ -137,12 +137,8 @@ class ResidualNet(nn.Module):
         """The raw network output: the residual in the turning frame, standardised. Training fits this."""
         return self.body(self.features(q))
 
-    @torch.jit.ignore
-    def to_base(self, r: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-        """Turn residuals from the joint-1 frame into the base frame (eager helper for tests)."""
-        return self._turn(r, q)
-
     def _turn(self, r: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+        """Residuals from the joint-1 frame into the base frame: the torch twin of ``model.nets.AxisTurn``."""
         if not self.turn:
             return r
         q1 = q[:, 0:1].to(torch.float64)

@@ -15,7 +15,8 @@ Parameters (all small, starting from the nominal URDF):
 
 Many of these are not identifiable from end-effector poses (a zero offset is the same as turning the joint
 origin about the joint axis; parallel axes leave some translations free). Identifiability is decided by
-QR with column pivoting of the scaled identification Jacobian; the free combinations are fixed at zero and
+Gram-Schmidt on the scaled identification Jacobian's columns in a fixed order (:func:`parameter_list`'s,
+no pivoting: of two equivalent parameters the earlier is kept); the dependent ones are fixed at zero and
 reported, with the parameters each one is equivalent to. The rest is fitted by scipy's ``least_squares``
 with a robust loss.
 """
@@ -65,7 +66,7 @@ GEOMETRY_KINDS = ("zero", "translation", "rotation")
 
 
 def parameter_list(chain: Chain, harmonics: int = 0) -> list[Parameter]:
-    """Every candidate parameter, in the order pivoting prefers when two are equivalent (earlier wins).
+    """Every candidate parameter, in the order identification keeps them when two are equivalent (earlier wins).
 
     The cyclic joint errors come last: a geometric parameter with the same effect is the one kept.
     """

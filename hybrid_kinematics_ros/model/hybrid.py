@@ -26,7 +26,7 @@ from hybrid_kinematics_ros.io.model_dir import load_model_dir
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
-from hybrid_kinematics_ros.kinematics.se3 import exp_so3
+from hybrid_kinematics_ros.kinematics.se3 import exp_so3, skew
 from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.model.nets import NumpyResidual
 from hybrid_kinematics_ros.model.parametric import model_from_manifest
@@ -35,17 +35,10 @@ from hybrid_kinematics_ros.model.referencing import Referencing
 RANGE_POLICIES = ("warn", "parametric", "refuse")
 
 
-def _skew(w: np.ndarray) -> np.ndarray:
-    out = np.zeros((*w.shape[:-1], 3, 3))
-    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
-    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
-    return out
-
-
 def left_jacobian_so3(w: np.ndarray) -> np.ndarray:
     """``(B, 3, 3)``: maps d(ω) to the angular velocity of ``exp(ω)`` in the base frame."""
     theta = np.linalg.norm(w, axis=-1)[..., None, None]
-    k = _skew(w)
+    k = skew(w)
     small = theta < 1e-8
     t = np.where(small, 1.0, theta)
     a = np.where(small, 0.5, (1.0 - np.cos(t)) / t**2)

@@ -6,21 +6,38 @@ trains it) and needs nothing from here to load; at batch size 1 the numpy evalua
 
 from __future__ import annotations
 
-import math
 from typing import ClassVar
 
 import numpy as np
 import torch
 from scipy.special import expit
 
+from hybrid_kinematics_ros.kinematics.se3 import skew
+
+
+class AxisTurn:
+    """Turns by an angle about a fixed unit axis (Rodrigues), with the axis' matrices built once: the
+    residual's joint-1 frame to the base frame. The numpy twin of ``ResidualNet._turn``, which the
+    TorchScript file carries; building the constants per call would triple its cost on one pose."""
+
+    def __init__(self, axis: np.ndarray) -> None:
+        self.axis = np.asarray(axis, dtype=float)
+        self.kx = skew(self.axis)  # k × r = kx @ r
+        self.kk = np.outer(self.axis, self.axis)
+
+    def matrix(self, angle: np.ndarray | float) -> np.ndarray:
+        """Rotation matrices ``(..., 3, 3)`` by ``angle`` (rad, scalar or ``(...)``)."""
+        c, s = np.cos(angle)[..., None, None], np.sin(angle)[..., None, None]
+        return c * np.eye(3) + s * self.kx + (1.0 - c) * self.kk
+
+    def apply(self, r: np.ndarray, angle: np.ndarray | float) -> np.ndarray:
+        """Vectors ``r (..., 3)`` turned by ``angle`` (one per vector, or one for all)."""
+        return (self.matrix(angle) @ r[..., None])[..., 0]
+
 
 def to_joint1_frame(r: np.ndarray, q1: np.ndarray, axis: np.ndarray | None) -> np.ndarray:
-    """Base-frame residuals ``(B, 3)`` into the joint-1 frame: the inverse of ``ResidualNet.to_base``."""
-    if axis is None:
-        return r
-    k = np.broadcast_to(axis, r.shape)
-    c, s = np.cos(-q1)[:, None], np.sin(-q1)[:, None]
-    return r * c + np.cross(k, r) * s + k * np.sum(k * r, axis=1, keepdims=True) * (1.0 - c)
+    """Base-frame residuals ``(B, 3)`` into the joint-1 frame (what the net learns); None: no turn."""
+    return r if axis is None else AxisTurn(axis).apply(r, -q1)
 
 
 def _silu_grad(x: np.ndarray) -> np.ndarray:
@@ -52,9 +69,7 @@ class NumpyResidual:
         self.n_joints = int(getattr(module, "n_joints", len(self.center)))
         self.turn = bool(module.turn)
         self.layers = layers
-        k = self.axis
-        self.kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])  # k × r = kx @ r
-        self.kk = np.outer(k, k)
+        self.turner = AxisTurn(self.axis)
 
     @classmethod
     def from_module(cls, module: torch.nn.Module) -> NumpyResidual | None:
@@ -80,19 +95,8 @@ class NumpyResidual:
         x = x.astype(np.float32)
         for kind, a, b in self.layers:
             x = x @ a + b if kind == "linear" else a(x)
-        return self._to_base(x.astype(np.float64) * self.scale + self.mean, q)
-
-    def _rotation(self, q1: float) -> np.ndarray:
-        c, s = math.cos(q1), math.sin(q1)
-        return c * np.eye(3) + s * self.kx + (1.0 - c) * self.kk
-
-    def _to_base(self, r: np.ndarray, q: np.ndarray) -> np.ndarray:
-        if not self.turn:
-            return r
-        if r.ndim == 1:
-            return self._rotation(q[0]) @ r
-        c, s = np.cos(q[:, :1]), np.sin(q[:, :1])
-        return r * c + (r @ self.kx.T) * s + (r @ self.kk) * (1.0 - c)
+        r = x.astype(np.float64) * self.scale + self.mean
+        return self.turner.apply(r, q[..., 0]) if self.turn else r
 
     def value_and_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Residual ``(3,)`` and its derivative ``(3, n)`` for one input ``(n,)`` (forward mode); with
@@ -116,8 +120,8 @@ class NumpyResidual:
         dlocal = (jac.astype(np.float64) * self.scale).T  # (3, n)
         if not self.turn:
             return local, dlocal
-        rot = self._rotation(q[0])
+        rot = self.turner.matrix(q[0])
         r = rot @ local
         d = rot @ dlocal
-        d[:, 0] += self.kx @ r
+        d[:, 0] += self.turner.kx @ r  # d(rot r_local)/dq1 = k × (rot r_local)
         return r, d

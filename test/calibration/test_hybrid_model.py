@@ -79,7 +79,7 @@ def test_joint1_frame_turn_is_inverted_exactly():
     q = torch.zeros(10, 6, dtype=torch.float64)
     q[:, 0] = torch.tensor(q1)
     local = to_joint1_frame(r, q1, axis)
-    np.testing.assert_allclose(net.to_base(torch.tensor(local), q).numpy(), r, atol=1e-12)
+    np.testing.assert_allclose(net._turn(torch.tensor(local), q).numpy(), r, atol=1e-12)
 
 
 @pytest.mark.parametrize("arch", ["D1", "D4", "D4w", "D4W", "Rw", "Rd", "mlp:32x3:relu"])
