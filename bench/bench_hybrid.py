@@ -20,9 +20,9 @@ from bench.report import table, write_section
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
 from hybrid_kinematics_ros.calibration.fit import fit
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from hybrid_kinematics_ros.simulation.sampling import sample_joints
 

@@ -24,12 +24,12 @@ from bench.report import table, write_section
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.evaluate import error_stats, target_errors
 from hybrid_kinematics_ros.calibration.fit import fit, split
-from hybrid_kinematics_ros.calibration.parametric import model_from_manifest
-from hybrid_kinematics_ros.calibration.referencing import to_base_frame
 from hybrid_kinematics_ros.calibration.report import repeated_poses
 from hybrid_kinematics_ros.io.importer import import_table, load_spec_dict, spec_from_dict
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.model.parametric import model_from_manifest
+from hybrid_kinematics_ros.model.referencing import to_base_frame
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "ipa-robot-accuracy"
 SERIES = {  # name: (file, import spec, stamp start override: B and C share a spec)

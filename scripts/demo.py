@@ -70,8 +70,8 @@ def client_round_trip(model_dir: Path, out: Path, radius: float | None) -> dict:
     import rclpy
 
     from hybrid_kinematics_interfaces.srv import ComputeFK, ComputeIK
-    from hybrid_kinematics_ros.calibration.hybrid import HybridModel
     from hybrid_kinematics_ros.kinematics import se3
+    from hybrid_kinematics_ros.model.hybrid import HybridModel
     from hybrid_kinematics_ros.nodes.convert import joint_state_msg, pose_msg
 
     model = HybridModel.load(model_dir)

@@ -14,9 +14,9 @@ import pytest
 
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.fit import fit, split
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 
 os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))

@@ -8,10 +8,10 @@ from typing import Any
 
 import numpy as np
 
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
-from hybrid_kinematics_ros.calibration.referencing import to_base_frame
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.model.hybrid import HybridModel
+from hybrid_kinematics_ros.model.referencing import to_base_frame
 
 COVERAGE_BINS_RAD = (0.0, 0.05, 0.1, 0.2, 0.4, 0.8, 1.6, np.inf)
 

@@ -15,9 +15,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
-from hybrid_kinematics_ros.calibration.parametric import model_from_manifest
 from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.model.hybrid import HybridModel
+from hybrid_kinematics_ros.model.parametric import model_from_manifest
 
 
 def _origin(joint: ET.Element) -> np.ndarray:

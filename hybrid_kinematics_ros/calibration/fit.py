@@ -14,14 +14,8 @@ from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.alignment import AlignOptions, AlignResult, align
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.calibration.parametric import identify
-from hybrid_kinematics_ros.calibration.referencing import (
-    Referencing,
-    anchor_stations,
-    reference_stations,
-    to_base_frame,
-)
+from hybrid_kinematics_ros.calibration.referencing import anchor_stations, reference_stations
 from hybrid_kinematics_ros.io.model_dir import save_model_dir
 from hybrid_kinematics_ros.io.pairs import (
     JOINTS_TOPIC,
@@ -34,6 +28,8 @@ from hybrid_kinematics_ros.io.pairs import (
 from hybrid_kinematics_ros.io.raw_bag import RawRecording, read_raw
 from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
+from hybrid_kinematics_ros.model.hybrid import HybridModel
+from hybrid_kinematics_ros.model.referencing import Referencing, to_base_frame
 
 COVERAGE_SPACING = 0.005  # rad: the grid the stored training configurations are thinned on
 

@@ -15,7 +15,8 @@ Parameters (all small, starting from the nominal URDF):
 
 Many of these are not identifiable from end-effector poses (a zero offset is the same as turning the joint
 origin about the joint axis; parallel axes leave some translations free). Identifiability is decided by
-QR with column pivoting of the scaled identification Jacobian; the free combinations are fixed at zero and
+Gram-Schmidt on the scaled identification Jacobian's columns in a fixed order (:func:`parameter_list`'s,
+no pivoting: of two equivalent parameters the earlier is kept); the dependent ones are fixed at zero and
 reported, with the parameters each one is equivalent to. The rest is fitted by scipy's ``least_squares``
 with a robust loss.
 """
@@ -33,7 +34,8 @@ from scipy.optimize import least_squares
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.chain import Chain
-from hybrid_kinematics_ros.kinematics.elastic import ElasticChain, bending_basis
+from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
+from hybrid_kinematics_ros.model.parametric import Parameter, build_model
 
 ORIENTATION_LENGTH = 1.0  # m per rad: weighs orientation residuals against position residuals
 RANK_TOLERANCE = 1e-6  # pivots below this fraction of the largest are unidentifiable
@@ -63,16 +65,8 @@ KINDS = tuple(SCALE)
 GEOMETRY_KINDS = ("zero", "translation", "rotation")
 
 
-@dataclass(frozen=True)
-class Parameter:
-    name: str
-    kind: str
-    index: int  # joint (zero, compliance, bending, harmonic) or frame (translation, rotation; n is the flange)
-    component: int  # harmonic: 2 (f - 1) for sin(f q), 2 (f - 1) + 1 for cos(f q)
-
-
 def parameter_list(chain: Chain, harmonics: int = 0) -> list[Parameter]:
-    """Every candidate parameter, in the order pivoting prefers when two are equivalent (earlier wins).
+    """Every candidate parameter, in the order identification keeps them when two are equivalent (earlier wins).
 
     The cyclic joint errors come last: a geometric parameter with the same effect is the one kept.
     """
@@ -91,40 +85,6 @@ def parameter_list(chain: Chain, harmonics: int = 0) -> list[Parameter]:
                 for i, t in enumerate(("sin", "cos"))
             ]
     return out
-
-
-def build_model(
-    chain: Chain, params: list[Parameter], values: np.ndarray, payload_mass: float, payload_com: np.ndarray
-) -> ElasticChain:
-    """The elastic chain for parameter ``values`` in SI units (one per entry of ``params``)."""
-    n = chain.dof
-    zero, compliance, bend_uv = np.zeros(n), np.zeros(n), np.zeros((n, 2))
-    delta = np.zeros((n + 1, 6))
-    k_max = max((p.component // 2 + 1 for p in params if p.kind == "harmonic"), default=0)
-    cyclic = np.zeros((n, k_max, 2))
-    for p, v in zip(params, values, strict=True):
-        if p.kind == "harmonic":
-            cyclic[p.index, p.component // 2, p.component % 2] = v
-        elif p.kind == "zero":
-            zero[p.index] = v
-        elif p.kind == "compliance":
-            compliance[p.index] = v
-        elif p.kind == "bending":
-            bend_uv[p.index, p.component] = v
-        else:
-            delta[p.index, p.component + (3 if p.kind == "rotation" else 0)] = v
-    moved = se3.from_rotvec(delta[:, :3], delta[:, 3:])
-    geometry = chain.with_geometry(chain.pre @ moved[:n], chain.post @ moved[n])
-    bending = np.einsum("kc,kci->ki", bend_uv, bending_basis(chain))
-    return ElasticChain(
-        geometry,
-        zero,
-        compliance,
-        bending,
-        float(payload_mass),
-        np.asarray(payload_com, float),
-        joint_error=cyclic if np.any(cyclic) else None,
-    )
 
 
 def pose_residuals(
@@ -216,20 +176,6 @@ class ParametricResult:
                 for p, v, r, ok in zip(self.params, self.values, self.rigid_values, self.identifiable, strict=True)
             ],
         }
-
-
-def model_from_manifest(chain: Chain, section: dict[str, Any], rigid: bool = False) -> ElasticChain:
-    """Rebuild the identified elastic chain from ``model.json``'s ``parametric`` section.
-
-    ``rigid``: the geometry-only fit instead (zero offsets and joint origins; what a URDF can carry).
-    """
-    try:
-        params = [Parameter(p["name"], p["kind"], int(p["index"]), int(p["component"])) for p in section["parameters"]]
-        values = np.array([float(p["rigid_value" if rigid else "value"]) for p in section["parameters"]])
-        payload = section["payload"]
-        return build_model(chain, params, values, float(payload["mass"]), np.asarray(payload["com"], float))
-    except (KeyError, TypeError, ValueError) as exc:
-        raise CalibrationError(f"model.json: the parametric section is malformed ({exc!r})") from exc
 
 
 def _rms(res: np.ndarray) -> dict[str, float]:

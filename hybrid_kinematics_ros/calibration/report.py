@@ -20,8 +20,8 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.calibration.evaluate import evaluate, measured_targets, plot_distributions, pose_errors_of
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.io.pairs import Pairs
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 # Readings of one commanded pose differ by a few encoder counts (6e-6 rad a count at 20 bits) and the
 # servo's error; commanded poses of an ISO 9283 cycle are degrees apart.

@@ -19,10 +19,11 @@ import numpy as np
 import torch
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.calibration.nets import ResidualNet, to_joint1_frame
+from hybrid_kinematics_ros.calibration.nets import ResidualNet
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
+from hybrid_kinematics_ros.model.nets import to_joint1_frame
 
 KINDS = ("position", "orientation")
 UNIT = {"position": ("mm", 1e3), "orientation": ("deg", 180.0 / math.pi)}

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from hybrid_kinematics_ros.calibration.hybrid import RANGE_POLICIES, HybridModel
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.model.hybrid import RANGE_POLICIES, HybridModel
 
 POSE_COLUMNS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 

@@ -8,12 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.cli.common import add_range_args, apply_range_args, read_csv, write_csv
 from hybrid_kinematics_ros.ik.compensate import MAX_JOINT_CORRECTION_RAD, compensate
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.io.errors import DataError
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 TIME_COLUMN = "time_from_start"
 

@@ -8,8 +8,8 @@ from pathlib import Path
 
 from hybrid_kinematics_ros.calibration.evaluate import evaluate, plot_distributions
 from hybrid_kinematics_ros.calibration.fit import load_pairs
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.cli.common import add_coverage_arg
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

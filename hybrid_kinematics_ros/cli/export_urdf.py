@@ -9,10 +9,10 @@ from pathlib import Path
 from hybrid_kinematics_ros.calibration.evaluate import error_stats, target_errors
 from hybrid_kinematics_ros.calibration.export import export_urdf
 from hybrid_kinematics_ros.calibration.fit import load_pairs
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

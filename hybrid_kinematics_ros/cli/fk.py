@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.cli.common import (
     POSE_COLUMNS,
     add_range_args,
@@ -19,6 +18,7 @@ from hybrid_kinematics_ros.cli.common import (
     write_csv,
 )
 from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -7,11 +7,11 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.cli.common import POSE_COLUMNS, read_csv, write_csv
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.se3 import matrix_from_pose
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

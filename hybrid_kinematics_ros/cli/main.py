@@ -27,6 +27,7 @@ from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.chain import ImplausibleInertialWarning
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
+from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.simulation.errors import SimulationError
 
 COMMANDS = [simulate, import_, align, train, evaluate, report, fk, ik, compensate, export_urdf]
@@ -35,6 +36,7 @@ USER_ERRORS: tuple[type[Exception], ...] = (
     DataError,
     IKError,
     KinematicsError,
+    ModelError,
     SimulationError,
 )
 

@@ -7,9 +7,9 @@ import json
 from pathlib import Path
 
 from hybrid_kinematics_ros.calibration.fit import load_pairs
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.calibration.report import write_report
 from hybrid_kinematics_ros.io.errors import DataError
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

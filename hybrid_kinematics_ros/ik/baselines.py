@@ -15,12 +15,12 @@ from collections.abc import Callable
 import numpy as np
 from scipy.optimize import least_squares
 
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.lm import error6, joint_limits
 from hybrid_kinematics_ros.ik.refine import HybridRefiner
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKResult, IKSolver
 from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 COSTS = ("pose6", "eq2")
 SCIPY_EVALUATIONS = 60  # scipy's budget per box: up to 60 hybrid Jacobians (e7686a5)

@@ -18,9 +18,9 @@ import time
 
 import numpy as np
 
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.ik.lm import FkJac, Limits, lm_solve, project
 from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 # From a classical answer Gauss-Newton converges in a handful of chord steps; a run that needs more than
 # CHORD_ITERATIONS is stuck (3779289). GAUSS_NEWTON_DAMPING: q0 is close, so full steps from the start.

@@ -11,9 +11,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.stats import qmc
 
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.ik.lm import Limits, project
 from hybrid_kinematics_ros.kinematics import fk
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 # The restart table (3a16967): 4,096 Halton configurations in a k-d tree over their poses; a solve restarts
 # from the TABLE_RESTARTS nearest, the branch search from twice as many. Hand-set: no sweep is recorded.

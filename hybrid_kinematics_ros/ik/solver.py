@@ -32,11 +32,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.ik import seeds as seeding
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.lm import joint_limits, lm_solve
 from hybrid_kinematics_ros.ik.refine import HybridRefiner
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 # Budget shares. CLASSICAL_SHARE (650d758): a target the URDF model cannot reach exactly (near the edge of its
 # workspace) makes every classical attempt fail, yet the hybrid stages solve it from there, so the seed's

@@ -21,6 +21,7 @@ from lxml import etree
 
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 from hybrid_kinematics_ros.kinematics.paths import resolve_path
+from hybrid_kinematics_ros.kinematics.se3 import skew
 
 ACTUATED = ("revolute", "continuous", "prismatic")
 MAX_COM_DISTANCE_M = 3.0  # a link's centre of mass further than this from its frame is a unit mistake
@@ -191,9 +192,9 @@ def _transform_difference(a: np.ndarray, b: np.ndarray, tol_m: float, tol_rad: f
 
 
 def _skew4(axis: np.ndarray) -> np.ndarray:
-    x, y, z = axis
+    """The cross-product matrix of ``axis`` as a ``(4, 4)`` generator of rotation (no translation)."""
     k = np.zeros((4, 4))
-    k[:3, :3] = [[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]]
+    k[:3, :3] = skew(axis)
     return k
 
 

@@ -1,4 +1,4 @@
-"""Forward kinematics and geometric Jacobians of a :class:`Chain`, batched, in numpy and torch.
+"""Forward kinematics (numpy and torch) and geometric Jacobians (numpy) of a :class:`Chain`, batched.
 
 Each joint step is one matrix product with the constant block ``[G0 | G1 | G2]`` followed by a weighted
 sum (see ``chain.py``), so a batch needs one BLAS call per joint and block, and no per-sample Python loop.
@@ -89,19 +89,33 @@ def fk_single(chain: Chain, q: np.ndarray) -> np.ndarray:
     return t @ chain.post
 
 
-def jacobian_from_frames(chain: Chain, frames: np.ndarray) -> np.ndarray:
-    """Geometric Jacobian ``(B, 6, n)``, rows ``[v; ω]`` of the tip origin in the base frame."""
-    z = np.einsum("bkij,kj->bki", frames[:, :-1, :3, :3], chain.axes)
-    lever = frames[:, -1:, :3, 3] - frames[:, :-1, :3, 3]
-    rev = chain.revolute[None, :, None]
-    linear = np.where(rev, np.cross(z, lever), z)
-    angular = np.where(rev, z, 0.0)
-    return np.concatenate([linear, angular], axis=2).transpose(0, 2, 1)
+def geometric_jacobian(z: np.ndarray, lever: np.ndarray, revolute: np.ndarray) -> np.ndarray:
+    """Geometric Jacobian ``(..., 6, n)``, rows ``[v; ω]`` of the tip origin, from each joint's axis in the
+    base frame ``z (..., n, 3)`` and the lever from the joint's origin to the tip ``(..., n, 3)``.
+
+    A revolute joint moves the tip by ``z × lever`` and turns it about ``z``; a prismatic one moves it along
+    ``z``. The cross product is written out: ``np.cross`` costs ~20 µs on the small arrays of one pose.
+    """
+    jac = np.empty((*z.shape[:-2], 6, z.shape[-2]))
+    jac[..., 0, :] = z[..., 1] * lever[..., 2] - z[..., 2] * lever[..., 1]
+    jac[..., 1, :] = z[..., 2] * lever[..., 0] - z[..., 0] * lever[..., 2]
+    jac[..., 2, :] = z[..., 0] * lever[..., 1] - z[..., 1] * lever[..., 0]
+    jac[..., 3:, :] = np.swapaxes(z, -1, -2)
+    prismatic = ~revolute
+    if prismatic.any():
+        jac[..., :3, prismatic] = np.swapaxes(z[..., prismatic, :], -1, -2)
+        jac[..., 3:, prismatic] = 0.0
+    return jac
 
 
-def jacobian(chain: Chain, q: np.ndarray) -> np.ndarray:
-    """Geometric Jacobian ``(B, 6, n)`` at joints ``(B, n)``."""
-    return jacobian_from_frames(chain, joint_frames(chain, q))
+def jacobian_from_frames(chain: Chain, frames: np.ndarray, tip: np.ndarray | None = None) -> np.ndarray:
+    """Geometric Jacobian ``(..., 6, n)`` from the joint frames ``(..., n + 1, 4, 4)`` of :func:`joint_frames`
+    (the tip last), or from ``(..., n, 4, 4)`` and the ``tip (..., 4, 4)``."""
+    if tip is None:
+        frames, tip = frames[..., :-1, :, :], frames[..., -1, :, :]
+    z = np.einsum("...kij,kj->...ki", frames[..., :3, :3], chain.axes)
+    lever = tip[..., None, :3, 3] - frames[..., :3, 3]
+    return geometric_jacobian(z, lever, chain.revolute)
 
 
 def fk_and_jacobian(chain: Chain, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -163,16 +177,6 @@ class TorchChain(torch.nn.Module):
         """``(B, n + 1, 4, 4)``, as the numpy :func:`joint_frames`."""
         return self._homogeneous(torch.stack(self._frames(q, every=True), dim=0)).transpose(0, 1)
 
-    def jacobian(self, q: torch.Tensor) -> torch.Tensor:
-        """Geometric Jacobian ``(B, 6, n)``, the same convention as the numpy :func:`jacobian`."""
-        frames = self.joint_frames(q)
-        z = torch.einsum("bkij,kj->bki", frames[:, :-1, :3, :3], self.axes)
-        lever = frames[:, -1:, :3, 3] - frames[:, :-1, :3, 3]
-        rev = self.revolute[None, :, None]
-        linear = torch.where(rev, torch.cross(z, lever, dim=2), z)
-        angular = torch.where(rev, z, torch.zeros_like(z))
-        return torch.cat([linear, angular], dim=2).transpose(1, 2)
-
 
 def fk_and_jacobian_single(chain: Chain, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One configuration: tip pose ``(4, 4)`` and geometric Jacobian ``(6, n)`` (the IK inner loop)."""
@@ -187,15 +191,4 @@ def fk_and_jacobian_single(chain: Chain, q: np.ndarray) -> tuple[np.ndarray, np.
         frames[k] = t
     tip = t @ chain.post
     z = np.matmul(frames[:, :3, :3], chain.axes[:, :, None])[:, :, 0]
-    lever = tip[:3, 3] - frames[:, :3, 3]
-    jac = np.empty((6, chain.dof))
-    # z × lever written out: np.cross costs ~20 µs on arrays this small
-    jac[0] = z[:, 1] * lever[:, 2] - z[:, 2] * lever[:, 1]
-    jac[1] = z[:, 2] * lever[:, 0] - z[:, 0] * lever[:, 2]
-    jac[2] = z[:, 0] * lever[:, 1] - z[:, 1] * lever[:, 0]
-    jac[3:] = z.T
-    prismatic = ~chain.revolute
-    if prismatic.any():
-        jac[:3, prismatic] = z[prismatic].T
-        jac[3:, prismatic] = 0.0
-    return tip, jac
+    return tip, geometric_jacobian(z, tip[:3, 3] - frames[:, :3, 3], chain.revolute)

@@ -70,6 +70,15 @@ def from_rotvec(position: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
     return out
 
 
+def skew(w: np.ndarray) -> np.ndarray:
+    """Cross-product matrices ``(..., 3, 3)`` of vectors ``(..., 3)``: ``skew(w) @ r == w × r``."""
+    w = np.asarray(w, dtype=float)
+    k = np.zeros((*w.shape[:-1], 3, 3))
+    k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    k[..., 1, 0], k[..., 2, 0], k[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    return k
+
+
 def exp_so3(w: np.ndarray) -> np.ndarray:
     """Rotation matrices ``(..., 3, 3)`` of rotation vectors ``(..., 3)`` (Rodrigues, exact near zero).
 
@@ -82,9 +91,7 @@ def exp_so3(w: np.ndarray) -> np.ndarray:
     a = np.where(moving, np.sin(safe) / safe, 1.0)  # sin θ / θ
     half = np.sin(0.5 * safe) / safe
     b = np.where(moving, 2.0 * half * half, 0.5)  # (1 − cos θ) / θ² = 2 sin²(θ/2) / θ², without cancellation
-    k = np.zeros((*w.shape[:-1], 3, 3))
-    k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
-    k[..., 1, 0], k[..., 2, 0], k[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    k = skew(w)
     return np.eye(3) + a * k + b * (k @ k)
 
 

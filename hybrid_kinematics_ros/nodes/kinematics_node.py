@@ -29,8 +29,6 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from hybrid_kinematics_interfaces.srv import CompensateTrajectory, ComputeFK, ComputeIK
-from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.ik.compensate import MAX_JOINT_CORRECTION_RAD, compensate
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
@@ -38,6 +36,8 @@ from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 from hybrid_kinematics_ros.kinematics.paths import resolve_path
+from hybrid_kinematics_ros.model.errors import ModelError
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.nodes.convert import (
     RequestError,
     joint_state_msg,
@@ -53,7 +53,7 @@ from hybrid_kinematics_ros.nodes.convert import (
 from hybrid_kinematics_ros.nodes.runtime import StartupError, read_only_parameter, run_node
 from hybrid_kinematics_ros.nodes.stats import RequestStats
 
-LOAD_ERRORS = (DataError, KinematicsError, CalibrationError, OSError)
+LOAD_ERRORS = (DataError, KinematicsError, ModelError, OSError)
 MAX_SOLUTIONS = 16
 SERVICE_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -198,7 +198,7 @@ class KinematicsNode(Node):
             try:
                 with self._lock:
                     self.model.set_condition(p.name.removeprefix("conditions."), float(p.value))
-            except (CalibrationError, TypeError, ValueError) as exc:
+            except (ModelError, TypeError, ValueError) as exc:
                 return SetParametersResult(successful=False, reason=f"{p.name}: {exc}")
         return SetParametersResult(successful=True)
 
@@ -277,7 +277,7 @@ class KinematicsNode(Node):
                 if all(response.in_calibrated_range) or not model.nets
                 else f"some configurations lie outside the calibrated joint range; {outside}"
             )
-        except (RequestError, KinematicsError, CalibrationError) as exc:
+        except (RequestError, KinematicsError, ModelError) as exc:
             response.success, response.message = False, str(exc)
         except Exception as exc:  # a bug must cost one answer, never the service
             self._unexpected("compute_fk", exc, response)
@@ -323,7 +323,7 @@ class KinematicsNode(Node):
                 response.message = (
                     results[0].message if results else "no solution found from any seed within the time budget"
                 )
-        except (RequestError, IKError, KinematicsError, CalibrationError) as exc:
+        except (RequestError, IKError, KinematicsError, ModelError) as exc:
             response.success, response.message = False, str(exc)
         except Exception as exc:  # a bug must cost one answer, never the service
             self._unexpected("compute_ik", exc, response)
@@ -370,7 +370,7 @@ class KinematicsNode(Node):
                 if not result.success
                 else f"{len(q)} points corrected" + (f"; {outside} outside the calibrated range" if outside else "")
             )
-        except (RequestError, IKError, KinematicsError, CalibrationError) as exc:
+        except (RequestError, IKError, KinematicsError, ModelError) as exc:
             response.success, response.message = False, str(exc)
         except Exception as exc:  # a bug must cost one answer, never the service
             self._unexpected("compensate_trajectory", exc, response)

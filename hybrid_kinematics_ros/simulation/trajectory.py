@@ -55,9 +55,9 @@ def random_waypoints(chain: Chain, count: int, rng: np.random.Generator, fractio
 
 def cube_waypoints(chain: Chain, centre_q: np.ndarray, side_m: float = 0.3) -> np.ndarray:
     """ISO 9283 cube: centre and 8 corners around the tip pose at ``centre_q``, orientation kept."""
-    from hybrid_kinematics_ros.calibration.hybrid import HybridModel
     from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
     from hybrid_kinematics_ros.kinematics import fk
+    from hybrid_kinematics_ros.model.hybrid import HybridModel
 
     solver = IKSolver(HybridModel.analytic_only(chain), IKOptions(timeout_s=0.5))
     centre = fk.fk_single(chain, centre_q)

@@ -9,6 +9,7 @@ import pytest
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
 from hybrid_kinematics_ros.calibration.fit import fit, split
+from hybrid_kinematics_ros.model.errors import ModelError
 from test.conftest import THERMAL_PRESET, thermal_pairs
 
 
@@ -40,9 +41,9 @@ def test_served_paths_use_the_current_value(thermal_models):
     warm = model.fk(q)
     model.set_condition("temperature", 19.0)
     assert np.linalg.norm(model.fk(q)[:, :3, 3] - warm[:, :3, 3], axis=1).mean() > 0.3e-3  # m
-    with pytest.raises(CalibrationError, match="no condition 'humidity'"):
+    with pytest.raises(ModelError, match="no condition 'humidity'"):
         model.set_condition("humidity", 40.0)
-    with pytest.raises(CalibrationError, match="not a finite number"):
+    with pytest.raises(ModelError, match="not a finite number"):
         model.set_condition("temperature", float("nan"))
 
 

@@ -10,12 +10,13 @@ import pytest
 import torch
 
 from hybrid_kinematics_ros.calibration import nets
-from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import coverage_report, evaluate
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR
+from hybrid_kinematics_ros.model.errors import ModelError
+from hybrid_kinematics_ros.model.hybrid import HybridModel
+from hybrid_kinematics_ros.model.nets import to_joint1_frame
 
 
 def test_training_cuts_the_error_by_a_large_factor(trained):
@@ -77,8 +78,8 @@ def test_joint1_frame_turn_is_inverted_exactly():
     net = nets.ResidualNet("mlp:4x1", -np.ones(6), np.ones(6), np.zeros(3), np.ones(3), joint1_axis=axis)
     q = torch.zeros(10, 6, dtype=torch.float64)
     q[:, 0] = torch.tensor(q1)
-    local = nets.to_joint1_frame(r, q1, axis)
-    np.testing.assert_allclose(net.to_base(torch.tensor(local), q).numpy(), r, atol=1e-12)
+    local = to_joint1_frame(r, q1, axis)
+    np.testing.assert_allclose(net._turn(torch.tensor(local), q).numpy(), r, atol=1e-12)
 
 
 @pytest.mark.parametrize("arch", ["D1", "D4", "D4w", "D4W", "Rw", "Rd", "mlp:32x3:relu"])
@@ -138,9 +139,9 @@ def test_range_policies(trained):
     np.testing.assert_allclose(model.fk_and_jacobian(q)[0], fallback, atol=1e-12)
     model.range_policy = "refuse"
     model.check_range(q[:1])
-    with pytest.raises(CalibrationError, match=f"configuration 1 lies outside.*{model.joint_names[2]}"):
+    with pytest.raises(ModelError, match=f"configuration 1 lies outside.*{model.joint_names[2]}"):
         model.check_range(q)
-    with pytest.raises(CalibrationError, match="range policy 'sometimes' is not one of"):
+    with pytest.raises(ModelError, match="range policy 'sometimes' is not one of"):
         model.range_policy = "sometimes"
 
 
@@ -164,11 +165,11 @@ def test_coverage_radius_drops_the_nets_far_from_the_training_data(trained):
     np.testing.assert_array_equal(served[1], model.fk(q[1:], nets=False)[0])
     assert not np.allclose(served[0], model.fk(q[:1], nets=False)[0], atol=1e-9)  # the nets still correct near
     model.range_policy = "refuse"
-    with pytest.raises(CalibrationError, match=r"from the nearest training configuration \(coverage radius"):
+    with pytest.raises(ModelError, match=r"from the nearest training configuration \(coverage radius"):
         model.check_range(q)
-    with pytest.raises(CalibrationError, match="positive number of radians"):
+    with pytest.raises(ModelError, match="positive number of radians"):
         model.coverage_radius = -1.0
-    with pytest.raises(CalibrationError, match="stores no training configurations"):
+    with pytest.raises(ModelError, match="stores no training configurations"):
         HybridModel.analytic_only(model.chain).coverage_radius = 0.5
 
 

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.calibration.parametric import GEOMETRY_KINDS, identify, model_from_manifest
+from hybrid_kinematics_ros.calibration.parametric import GEOMETRY_KINDS, identify
 from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.model.parametric import model_from_manifest
 from hybrid_kinematics_ros.simulation.truth import TrueRobot
 
 
@@ -77,8 +78,8 @@ def test_manifest_round_trip(cell, identified):
 def test_exported_urdf_carries_the_geometry_and_zero_offsets(cell, identified):
     """Re-parsed by the real URDF parser, the export equals the identified model without compliance."""
     from hybrid_kinematics_ros.calibration.export import export_urdf
-    from hybrid_kinematics_ros.calibration.hybrid import HybridModel
     from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
+    from hybrid_kinematics_ros.model.hybrid import HybridModel
 
     cfg, _, q, T = cell
     model = HybridModel(cfg.chain, manifest={"parametric": identified.manifest()})
@@ -96,8 +97,8 @@ def test_exported_urdf_carries_the_geometry_and_zero_offsets(cell, identified):
 
 def test_ik_through_the_parametric_model(cell, identified):
     """IK refines through the identified elastic model (its Jacobian holds the deflections fixed)."""
-    from hybrid_kinematics_ros.calibration.hybrid import HybridModel
     from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
+    from hybrid_kinematics_ros.model.hybrid import HybridModel
 
     cfg, _, _, _ = cell
     model = HybridModel(cfg.chain, manifest={"parametric": identified.manifest()})

@@ -75,7 +75,7 @@ def test_report_renders_in_chromium(trained, test_bag, tmp_path):
 def test_iso9283_groups_repeated_poses_read_by_real_encoders(ur10):
     """Readings of one commanded pose differ by encoder noise and quantisation (20 bits); grouping by
     joints equal to 1e-6 rad found no repeated pose at all."""
-    from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+    from hybrid_kinematics_ros.model.hybrid import HybridModel
 
     rng = np.random.default_rng(5)
     chain = ur10.chain

@@ -10,9 +10,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.io.pairs import Pairs, write_pairs
 from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from hybrid_kinematics_ros.simulation.tracker import Tracker
 

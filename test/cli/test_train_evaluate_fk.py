@@ -7,9 +7,9 @@ import subprocess
 
 import numpy as np
 
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.cli.main import main
 from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 
 def run(*args):

@@ -7,10 +7,10 @@ import time
 import numpy as np
 import torch
 
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.calibration.nets import ResidualNet
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 
 def test_solve_many_holds_a_total_budget():

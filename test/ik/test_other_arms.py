@@ -8,11 +8,11 @@ import warnings
 import numpy as np
 import pytest
 
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.ik import lm
 from hybrid_kinematics_ros.ik.seeds import valley_seeds
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 GENEROUS = IKOptions(timeout_s=5.0)  # tests count steps, bench_ik_arms measures time
 

@@ -7,7 +7,6 @@ import time
 import numpy as np
 import pytest
 
-from hybrid_kinematics_ros.calibration.hybrid import HybridModel
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.lm import lm_solve
 from hybrid_kinematics_ros.ik.seeds import VALLEY_STEPS_RAD, valley_seeds
@@ -15,6 +14,7 @@ from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
 from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR, load_robot_config
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 GENEROUS = IKOptions(timeout_s=1.0)  # tests check correctness; bench/ measures speed
 

@@ -131,8 +131,8 @@ def test_implausible_inertials_are_named_and_left_out_of_gravity(xyz, mass, reas
 
 
 def test_a_model_accepts_its_robot_restated_and_refuses_a_moved_joint(trained):
-    from hybrid_kinematics_ros.calibration.hybrid import HybridModel
     from hybrid_kinematics_ros.io.errors import DataError
+    from hybrid_kinematics_ros.model.hybrid import HybridModel
 
     path, model = trained[0], trained[1]
     loaded = HybridModel.load(path, expect_urdf=restated(UR10))

@@ -214,7 +214,7 @@ def test_condition_channels_come_from_parameters_settable_at_run_time(ros, therm
     from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
     from rcl_interfaces.srv import SetParameters
 
-    from hybrid_kinematics_ros.calibration.hybrid import HybridModel
+    from hybrid_kinematics_ros.model.hybrid import HybridModel
 
     path = thermal_models[0]["thermal"].path
     core = HybridModel.load(path)

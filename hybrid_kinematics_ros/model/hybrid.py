@@ -21,31 +21,24 @@ import torch
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.calibration.nets import NumpyResidual
-from hybrid_kinematics_ros.calibration.parametric import model_from_manifest
-from hybrid_kinematics_ros.calibration.referencing import Referencing
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.io.model_dir import load_model_dir
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
-from hybrid_kinematics_ros.kinematics.se3 import exp_so3
+from hybrid_kinematics_ros.kinematics.se3 import exp_so3, skew
+from hybrid_kinematics_ros.model.errors import ModelError
+from hybrid_kinematics_ros.model.nets import NumpyResidual
+from hybrid_kinematics_ros.model.parametric import model_from_manifest
+from hybrid_kinematics_ros.model.referencing import Referencing
 
 RANGE_POLICIES = ("warn", "parametric", "refuse")
-
-
-def _skew(w: np.ndarray) -> np.ndarray:
-    out = np.zeros((*w.shape[:-1], 3, 3))
-    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
-    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
-    return out
 
 
 def left_jacobian_so3(w: np.ndarray) -> np.ndarray:
     """``(B, 3, 3)``: maps d(ω) to the angular velocity of ``exp(ω)`` in the base frame."""
     theta = np.linalg.norm(w, axis=-1)[..., None, None]
-    k = _skew(w)
+    k = skew(w)
     small = theta < 1e-8
     t = np.where(small, 1.0, theta)
     a = np.where(small, 0.5, (1.0 - np.cos(t)) / t**2)
@@ -93,7 +86,7 @@ class HybridModel:
     @range_policy.setter
     def range_policy(self, value: str) -> None:
         if value not in RANGE_POLICIES:
-            raise CalibrationError(f"range policy '{value}' is not one of {', '.join(RANGE_POLICIES)}")
+            raise ModelError(f"range policy '{value}' is not one of {', '.join(RANGE_POLICIES)}")
         self._range_policy = value
 
     @property
@@ -106,9 +99,9 @@ class HybridModel:
     def coverage_radius(self, value: float | None) -> None:
         if value is not None:
             if not (np.isfinite(value) and value > 0):
-                raise CalibrationError(f"coverage radius {value} must be a positive number of radians")
+                raise ModelError(f"coverage radius {value} must be a positive number of radians")
             if self.coverage is None:
-                raise CalibrationError(
+                raise ModelError(
                     f"model {self.path or ''} stores no training configurations (coverage.npy); "
                     "retrain it with this version to use a coverage radius"
                 )
@@ -140,7 +133,7 @@ class HybridModel:
         inside = self.in_calibrated_range(q)
         if not inside.all():
             row = int(np.flatnonzero(~inside)[0])
-            raise CalibrationError(
+            raise ModelError(
                 f"configuration {row} lies outside the calibrated joint range "
                 f"({self.describe_outside(q[row])}) and the range policy is 'refuse'"
             )
@@ -222,11 +215,11 @@ class HybridModel:
     def set_condition(self, name: str, value: float) -> None:
         """The current value of a condition channel (e.g. the cell's temperature), used from now on."""
         if name not in self.condition_names:
-            raise CalibrationError(
+            raise ModelError(
                 f"the model takes no condition '{name}' (it takes {', '.join(self.condition_names) or 'none'})"
             )
         if not np.isfinite(value):
-            raise CalibrationError(f"condition '{name}' = {value} is not a finite number")
+            raise ModelError(f"condition '{name}' = {value} is not a finite number")
         self.condition_values[self.condition_names.index(name)] = float(value)
 
     def conditions_of(self, pairs_conditions: dict[str, np.ndarray], count: int) -> np.ndarray | None:
@@ -235,7 +228,7 @@ class HybridModel:
             return None
         missing = [c for c in self.condition_names if c not in pairs_conditions]
         if missing:
-            raise CalibrationError(
+            raise ModelError(
                 f"the model takes {', '.join(self.condition_names)}, but the pairs carry no {', '.join(missing)}"
             )
         return np.column_stack([np.broadcast_to(pairs_conditions[c], (count,)) for c in self.condition_names])

@@ -1,0 +1,127 @@
+"""The residual nets at run time: a numpy evaluator of a saved MLP and the joint-1 turn of its output.
+
+A saved TorchScript net is self-contained (:mod:`hybrid_kinematics_ros.calibration.nets` builds and
+trains it) and needs nothing from here to load; at batch size 1 the numpy evaluator here is ~10× faster.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+import torch
+from scipy.special import expit
+
+from hybrid_kinematics_ros.kinematics.se3 import skew
+
+
+class AxisTurn:
+    """Turns by an angle about a fixed unit axis (Rodrigues), with the axis' matrices built once: the
+    residual's joint-1 frame to the base frame. The numpy twin of ``ResidualNet._turn``, which the
+    TorchScript file carries; building the constants per call would triple its cost on one pose."""
+
+    def __init__(self, axis: np.ndarray) -> None:
+        self.axis = np.asarray(axis, dtype=float)
+        self.kx = skew(self.axis)  # k × r = kx @ r
+        self.kk = np.outer(self.axis, self.axis)
+
+    def matrix(self, angle: np.ndarray | float) -> np.ndarray:
+        """Rotation matrices ``(..., 3, 3)`` by ``angle`` (rad, scalar or ``(...)``)."""
+        c, s = np.cos(angle)[..., None, None], np.sin(angle)[..., None, None]
+        return c * np.eye(3) + s * self.kx + (1.0 - c) * self.kk
+
+    def apply(self, r: np.ndarray, angle: np.ndarray | float) -> np.ndarray:
+        """Vectors ``r (..., 3)`` turned by ``angle`` (one per vector, or one for all)."""
+        return (self.matrix(angle) @ r[..., None])[..., 0]
+
+
+def to_joint1_frame(r: np.ndarray, q1: np.ndarray, axis: np.ndarray | None) -> np.ndarray:
+    """Base-frame residuals ``(B, 3)`` into the joint-1 frame (what the net learns); None: no turn."""
+    return r if axis is None else AxisTurn(axis).apply(r, -q1)
+
+
+def _silu_grad(x: np.ndarray) -> np.ndarray:
+    sig = expit(x)
+    return sig * (1.0 + x * (1.0 - sig))
+
+
+class NumpyResidual:
+    """A numpy evaluator of a saved MLP residual net, for single configurations.
+
+    At batch size 1 TorchScript spends ~50 µs per call on operator dispatch; these few numpy products take
+    a few µs. Only plain MLPs (Linear and activation layers) qualify; :meth:`from_module` returns None for
+    others, and callers then use the TorchScript module. Tests check it against TorchScript.
+    """
+
+    _ACT: ClassVar[dict] = {
+        "ReLU": (lambda x: np.maximum(x, 0.0), lambda x: (x > 0).astype(x.dtype)),
+        "SiLU": (lambda x: x * expit(x), lambda x: _silu_grad(x)),
+        "Tanh": (np.tanh, lambda x: 1.0 - np.tanh(x) ** 2),
+    }
+
+    def __init__(self, module: torch.jit.ScriptModule, layers: list) -> None:
+        self.center = module.center.numpy()
+        self.half_span = module.half_span.numpy()
+        self.mean = module.target_mean.numpy()
+        self.scale = module.target_scale.numpy()
+        self.axis = module.axis.numpy()
+        self.sincos = bool(module.sincos)  # ScriptModules keep plain attributes
+        self.n_joints = int(getattr(module, "n_joints", len(self.center)))
+        self.turn = bool(module.turn)
+        self.layers = layers
+        self.turner = AxisTurn(self.axis)
+
+    @classmethod
+    def from_module(cls, module: torch.nn.Module) -> NumpyResidual | None:
+        """From a loaded TorchScript net or an eager :class:`ResidualNet`; None if not a plain MLP."""
+        layers: list = []
+        for child in module.body.children():
+            kind = getattr(child, "original_name", None) or type(child).__name__
+            if kind == "Linear":
+                # float32 as in the net: the weights' memory traffic dominates the cost at batch size 1
+                weight, bias = child.weight.detach().numpy().T.copy(), child.bias.detach().numpy().copy()
+                layers.append(("linear", weight, bias))
+            elif kind in cls._ACT:
+                layers.append(("act", *cls._ACT[kind]))
+            else:
+                return None
+        return cls(module, layers)
+
+    def __call__(self, q: np.ndarray) -> np.ndarray:
+        x = (q - self.center) / self.half_span
+        if self.sincos:
+            joints = q[..., : self.n_joints]
+            x = np.concatenate([x, np.sin(joints), np.cos(joints)], axis=-1)
+        x = x.astype(np.float32)
+        for kind, a, b in self.layers:
+            x = x @ a + b if kind == "linear" else a(x)
+        r = x.astype(np.float64) * self.scale + self.mean
+        return self.turner.apply(r, q[..., 0]) if self.turn else r
+
+    def value_and_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Residual ``(3,)`` and its derivative ``(3, n)`` for one input ``(n,)`` (forward mode); with
+        condition columns the derivative covers them too."""
+        x = (q - self.center) / self.half_span
+        jac = np.diag(1.0 / self.half_span)  # (inputs, features): row j is d(features)/d(q_j)
+        if self.sincos:
+            joints = q[: self.n_joints]
+            x = np.concatenate([x, np.sin(joints), np.cos(joints)])
+            trig = np.zeros((len(q), 2 * self.n_joints))
+            trig[: self.n_joints] = np.concatenate([np.diag(np.cos(joints)), np.diag(-np.sin(joints))], axis=1)
+            jac = np.concatenate([jac, trig], axis=1)
+        x = x.astype(np.float32)
+        jac = jac.astype(np.float32)
+        for kind, a, b in self.layers:
+            if kind == "linear":
+                x, jac = x @ a + b, jac @ a
+            else:
+                x, jac = a(x), jac * b(x)
+        local = x.astype(np.float64) * self.scale + self.mean
+        dlocal = (jac.astype(np.float64) * self.scale).T  # (3, n)
+        if not self.turn:
+            return local, dlocal
+        rot = self.turner.matrix(q[0])
+        r = rot @ local
+        d = rot @ dlocal
+        d[:, 0] += self.turner.kx @ r  # d(rot r_local)/dq1 = k × (rot r_local)
+        return r, d

@@ -1,0 +1,71 @@
+"""The parametric stage as the served model rebuilds it from ``model.json``: its parameters and the
+elastic chain they give. :mod:`hybrid_kinematics_ros.calibration.parametric` identifies them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics.chain import Chain
+from hybrid_kinematics_ros.kinematics.elastic import ElasticChain, bending_basis
+from hybrid_kinematics_ros.model.errors import ModelError
+
+
+@dataclass(frozen=True)
+class Parameter:
+    name: str
+    kind: str
+    index: int  # joint (zero, compliance, bending, harmonic) or frame (translation, rotation; n is the flange)
+    component: int  # harmonic: 2 (f - 1) for sin(f q), 2 (f - 1) + 1 for cos(f q)
+
+
+def build_model(
+    chain: Chain, params: list[Parameter], values: np.ndarray, payload_mass: float, payload_com: np.ndarray
+) -> ElasticChain:
+    """The elastic chain for parameter ``values`` in SI units (one per entry of ``params``)."""
+    n = chain.dof
+    zero, compliance, bend_uv = np.zeros(n), np.zeros(n), np.zeros((n, 2))
+    delta = np.zeros((n + 1, 6))
+    k_max = max((p.component // 2 + 1 for p in params if p.kind == "harmonic"), default=0)
+    cyclic = np.zeros((n, k_max, 2))
+    for p, v in zip(params, values, strict=True):
+        if p.kind == "harmonic":
+            cyclic[p.index, p.component // 2, p.component % 2] = v
+        elif p.kind == "zero":
+            zero[p.index] = v
+        elif p.kind == "compliance":
+            compliance[p.index] = v
+        elif p.kind == "bending":
+            bend_uv[p.index, p.component] = v
+        else:
+            delta[p.index, p.component + (3 if p.kind == "rotation" else 0)] = v
+    moved = se3.from_rotvec(delta[:, :3], delta[:, 3:])
+    geometry = chain.with_geometry(chain.pre @ moved[:n], chain.post @ moved[n])
+    bending = np.einsum("kc,kci->ki", bend_uv, bending_basis(chain))
+    return ElasticChain(
+        geometry,
+        zero,
+        compliance,
+        bending,
+        float(payload_mass),
+        np.asarray(payload_com, float),
+        joint_error=cyclic if np.any(cyclic) else None,
+    )
+
+
+def model_from_manifest(chain: Chain, section: dict[str, Any], rigid: bool = False) -> ElasticChain:
+    """Rebuild the identified elastic chain from ``model.json``'s ``parametric`` section.
+
+    ``rigid``: the geometry-only fit instead (zero offsets and joint origins; what a URDF can carry).
+    """
+    try:
+        params = [Parameter(p["name"], p["kind"], int(p["index"]), int(p["component"])) for p in section["parameters"]]
+        values = np.array([float(p["rigid_value" if rigid else "value"]) for p in section["parameters"]])
+        payload = section["payload"]
+        return build_model(chain, params, values, float(payload["mass"]), np.asarray(payload["com"], float))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ModelError(f"model.json: the parametric section is malformed ({exc!r})") from exc
