@@ -4,6 +4,10 @@ The recorder writes serialised messages straight into MCAP files that are valid 
 boundary (see :class:`BagWriter`), so a killed process loses at most the chunk in progress and leaves a
 bag that any MCAP reader opens, with a ``metadata.yaml`` that counts what is in it. Reading goes through
 the ``mcap`` stream reader, which also returns everything up to a truncated tail.
+
+Why a writer of our own beside rosbags' (which writes the pairs bags): rosbags writes the MCAP summary and
+``metadata.yaml`` only on close, so a recording SIGKILLed after hours would leave a bag that readers
+refuse or count as empty. That is fine for an offline conversion, not for the recorder.
 """
 
 from __future__ import annotations
