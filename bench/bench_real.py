@@ -25,7 +25,8 @@ from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.evaluate import error_stats, target_errors
 from hybrid_kinematics_ros.calibration.fit import fit, split
 from hybrid_kinematics_ros.calibration.report import repeated_poses
-from hybrid_kinematics_ros.io.importer import import_table, load_spec_dict, spec_from_dict
+from hybrid_kinematics_ros.io.import_spec import load_spec_dict, spec_from_dict
+from hybrid_kinematics_ros.io.importer import import_table
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.parametric import model_from_manifest

@@ -15,7 +15,8 @@ from typing import Any
 
 from hybrid_kinematics_ros.cli.common import add_robot_args, chain_from_args
 from hybrid_kinematics_ros.io.errors import DataError
-from hybrid_kinematics_ros.io.importer import ORIENTATIONS, import_table, load_spec_dict, spec_from_dict
+from hybrid_kinematics_ros.io.import_spec import ORIENTATIONS, load_spec_dict, spec_from_dict
+from hybrid_kinematics_ros.io.importer import import_table
 from hybrid_kinematics_ros.io.pairs import CONDITION_TYPES, write_pairs
 
 

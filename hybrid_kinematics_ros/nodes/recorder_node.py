@@ -38,7 +38,8 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
-from hybrid_kinematics_ros.calibration.alignment import AlignOptions, align, estimate_offset
+from hybrid_kinematics_ros.calibration.alignment import AlignOptions, align
+from hybrid_kinematics_ros.calibration.clock import estimate_offset
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.io.columns import Columns
 from hybrid_kinematics_ros.io.errors import DataError

@@ -7,7 +7,8 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from hybrid_kinematics_ros.calibration.alignment import AlignOptions, align, estimate_offset
+from hybrid_kinematics_ros.calibration.alignment import AlignOptions, align
+from hybrid_kinematics_ros.calibration.clock import estimate_offset
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.io.raw_bag import RawRecording
 from hybrid_kinematics_ros.kinematics import se3

@@ -11,7 +11,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.io.errors import DataError
-from hybrid_kinematics_ros.io.importer import import_table, load_spec_dict, spec_from_dict
+from hybrid_kinematics_ros.io.import_spec import load_spec_dict, spec_from_dict
+from hybrid_kinematics_ros.io.importer import import_table
 from hybrid_kinematics_ros.kinematics import se3
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures" / "ipa-robot-accuracy"
