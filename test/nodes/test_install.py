@@ -35,7 +35,12 @@ def clean_env() -> dict[str, str]:
     builds with), so that the workspace's own setup.sh decides what is found."""
     env = dict(os.environ)
     for key in ("PATH", "PYTHONPATH", "LD_LIBRARY_PATH"):
-        parts = [p for p in env.get(key, "").split(os.pathsep) if p and not p.startswith(str(ROOT))]
+        # the checkout's install goes; the venv stays, also where it lives inside the checkout (as in CI)
+        parts = [
+            p
+            for p in env.get(key, "").split(os.pathsep)
+            if p and (not p.startswith(str(ROOT)) or p.startswith(sys.prefix))
+        ]
         env[key] = os.pathsep.join(parts)
     env.pop("COLCON_PREFIX_PATH", None)
     env["AMENT_PREFIX_PATH"] = env["CMAKE_PREFIX_PATH"] = sys.prefix
