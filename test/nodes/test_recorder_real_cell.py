@@ -139,7 +139,10 @@ def test_plain_reflector_is_recorded_and_aligned_position_only(client, tmp_path)
     pairs = read_pairs(tmp_path / "plain")
     assert pairs.position_only and len(pairs) > 0.5 * 25 * 110
     offline = align_cli(tmp_path, "plain", "--offset-s", str(OFFSET))  # was an IndexError
-    assert read_pairs(tmp_path / "plain_pairs").position_only and offline["pairs"] == len(pairs)
+    assert read_pairs(tmp_path / "plain_pairs").position_only
+    # live used its estimate of the offset (within 0.2 ms), offline the exact one: a joint state at either
+    # end of the tracker stream can fall inside with one and outside with the other
+    assert abs(offline["pairs"] - len(pairs)) <= 2, (offline["pairs"], len(pairs))
 
 
 def test_raw_data_is_final_before_the_alignment_and_pairs_share_its_time_base(client, tmp_path):
