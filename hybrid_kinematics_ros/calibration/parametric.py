@@ -11,7 +11,11 @@ Parameters (all small, starting from the nominal URDF):
   encoder errors of real joints. On a real UR10 (ipa-robot-accuracy) they are most of what the other
   parameters leave: a few arcseconds to an arcminute at 10-40 cycles per turn. Hundreds of coefficients
   are more than the data pins down where a joint barely moved, so they carry a ridge prior
-  (``HARMONIC_PRIOR``) towards zero.
+  (``HARMONIC_PRIOR``) towards zero;
+- a joint error map: each joint's error against its own angle on a grid of ``MAP_STEP``, for what is
+  left of shorter period (on the real UR10, harmonics 40 to ~300 per turn, spread too widely for a
+  few Fourier terms). It is fitted last, linearly on the other parameters' residuals, with a smoothness
+  prior (``MAP_SMOOTHNESS``) and a small pull to zero where a joint never went.
 
 Many of these are not identifiable from end-effector poses (a zero offset is the same as turning the joint
 origin about the joint axis; parallel axes leave some translations free). Identifiability is decided by
@@ -28,13 +32,15 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy import sparse
 from scipy.linalg import solve_triangular
 from scipy.optimize import least_squares
+from scipy.sparse.linalg import lsqr
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.chain import Chain
-from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
+from hybrid_kinematics_ros.kinematics.elastic import ElasticChain, JointMap
 from hybrid_kinematics_ros.model.parametric import Parameter, build_model
 
 ORIENTATION_LENGTH = 1.0  # m per rad: weighs orientation residuals against position residuals
@@ -44,6 +50,11 @@ ROBUST_SCALE = 1e-3  # m: residuals well above this are down-weighted (soft L1)
 HARMONICS = 40  # cyclic joint errors: harmonics 1 … HARMONICS of each joint's angle (0: none)
 # Ridge prior of each cyclic coefficient, in pairs: it weighs as much as this many poses seen 1 m from the joint.
 HARMONIC_PRIOR = 30.0
+MAP_STEP = 0.01  # rad between the joint error map's knots (0: no map)
+# Weight of the map's second differences: a curvature of 1 rad per step² costs as much as a pose residual of
+# this many metres in each of the pairs. Chosen on the real UR10 (A and C, held-out blocks): 0.01-0.1 do alike.
+MAP_SMOOTHNESS = 0.03
+MAP_RIDGE = 1e-3  # the same for the map's values themselves: where no data is, the map stays at zero
 SCALE = {
     "zero": 1e-3,
     "compliance": 1e-4,
@@ -107,6 +118,25 @@ def pose_residuals(
     return np.concatenate([dp, orientation_length * w], axis=1)
 
 
+def _joint_rows(
+    model: ElasticChain,
+    q: np.ndarray,
+    position_only: bool,
+    target: np.ndarray | None,
+    orientation_length: float,
+) -> np.ndarray:
+    """``(N, width, n)``: how :func:`pose_residuals` changes per radian added to each joint, negated (the
+    residual is measured minus modelled)."""
+    tips, jac = model.fk_and_jacobian(q)
+    lin, ang = jac[:, :3], jac[:, 3:]
+    if position_only:
+        arm = se3.point_at(tips, target) - tips[:, :3, 3]  # tip to target, per pair
+        rows = lin + np.cross(ang, arm[:, :, None], axisa=1, axisb=1, axisc=1)
+    else:
+        rows = np.concatenate([lin, orientation_length * ang], axis=1)
+    return -rows
+
+
 def _joint_error_jacobian(
     model: ElasticChain,
     q: np.ndarray,
@@ -123,14 +153,58 @@ def _joint_error_jacobian(
     angles, so each column is the joint's Jacobian column times its basis function: one Jacobian instead
     of a model evaluation per coefficient.
     """
-    tips, jac = model.fk_and_jacobian(q)
-    lin, ang = jac[:, :3], jac[:, 3:]
-    if position_only:
-        arm = se3.point_at(tips, target) - tips[:, :3, 3]  # tip to target, per pair
-        rows = lin + np.cross(ang, arm[:, :, None], axisa=1, axisb=1, axisc=1)
-    else:
-        rows = np.concatenate([lin, orientation_length * ang], axis=1)
-    return -(rows[:, :, joints] * basis[:, None, :]).reshape(-1, len(joints))
+    rows = _joint_rows(model, q, position_only, target, orientation_length)
+    return (rows[:, :, joints] * basis[:, None, :]).reshape(-1, len(joints))
+
+
+def fit_joint_map(
+    model: ElasticChain,
+    q: np.ndarray,
+    T: np.ndarray,
+    position_only: bool,
+    target: np.ndarray | None = None,
+    step: float = MAP_STEP,
+    smoothness: float = MAP_SMOOTHNESS,
+    ridge: float = MAP_RIDGE,
+    orientation_length: float = ORIENTATION_LENGTH,
+) -> JointMap:
+    """The joint error map that best explains what ``model`` leaves of the pairs, linearised at ``model``
+    (its errors are microradians) and solved as one sparse regularised least-squares problem.
+
+    Each joint's knots span the angles it was seen at, one step beyond. A pair touches two knots per
+    joint, so the problem stays sparse however fine the map.
+    """
+    n = model.dof
+    lower = q.min(axis=0) - step
+    count = np.floor((q.max(axis=0) - lower) / step).astype(int) + 2
+    width = int(count.max())
+    joint_map = JointMap(lower, step, np.zeros((n, width)))
+    res = pose_residuals(model, q, T, position_only, target, orientation_length)
+    rows = _joint_rows(model, q, position_only, target, orientation_length)  # (N, w, n)
+    pairs, w = res.shape
+    row_index = np.arange(pairs * w).reshape(pairs, w)
+    ii, jj, vv = [], [], []
+    for k in range(n):
+        knot, w0, w1 = joint_map.weights(q[:, k], k)
+        for index, weight in ((knot, w0), (knot + 1, w1)):
+            ii.append(row_index.ravel())
+            jj.append(np.repeat(k * width + index, w))
+            vv.append((rows[:, :, k] * weight[:, None]).ravel())
+    data = sparse.csr_matrix(
+        (-np.concatenate(vv), (np.concatenate(ii), np.concatenate(jj))), shape=(pairs * w, n * width)
+    )
+    curvature = sparse.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(width - 2, width))
+    scale = np.sqrt(pairs)
+    system = sparse.vstack(
+        [
+            data,
+            smoothness * scale * sparse.block_diag([curvature] * n),
+            ridge * scale * sparse.identity(n * width),
+        ]
+    ).tocsr()
+    rhs = np.concatenate([res.ravel(), np.zeros(system.shape[0] - res.size)])
+    solution = lsqr(system, rhs, atol=1e-10, btol=1e-10, iter_lim=20_000)[0]
+    return JointMap(lower, step, solution.reshape(n, width))
 
 
 @dataclass
@@ -145,6 +219,7 @@ class ParametricResult:
     rms_after: dict[str, float]
     position_only: bool
     nominal: Chain | None = None  # the chain the parameters are relative to
+    joint_map: JointMap | None = None
 
     def geometry_model(self) -> ElasticChain:
         """The geometry-only calibration (joint offsets and joint origins, no compliance, bending or
@@ -175,6 +250,7 @@ class ParametricResult:
                 }
                 for p, v, r, ok in zip(self.params, self.values, self.rigid_values, self.identifiable, strict=True)
             ],
+            **({"joint_map": self.joint_map.manifest()} if self.joint_map is not None else {}),
         }
 
 
@@ -201,6 +277,7 @@ def identify(
     harmonic_prior: float = HARMONIC_PRIOR,
     orientation_length: float = ORIENTATION_LENGTH,
     robust_scale: float = ROBUST_SCALE,
+    map_step: float = MAP_STEP,
 ) -> ParametricResult:
     """Identify the elasto-geometric parameters from joints ``q (N, n)`` and measured base-frame poses ``T``.
 
@@ -213,6 +290,7 @@ def identify(
     ``kinds``: the kinds of parameter to fit (default all of :data:`KINDS`; :data:`GEOMETRY_KINDS` is a
     geometry-only calibration); the others stay zero. ``harmonics``: how many harmonics of the cyclic
     joint errors (0: none), each coefficient held towards zero by ``harmonic_prior`` (in pairs).
+    ``map_step``: the joint error map's knot spacing (0: no map), fitted last from all the pairs.
     """
     com = np.zeros(3) if payload_com is None else np.asarray(payload_com, dtype=float)
     if len(q) < 20:
@@ -225,6 +303,7 @@ def identify(
         harmonics = 0
     pick = np.random.default_rng(seed).permutation(len(q))[:max_pairs]
     q_fit, T_fit = q[pick], T[pick]
+    every_target = target
     if target is not None and np.ndim(target) == 2:  # one offset per pair (several tracker stations)
         target = np.asarray(target)[pick]
     params = parameter_list(chain, harmonics)
@@ -322,6 +401,12 @@ def identify(
     values = np.zeros(len(params))
     values[active] = fit.x * scale[active]
     model = build_model(chain, params, values, payload_mass, com)
+    joint_map = None
+    if map_step > 0 and "harmonic" in chosen:
+        joint_map = fit_joint_map(
+            model, q, T, position_only, every_target, map_step, orientation_length=orientation_length
+        )
+        model = build_model(chain, params, values, payload_mass, com, joint_map)
     # The same with the geometry alone, for a URDF export: the geometry then absorbs what it can.
     geometric = active & np.array([p.kind in GEOMETRY_KINDS for p in params])
     rigid_values = np.zeros(len(params))
@@ -335,9 +420,10 @@ def identify(
         identifiable=active,
         reasons=reasons,
         rms_before=_rms(r0.reshape(-1, width)),
-        rms_after=_rms(fit.fun[: len(r0)].reshape(-1, width)),
+        rms_after=_rms(pose_residuals(model, q_fit, T_fit, position_only, target, orientation_length)),
         position_only=position_only,
         nominal=chain,
+        joint_map=joint_map,
     )
 
 

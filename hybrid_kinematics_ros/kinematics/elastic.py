@@ -6,6 +6,8 @@ and the parametric calibration stage (which identifies its parameters from data)
 - joint zero offsets: ``q_eff = q + zero_offset``;
 - cyclic joint errors (transmission and encoder errors): ``q_eff += Σ_f a_f sin(f q) + b_f cos(f q)``, a
   Fourier series in each joint's own commanded angle (``joint_error``, harmonics ``f = 1 … K``);
+- a joint error map (``joint_map``): a table of each joint's error against its own commanded angle,
+  interpolated linearly, for the errors of shorter period than the Fourier series carries;
 - joint compliance: the gravity torque ``τ`` about each joint (URDF inertials plus the payload) turns
   the joint by ``c τ / (1 + r (τ/τ_ref)²)`` (``r = 0``: a linear spring);
 - bending: the link after joint k turns by the rotation vector ``b_k τ_k`` (in the joint's frame, after
@@ -30,6 +32,49 @@ CHUNK = 4096
 
 
 @dataclass(frozen=True, eq=False)
+class JointMap:
+    """Each joint's error (rad) against its own commanded angle: ``values[k, i]`` at ``lower[k] + i · step``,
+    linear in between, held at the end values beyond (the map says nothing new outside what it saw)."""
+
+    lower: np.ndarray  # (n,) rad: the angle of each joint's first knot
+    step: float  # rad between knots
+    values: np.ndarray  # (n, m) rad
+
+    def _knots(self, q: np.ndarray, lower: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        """The knot at or left of each angle (the last but one beyond the end) and the fraction of a step
+        past it (below 0 or above 1 outside the map)."""
+        x = (q - lower) / self.step
+        i0 = np.clip(np.floor(x), 0, self.values.shape[1] - 2).astype(int)
+        return i0, x - i0
+
+    def __call__(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Errors ``(..., n)`` at commanded ``q (..., n)`` and their slopes ``d error / d q``."""
+        i0, frac = self._knots(q, self.lower)
+        inside = (frac >= 0.0) & (frac <= 1.0)
+        rows = np.arange(len(self.lower))
+        left, right = self.values[rows, i0], self.values[rows, i0 + 1]
+        return left + np.clip(frac, 0.0, 1.0) * (right - left), np.where(inside, (right - left) / self.step, 0.0)
+
+    def weights(self, q: np.ndarray, joint: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For joint ``joint`` at angles ``q (B,)``: the two knots each angle falls between and their weights
+        ``(B,)`` each, the map's value being linear in ``values``: ``w0 · v[i0] + w1 · v[i0 + 1]``."""
+        i0, frac = self._knots(q, self.lower[joint])
+        frac = np.clip(frac, 0.0, 1.0)
+        return i0, 1.0 - frac, frac
+
+    def manifest(self) -> dict:
+        return {"unit": "rad", "lower": self.lower.tolist(), "step": self.step, "values": self.values.tolist()}
+
+    @classmethod
+    def from_manifest(cls, section: dict) -> JointMap:
+        values = np.asarray(section["values"], dtype=float)
+        lower = np.asarray(section["lower"], dtype=float)
+        if values.ndim != 2 or len(lower) != len(values) or values.shape[1] < 2 or float(section["step"]) <= 0:
+            raise ValueError("joint_map needs one row of at least two values per joint and a positive step")
+        return cls(lower, float(section["step"]), values)
+
+
+@dataclass(frozen=True, eq=False)
 class ElasticChain:
     chain: Chain
     zero_offset: np.ndarray  # (n,) rad (m for prismatic joints)
@@ -40,27 +85,33 @@ class ElasticChain:
     cubic_ratio: float = 0.0
     torque_ref: float = 100.0
     joint_error: np.ndarray | None = None  # (n, K, 2) rad: sin and cos coefficients of harmonics 1 … K
+    joint_map: JointMap | None = None
 
     def corrected_joints(self, q: np.ndarray) -> np.ndarray:
         """Commanded joints ``(B, n)`` plus zero offsets and cyclic joint errors: what the rigid links reach."""
         q = np.asarray(q, dtype=float)
         out = q + self.zero_offset
         if self.has_joint_error:
-            out = out + self._cyclic(q)[0]
+            out = out + self._joint_errors(q)[0]
         return out
 
     @cached_property
     def has_joint_error(self) -> bool:
-        return self.joint_error is not None and bool(np.any(self.joint_error))
+        return (self.joint_error is not None and bool(np.any(self.joint_error))) or self.joint_map is not None
 
-    def _cyclic(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The cyclic joint errors ``(..., n)`` at commanded ``q`` and their slopes ``d error / d q``."""
-        coef = np.asarray(self.joint_error, dtype=float)
-        f = np.arange(1, coef.shape[1] + 1)
-        phase = q[..., None] * f  # (..., n, K)
-        sin, cos = np.sin(phase), np.cos(phase)
-        value = np.sum(coef[..., 0] * sin + coef[..., 1] * cos, axis=-1)
-        slope = np.sum(f * (coef[..., 0] * cos - coef[..., 1] * sin), axis=-1)
+    def _joint_errors(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The cyclic and mapped joint errors ``(..., n)`` at commanded ``q`` and their slopes ``d error / d q``."""
+        value, slope = np.zeros_like(q), np.zeros_like(q)
+        if self.joint_error is not None:
+            coef = np.asarray(self.joint_error, dtype=float)
+            f = np.arange(1, coef.shape[1] + 1)
+            phase = q[..., None] * f  # (..., n, K)
+            sin, cos = np.sin(phase), np.cos(phase)
+            value = value + np.sum(coef[..., 0] * sin + coef[..., 1] * cos, axis=-1)
+            slope = slope + np.sum(f * (coef[..., 0] * cos - coef[..., 1] * sin), axis=-1)
+        if self.joint_map is not None:
+            mapped, mapped_slope = self.joint_map(q)
+            value, slope = value + mapped, slope + mapped_slope
         return value, slope
 
     @classmethod
@@ -140,7 +191,7 @@ class ElasticChain:
                 motion, tips[s : s + CHUNK] = self._frames(q[s : s + CHUNK])
                 jacs[s : s + CHUNK] = fk.jacobian_from_frames(self.chain, motion, tips[s : s + CHUNK])
         if self.has_joint_error:
-            jacs = jacs * (1.0 + self._cyclic(q)[1])[:, None, :]
+            jacs = jacs * (1.0 + self._joint_errors(q)[1])[:, None, :]
         return tips, jacs
 
     def fk_single(self, q: np.ndarray) -> np.ndarray:
@@ -154,13 +205,13 @@ class ElasticChain:
         q = np.asarray(q, dtype=float)
         if not self.is_elastic:
             tip, jac = fk.fk_and_jacobian_single(self.chain, self.corrected_joints(q))
-            return tip, (jac * (1.0 + self._cyclic(q)[1]) if self.has_joint_error else jac)
+            return tip, (jac * (1.0 + self._joint_errors(q)[1]) if self.has_joint_error else jac)
         frames, tip, bend = self._single(q)
         # Joint k turns about its axis in its frame before bending: R_k bend_kᵀ axis_k.
         z = np.einsum("kij,kj->ki", frames[:, :3, :3], np.einsum("kji,kj->ki", bend, self.chain.axes))
         jac = fk.geometric_jacobian(z, tip[:3, 3] - frames[:, :3, 3], self.chain.revolute)
         if self.has_joint_error:
-            jac *= 1.0 + self._cyclic(q)[1]
+            jac *= 1.0 + self._joint_errors(q)[1]
         return tip, jac
 
     @cached_property

@@ -11,7 +11,7 @@ import numpy as np
 
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.chain import Chain
-from hybrid_kinematics_ros.kinematics.elastic import ElasticChain, bending_basis
+from hybrid_kinematics_ros.kinematics.elastic import ElasticChain, JointMap, bending_basis
 from hybrid_kinematics_ros.model.errors import ModelError
 
 
@@ -24,9 +24,15 @@ class Parameter:
 
 
 def build_model(
-    chain: Chain, params: list[Parameter], values: np.ndarray, payload_mass: float, payload_com: np.ndarray
+    chain: Chain,
+    params: list[Parameter],
+    values: np.ndarray,
+    payload_mass: float,
+    payload_com: np.ndarray,
+    joint_map: JointMap | None = None,
 ) -> ElasticChain:
-    """The elastic chain for parameter ``values`` in SI units (one per entry of ``params``)."""
+    """The elastic chain for parameter ``values`` in SI units (one per entry of ``params``), and the joint
+    error map if there is one."""
     n = chain.dof
     zero, compliance, bend_uv = np.zeros(n), np.zeros(n), np.zeros((n, 2))
     delta = np.zeros((n + 1, 6))
@@ -54,18 +60,23 @@ def build_model(
         float(payload_mass),
         np.asarray(payload_com, float),
         joint_error=cyclic if np.any(cyclic) else None,
+        joint_map=joint_map,
     )
 
 
 def model_from_manifest(chain: Chain, section: dict[str, Any], rigid: bool = False) -> ElasticChain:
     """Rebuild the identified elastic chain from ``model.json``'s ``parametric`` section.
 
-    ``rigid``: the geometry-only fit instead (zero offsets and joint origins; what a URDF can carry).
+    ``rigid``: the geometry-only fit instead (zero offsets and joint origins; what a URDF can carry, so
+    without the joint error map).
     """
     try:
         params = [Parameter(p["name"], p["kind"], int(p["index"]), int(p["component"])) for p in section["parameters"]]
         values = np.array([float(p["rigid_value" if rigid else "value"]) for p in section["parameters"]])
         payload = section["payload"]
-        return build_model(chain, params, values, float(payload["mass"]), np.asarray(payload["com"], float))
+        joint_map = None if rigid or "joint_map" not in section else JointMap.from_manifest(section["joint_map"])
+        if joint_map is not None and len(joint_map.lower) != chain.dof:
+            raise ValueError(f"joint_map has {len(joint_map.lower)} joints, the chain {chain.dof}")
+        return build_model(chain, params, values, float(payload["mass"]), np.asarray(payload["com"], float), joint_map)
     except (KeyError, TypeError, ValueError) as exc:
         raise ModelError(f"model.json: the parametric section is malformed ({exc!r})") from exc

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.calibration.parametric import GEOMETRY_KINDS, identify
+from hybrid_kinematics_ros.calibration.parametric import GEOMETRY_KINDS, fit_joint_map, identify
 from hybrid_kinematics_ros.kinematics import fk, se3
+from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.parametric import model_from_manifest
 from hybrid_kinematics_ros.simulation.truth import TrueRobot
@@ -128,8 +129,8 @@ def test_cyclic_joint_errors_are_identified():
     q = np.random.default_rng(3).uniform(cfg.chain.lower, cfg.chain.upper, (1200, cfg.chain.dof))
     T = robot.fk(q)
     kinds = ("zero", "translation", "rotation", "harmonic")
-    with_cyclic = identify(cfg.chain, q, T, kinds=kinds, harmonics=3, harmonic_prior=1e-3)
-    without = identify(cfg.chain, q, T, kinds=kinds, harmonics=0)
+    with_cyclic = identify(cfg.chain, q, T, kinds=kinds, harmonics=3, harmonic_prior=1e-3, map_step=0)
+    without = identify(cfg.chain, q, T, kinds=kinds, harmonics=0, map_step=0)
     qt = _held_out(cfg)
     pos, _ = se3.pose_errors(robot.fk(qt), with_cyclic.model.fk(qt))
     pos0, _ = se3.pose_errors(robot.fk(qt), without.model.fk(qt))
@@ -186,3 +187,27 @@ def test_unknown_kind_is_refused(cell):
     cfg, _, q, T = cell
     with pytest.raises(CalibrationError, match="unknown parameter kinds"):
         identify(cfg.chain, q, T, kinds=("zero", "gear"))
+
+
+def test_joint_error_map_learns_errors_too_short_for_the_harmonics():
+    """Errors of 70 cycles per turn (beyond the Fourier series' harmonics) are left by the other
+    parameters; the joint error map, fitted on one draw of poses, removes them on another."""
+    cfg = load_robot_config("ur10")
+    chain = cfg.chain
+    coef = np.zeros((chain.dof, 70, 2))
+    coef[1, 69, 0], coef[2, 69, 1], coef[4, 69, 0] = 3e-5, 2e-5, 4e-5  # rad: 4 to 8 arcseconds
+    truth = replace(ElasticChain.rigid(chain), joint_error=coef)
+    nominal = ElasticChain.rigid(chain)
+
+    def draw(seed, count):
+        return np.random.default_rng(seed).uniform(-1.2, 1.2, (count, chain.dof))
+
+    q = draw(7, 3000)
+    joint_map = fit_joint_map(nominal, q, truth.fk(q), position_only=False)
+    qt = draw(8, 500)
+    before, _ = se3.pose_errors(truth.fk(qt), nominal.fk(qt))
+    after, _ = se3.pose_errors(truth.fk(qt), replace(nominal, joint_map=joint_map).fk(qt))
+    assert before.mean() > 0.02  # mm
+    assert after.mean() < before.mean() / 10
+    # the map is the error itself: joint 2's at held-out angles, to a tenth of its amplitude
+    np.testing.assert_allclose(joint_map(qt)[0][:, 1], 3e-5 * np.sin(70 * qt[:, 1]), atol=3e-6)

@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.kinematics import fk, se3
-from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
+from hybrid_kinematics_ros.kinematics.elastic import ElasticChain, JointMap
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.simulation.truth import TrueRobot
 
@@ -96,3 +96,38 @@ def test_cyclic_joint_errors_turn_the_joints(elastic, rigid):
         # without the cyclic slope the columns would be off by f·a ≈ 1e-3 of their size
         tol = (1e-2 if not rigid else 1e-6) * np.abs(numeric).max() + 1e-9
         np.testing.assert_allclose(J[:, :3, j], numeric, atol=tol)
+
+
+def test_joint_map_interpolates_like_numpy_and_holds_its_ends():
+    """The map's value is numpy's linear interpolation of its knots (ends held), its slope the
+    finite difference inside the knots and zero beyond them."""
+    rng = np.random.default_rng(5)
+    lower, step = np.array([-1.0, 0.5]), 0.01
+    joint_map = JointMap(lower, step, rng.normal(scale=1e-5, size=(2, 40)))
+    q = np.column_stack([rng.uniform(-1.1, -0.5, 300), rng.uniform(0.4, 1.0, 300)])
+    value, slope = joint_map(q)
+    for k in range(2):
+        knots = lower[k] + step * np.arange(40)
+        np.testing.assert_allclose(value[:, k], np.interp(q[:, k], knots, joint_map.values[k]), atol=1e-18)
+        inside = (q[:, k] > knots[0]) & (q[:, k] < knots[-1])
+        eps = 1e-7
+        numeric = (joint_map(q + eps)[0][:, k] - joint_map(q - eps)[0][:, k]) / (2 * eps)
+        np.testing.assert_allclose(slope[inside, k], numeric[inside], rtol=1e-5, atol=1e-12)
+        assert not slope[~inside, k].any()
+    assert (q[:, 0] < -1.0).any() and (q[:, 0] > -0.61).any()  # the draw does leave the map
+
+
+def test_joint_map_turns_the_joints(elastic):
+    """Mapped joint errors are joint-angle shifts, on the batch and single-pose paths alike."""
+    rng = np.random.default_rng(6)
+    chain = elastic.chain
+    lower = np.where(np.isfinite(chain.lower), chain.lower, -np.pi)
+    joint_map = JointMap(lower, 0.05, rng.normal(scale=2e-4, size=(chain.dof, 300)))
+    model = replace(elastic, joint_map=joint_map)
+    q = joints(chain, 20, seed=4)
+    np.testing.assert_allclose(model.fk(q), elastic.fk(q + joint_map(q)[0]), atol=1e-14)
+    T, J = model.fk_and_jacobian(q)
+    for i in range(3):
+        np.testing.assert_allclose(model.fk_single(q[i]), T[i], atol=1e-14)
+        np.testing.assert_allclose(model.fk_and_jacobian_single(q[i])[1], J[i], atol=1e-12)
+    assert not model.is_rigid
