@@ -13,6 +13,7 @@ import hashlib
 import io
 import warnings
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -86,6 +87,20 @@ class Chain:
     @property
     def dof(self) -> int:
         return len(self.joint_names)
+
+    @cached_property
+    def single_operands(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+        """Constants of :func:`fk.fk_single`, built once: the generators as ``(n, 3, 16)`` (G0, G1, G2 of
+        every joint, flattened), a row of ones ``(n,)``, the ``post`` transform followed by identities
+        ``(m, 4, 4)`` that pad the n + 1 factors of the product to a power of two, and whether every joint
+        is revolute."""
+        n = self.dof
+        flat = np.ascontiguousarray(self.generators.reshape(n, 3, 16))
+        size = 1 << n.bit_length()  # the smallest power of two >= n + 1
+        tail = np.concatenate([self.post[None], np.broadcast_to(np.eye(4), (size - n - 1, 4, 4))])
+        for arr in (flat, tail):
+            arr.setflags(write=False)
+        return flat, np.ones(n), tail, bool(self.revolute.all())
 
     def with_tool(self, tool: np.ndarray) -> Chain:
         """The same chain with a fixed tool transform appended after the tip."""

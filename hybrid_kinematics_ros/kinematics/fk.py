@@ -79,14 +79,23 @@ def fk(chain: Chain, q: np.ndarray) -> np.ndarray:
 
 
 def fk_single(chain: Chain, q: np.ndarray) -> np.ndarray:
-    """Tip pose ``(4, 4)`` of one configuration ``(n,)``: the low-overhead path for services and IK."""
-    a, b = chain.coefficients(np.asarray(q, dtype=float))
-    g = chain.generators
-    local = g[:, 0] + a[:, None, None] * g[:, 1] + b[:, None, None] * g[:, 2]
-    t = local[0]
-    for k in range(1, len(local)):
-        t = t @ local[k]
-    return t @ chain.post
+    """Tip pose ``(4, 4)`` of one configuration ``(n,)``: the low-overhead path for services and IK.
+
+    Few numpy calls, since each one costs microseconds on a service's path, where the process wakes up
+    with cold caches: the joint factors ``G0 + a G1 + b G2`` in one batched product, then their
+    product (``post`` and identities appended to a power of two) as a tree of 3 batched matrix products
+    for 6 or 7 joints instead of a chain of 7. The association differs from :func:`fk`'s by rounding only.
+    """
+    flat, ones, tail, revolute = chain.single_operands
+    q = np.asarray(q, dtype=float)
+    if revolute:
+        coef = np.array((ones, np.sin(q), 1.0 - np.cos(q))).T[:, None]
+    else:
+        coef = np.array((ones, *chain.coefficients(q))).T[:, None]
+    factors = np.concatenate(((coef @ flat).reshape(-1, 4, 4), tail))
+    while len(factors) > 1:
+        factors = factors[0::2] @ factors[1::2]
+    return factors[0]
 
 
 def geometric_jacobian(z: np.ndarray, lever: np.ndarray, revolute: np.ndarray) -> np.ndarray:

@@ -42,7 +42,13 @@ def quat_from_rotation(r: np.ndarray) -> np.ndarray:
     scipy's ``Rotation`` costs ~50 µs per call at batch size 1; this path serves single poses in nodes, in
     Python floats (each numpy call on a scalar costs more than the arithmetic). Tested against scipy.
     """
-    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = np.asarray(r, dtype=float)[:3, :3].tolist()
+    return np.array(quat_of_rows(np.asarray(r, dtype=float)[:3, :3].tolist()))
+
+
+def quat_of_rows(rows: list[list[float]]) -> tuple[float, float, float, float]:
+    """:func:`quat_from_rotation` of a rotation (or pose) matrix given as nested lists (``T.tolist()``), in
+    Python floats only: a service converts one pose with a single numpy call."""
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = (row[:3] for row in rows[:3])
     trace = m00 + m11 + m22
     if trace > 0.0:
         s = 2.0 * math.sqrt(1.0 + trace)
@@ -57,7 +63,7 @@ def quat_from_rotation(r: np.ndarray) -> np.ndarray:
         s = 2.0 * math.sqrt(1.0 + m22 - m00 - m11)
         q = ((m02 + m20) / s, (m12 + m21) / s, 0.25 * s, (m10 - m01) / s)
     scale = (-1.0 if q[3] < 0.0 else 1.0) / math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    return np.array([scale * q[0], scale * q[1], scale * q[2], scale * q[3]])
+    return scale * q[0], scale * q[1], scale * q[2], scale * q[3]
 
 
 def from_rotvec(position: np.ndarray, rotvec: np.ndarray) -> np.ndarray:

@@ -69,8 +69,10 @@ class HybridModel:
         self.trained_lower = np.asarray(rng["lower"], dtype=float) if rng else chain.lower
         self.trained_upper = np.asarray(rng["upper"], dtype=float) if rng else chain.upper
         self._range = (self.trained_lower - 1e-9, self.trained_upper + 1e-9)
+        self._range_lists = (self._range[0].tolist(), self._range[1].tolist())
         section = self.manifest.get("parametric")
         self.base = model_from_manifest(chain, section) if section else ElasticChain.rigid(chain)
+        self._rigid_base = self.base.chain if self.base.is_rigid else None  # fk_single's shortcut
         section = self.manifest.get("referencing") or []
         refs = [Referencing.from_manifest(r) for r in ([section] if isinstance(section, dict) else section)]
         self.referencings = {r.frame_id: r for r in refs}  # one per tracker station
@@ -212,6 +214,14 @@ class HybridModel:
         lower, upper = self._range
         return ((q >= lower) & (q <= upper)).all(axis=1)
 
+    def in_calibrated_range_one(self, q: np.ndarray) -> bool:
+        """:meth:`in_calibrated_range` of one finite configuration ``(n,)``, compared in Python floats (the
+        services' path, where each numpy call costs microseconds)."""
+        if self._coverage_radius is not None:
+            return bool(self.in_calibrated_range(q)[0])
+        lower, upper = self._range_lists
+        return all(lo <= v <= hi for lo, v, hi in zip(lower, q.tolist(), upper, strict=True))
+
     def set_condition(self, name: str, value: float) -> None:
         """The current value of a condition channel (e.g. the cell's temperature), used from now on."""
         if name not in self.condition_names:
@@ -282,7 +292,7 @@ class HybridModel:
         q = np.asarray(q, dtype=float)
         if analytic:
             return fk.fk_single(self.chain, q)
-        T = self.base.fk_single(q)
+        T = self.base.fk_single(q) if self._rigid_base is None else fk.fk_single(self._rigid_base, q)
         if not self.nets or not self._nets_apply(q[None]):
             return T
         if not all(self._fast.values()):

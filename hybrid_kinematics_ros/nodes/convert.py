@@ -12,7 +12,7 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from hybrid_kinematics_ros.kinematics.se3 import matrix_from_pose, pose_from_matrix, quat_from_rotation
+from hybrid_kinematics_ros.kinematics.se3 import matrix_from_pose, pose_from_matrix, quat_of_rows
 
 QUAT_TOLERANCE = 1e-3  # |‖q‖ − 1| accepted (and normalised) in requests
 
@@ -81,14 +81,16 @@ def matrix_from_msg(msg: PoseStamped, base_link: str) -> np.ndarray:
 
 
 def pose_msg(T: np.ndarray, frame_id: str, stamp: Time, quat: np.ndarray | None = None) -> PoseStamped:
-    """A PoseStamped of one 4x4; pass ``quat`` when it was computed in a batch already."""
-    quat = quat_from_rotation(T[:3, :3]) if quat is None else quat
+    """A PoseStamped of one 4x4; pass ``quat`` when it was computed in a batch already. One numpy call
+    (``tolist``), the rest in Python floats. (Fields are set on a default message: passing sub-messages
+    to a constructor would build its default sub-messages as well.)"""
+    rows = T.tolist()
     msg = PoseStamped()
     msg.header.frame_id = frame_id
     msg.header.stamp = stamp
-    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = T[:3, 3].tolist()
-    o = msg.pose.orientation
-    o.x, o.y, o.z, o.w = quat.tolist()
+    p, o = msg.pose.position, msg.pose.orientation
+    p.x, p.y, p.z = rows[0][3], rows[1][3], rows[2][3]
+    o.x, o.y, o.z, o.w = quat_of_rows(rows) if quat is None else quat.tolist()
     return msg
 
 

@@ -73,6 +73,7 @@ def test_mixed_joint_types_match_pinocchio(tmp_path):
         pin.forwardKinematics(model, data, qp)
         pin.updateFramePlacements(model, data)
         np.testing.assert_allclose(t[i], data.oMf[frame].homogeneous, atol=1e-12)
+        np.testing.assert_allclose(fk.fk_single(chain, q[i]), t[i], atol=1e-14, rtol=0)
         jp = pin.computeFrameJacobian(model, data, qp, frame, pin.LOCAL_WORLD_ALIGNED)
         vcols = [model.joints[model.getJointId(n)].idx_v for n in ("j1", "j2", "j3")]
         np.testing.assert_allclose(j[i], jp[:, vcols], atol=1e-12)
@@ -130,3 +131,15 @@ def test_robot_config_limits_and_tool(tmp_path):
     (tmp_path / "bad.yaml").write_text("urdf: ur10.urdf\nbase_link: base_link\n")
     with pytest.raises(KinematicsError, match="missing field 'tip_link'"):
         load_robot_config(tmp_path / "bad.yaml")
+
+
+@pytest.mark.parametrize("joints", range(1, 7))
+def test_single_fk_agrees_with_the_batch_for_every_chain_length(joints):
+    """fk_single multiplies the factors as a tree padded with identities to a power of two: each length
+    pads differently (1 joint: none; 4 joints: three)."""
+    chain = chain_from_urdf(load_robot_config("ur10").chain.urdf_text, "base_link", f"link_{joints}")
+    assert chain.dof == joints
+    q = np.random.default_rng(joints).uniform(-np.pi, np.pi, (50, joints))
+    batch = fk.fk(chain, q)
+    for i in range(len(q)):
+        np.testing.assert_allclose(fk.fk_single(chain, q[i]), batch[i], atol=1e-14, rtol=0)
