@@ -39,6 +39,25 @@ class AlignOptions:
     still_min_s: float = 0.0  # > 0: static mode, one averaged pair per still window at least this long
 
 
+ALL = (-(2**62), 2**62)  # a stamp range (ns) that holds every stamp
+
+
+@dataclass(frozen=True)
+class Window:
+    """The part of a longer recording that one :func:`align` call answers for (windowed alignment).
+
+    Joint states with stamps in ``[joint_lo, joint_hi)`` (robot clock) give pairs and count as rejected;
+    tracker samples count as rejected in ``[tracker_lo, tracker_hi)`` (tracker clock). Samples outside are
+    context: they bracket, interpolate and give derivatives and still windows, but are the neighbouring
+    window's to pair and count. In static mode a still window belongs to the window its first sample is in.
+    """
+
+    joint_lo: int = ALL[0]
+    joint_hi: int = ALL[1]
+    tracker_lo: int = ALL[0]
+    tracker_hi: int = ALL[1]
+
+
 @dataclass
 class AlignResult:
     pairs: Pairs
@@ -48,10 +67,22 @@ class AlignResult:
 
 
 def align(
-    chain: Chain, rec: RawRecording, options: AlignOptions | None = None, frame_id: str | None = None
+    chain: Chain,
+    rec: RawRecording,
+    options: AlignOptions | None = None,
+    frame_id: str | None = None,
+    *,
+    clock: Clock | None = None,
+    window: Window | None = None,
 ) -> AlignResult:
-    """Calibration pairs at the joint stamps, with the tracker poses interpolated there."""
+    """Calibration pairs at the joint stamps, with the tracker poses interpolated there.
+
+    ``clock``: the tracker's clock, known already (windowed alignment); it overrides ``options.offset_s``.
+    ``window``: answer for that part of ``rec`` only (see :class:`Window`); a window without a pair then
+    gives empty pairs instead of an error.
+    """
     o = options or AlignOptions()
+    w = window or Window()
     names = tuple(rec.joint_names)
     if set(names) != set(chain.joint_names):
         raise CalibrationError(f"the recording has joints {list(names)}, the robot {list(chain.joint_names)}")
@@ -67,10 +98,10 @@ def align(
         rec.truncated,
         rec.counts,
     )
-    rec, rejected, position_only = clean(rec)
-    if o.offset_s is not None:
+    rec, rejected, position_only = clean(rec, w)
+    if clock is None and o.offset_s is not None:
         clock = Clock(o.offset_s, o.skew_ppm * 1e-6, int(rec.joint_stamps[0]))
-    else:
+    elif clock is None:
         clock = estimate_clock(chain, rec, o.max_offset_s)
     t_query = clock.to_tracker(rec.joint_stamps)  # joint stamps in the tracker's clock
     # the bracketing samples: before <= t < after, or both at t when a sample falls exactly on it
@@ -79,16 +110,22 @@ def align(
     exact = (after <= last) & (rec.pose_stamps[np.minimum(after, last)] == t_query)
     before = np.where(exact, after, after - 1)
     outside = (before < 0) | (after >= len(rec.pose_stamps))
-    rejected["outside_tracker_stream"] += int(outside.sum())
+    mine = (rec.joint_stamps >= w.joint_lo) & (rec.joint_stamps < w.joint_hi)  # what this call counts
+    rejected["outside_tracker_stream"] += int((outside & mine).sum())
     b, a = np.clip(before, 0, len(rec.pose_stamps) - 1), np.clip(after, 0, len(rec.pose_stamps) - 1)
     gap = (rec.pose_stamps[a] - rec.pose_stamps[b]) * NS
     long_gap = ~outside & (gap > o.max_gap_s)
-    rejected["tracker_gap"] += int(long_gap.sum())
+    rejected["tracker_gap"] += int((long_gap & mine).sum())
     speed = np.abs(np.gradient(rec.q, rec.joint_stamps * NS, axis=0)).max(axis=1)
     fast = ~outside & ~long_gap & ~(speed <= o.max_joint_speed)  # NaN is fast, not slow
-    rejected["moving_too_fast"] += int(fast.sum())
+    rejected["moving_too_fast"] += int((fast & mine).sum())
     keep = ~outside & ~long_gap & ~fast
+    if o.still_min_s <= 0:
+        keep &= mine  # (static mode: context samples complete still windows across the window's edges)
     if not keep.any():
+        if window is not None:
+            empty = _no_pairs(chain, frame_id or rec.pose_frame, position_only)
+            return AlignResult(empty, float(clock.offset_at(rec.joint_stamps[:1])[0]), +rejected, clock.skew_ppm)
         raise CalibrationError(f"no joint state could be paired with a tracker pose: rejected {dict(+rejected)}")
     b, a, tq = b[keep], a[keep], t_query[keep]
     span = (rec.pose_stamps[a] - rec.pose_stamps[b]).astype(float)
@@ -104,34 +141,38 @@ def align(
     frame = frame_id or rec.pose_frame
     pairs = Pairs(rec.q[keep], T, rec.joint_stamps[keep], chain.joint_names, frame, position_only=position_only)
     if o.still_min_s > 0:
-        pairs = static_pairs(pairs, still_mask(rec.q, rec.joint_stamps, o)[keep], o)
+        starts = (w.joint_lo, w.joint_hi) if window is not None else None
+        pairs = static_pairs(pairs, still_mask(rec.q, rec.joint_stamps, o)[keep], o, starts)
     offset = float(clock.offset_at(rec.joint_stamps[:1])[0])
     return AlignResult(pairs, offset, +rejected, float(clock.skew_ppm))
 
 
-def clean(rec: RawRecording) -> tuple[RawRecording, Counter, bool]:
+def clean(rec: RawRecording, window: Window | None = None) -> tuple[RawRecording, Counter, bool]:
     """Drop unusable raw samples, counted by reason as :func:`read_pairs` does: non-finite values, repeated
     stamps (the first is kept; a zero time step makes derivatives NaN), and quaternions off unit length.
 
     Zero quaternions on every finite sample mean a plain reflector: position only (the third value).
+    ``window``: count only the samples in its ranges (the others are counted by the neighbouring windows).
     """
+    w = window or Window()
     rejected: Counter = Counter()
-    jt, q = _unique_stamps(rec.joint_stamps, rec.q, "joint_state", rejected)
+    jt, q = _unique_stamps(rec.joint_stamps, rec.q, "joint_state", rejected, (w.joint_lo, w.joint_hi))
     finite = np.all(np.isfinite(q), axis=1)
-    rejected["joint_state_nan_or_inf"] += int(np.sum(~finite))
+    in_j = (jt >= w.joint_lo) & (jt < w.joint_hi)
+    rejected["joint_state_nan_or_inf"] += int(np.sum(~finite & in_j))
     jt, q = jt[finite], q[finite]
     values = np.hstack([rec.positions, rec.quats])
-    pt, values = _unique_stamps(rec.pose_stamps, values, "tracker", rejected)
+    pt, values = _unique_stamps(rec.pose_stamps, values, "tracker", rejected, (w.tracker_lo, w.tracker_hi))
     finite = np.all(np.isfinite(values[:, :3]), axis=1)
     position_only = bool(np.any(finite)) and bool(np.all(values[finite, 3:] == 0.0))
     if not position_only:
         finite &= np.all(np.isfinite(values[:, 3:]), axis=1)
-    rejected["tracker_nan_or_inf"] += int(np.sum(~finite))
+    rejected["tracker_nan_or_inf"] += int(np.sum(~finite & (pt >= w.tracker_lo) & (pt < w.tracker_hi)))
     pt, values = pt[finite], values[finite]
     if not position_only:
         norms = np.linalg.norm(values[:, 3:], axis=1)
         unit = np.abs(norms - 1.0) < 1e-3
-        rejected["tracker_non_unit_quaternion"] += int(np.sum(~unit))
+        rejected["tracker_non_unit_quaternion"] += int(np.sum(~unit & (pt >= w.tracker_lo) & (pt < w.tracker_hi)))
         pt, values = pt[unit], values[unit]
         values[:, 3:] /= norms[unit, None]
     if not len(jt) or not len(pt):
@@ -142,12 +183,14 @@ def clean(rec: RawRecording) -> tuple[RawRecording, Counter, bool]:
     return cleaned, rejected, position_only
 
 
-def _unique_stamps(stamps: np.ndarray, values: np.ndarray, what: str, rejected: Counter) -> tuple:
-    """Samples sorted by stamp with repeated stamps dropped (the first kept)."""
+def _unique_stamps(
+    stamps: np.ndarray, values: np.ndarray, what: str, rejected: Counter, counted: tuple[int, int] = ALL
+) -> tuple:
+    """Samples sorted by stamp with repeated stamps dropped (the first kept); those in ``counted`` counted."""
     order = np.argsort(stamps, kind="stable")
     stamps, values = stamps[order], values[order]
     first = np.r_[True, np.diff(stamps) != 0]
-    rejected[f"{what}_duplicate_stamp"] += int(np.sum(~first))
+    rejected[f"{what}_duplicate_stamp"] += int(np.sum(~first & (stamps >= counted[0]) & (stamps < counted[1])))
     return stamps[first], values[first]
 
 
@@ -172,12 +215,18 @@ def still_mask(q: np.ndarray, stamps: np.ndarray, o: AlignOptions) -> np.ndarray
     return np.all(spread <= tolerance, axis=1)
 
 
-def static_pairs(pairs: Pairs, still: np.ndarray, o: AlignOptions) -> Pairs:
-    """Static mode (the paper's industrial experiment): one pair per still window, averaged over it."""
+def static_pairs(pairs: Pairs, still: np.ndarray, o: AlignOptions, starts: tuple[int, int] | None = None) -> Pairs:
+    """Static mode (the paper's industrial experiment): one pair per still window, averaged over it.
+
+    ``starts``: keep only the still windows whose first stamp is in ``[lo, hi)`` (windowed alignment; then
+    no still window is no error).
+    """
     edges = np.flatnonzero(np.diff(np.r_[0, still.astype(int), 0]))
     q, T, stamps = [], [], []
     for start, end in zip(edges[::2], edges[1::2], strict=True):
         if (pairs.stamps[end - 1] - pairs.stamps[start]) * NS < o.still_min_s:
+            continue
+        if starts is not None and not starts[0] <= pairs.stamps[start] < starts[1]:
             continue
         sl = slice(start, end)
         q.append(pairs.q[sl].mean(axis=0))
@@ -188,7 +237,18 @@ def static_pairs(pairs: Pairs, still: np.ndarray, o: AlignOptions) -> Pairs:
         T.append(t)
         stamps.append(pairs.stamps[(start + end) // 2])
     if not q:
+        if starts is not None:
+            return _no_pairs_like(pairs)
         raise CalibrationError(f"static mode: no still window of at least {o.still_min_s} s")
     return Pairs(
         np.array(q), np.array(T), np.array(stamps), pairs.joint_names, pairs.frame_id, position_only=pairs.position_only
     )
+
+
+def _no_pairs(chain: Chain, frame_id: str, position_only: bool) -> Pairs:
+    empty = (np.zeros((0, chain.dof)), np.zeros((0, 4, 4)), np.zeros(0, np.int64))
+    return Pairs(*empty, chain.joint_names, frame_id, position_only=position_only)
+
+
+def _no_pairs_like(pairs: Pairs) -> Pairs:
+    return pairs.subset(np.zeros(0, dtype=int))

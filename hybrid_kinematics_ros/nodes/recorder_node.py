@@ -1,9 +1,12 @@
 """The recorder: raw joint states and tracker poses into an MCAP bag, plus the aligned calibration pairs.
 
 Messages arrive serialised (``raw=True``) and go straight into the bag; their stamps and values also go
-into in-memory buffers. When a recording stops (``~/stop``, SIGINT or SIGTERM) the buffers are aligned
-by the same code as ``hybrid-kinematics align`` and the pairs are appended to the bag before it is
-closed. A killed recorder leaves a bag whose complete chunks read back, and which ``align`` turns into
+to a :class:`StreamingAligner`, which keeps only the last couple of minutes: a worker thread aligns the
+recording segment by segment as it goes (``align_segment_s``), and the executor thread writes each
+segment's pairs into the bag, so memory stays bounded for sessions of hours. When a recording stops
+(``~/stop``, SIGINT or SIGTERM) the rest is aligned and its pairs are appended before the bag is closed;
+a recording shorter than a segment and its context is aligned exactly as ``hybrid-kinematics align``
+does it. A killed recorder leaves a bag whose complete chunks read back, and which ``align`` turns into
 pairs. Diagnostics (rates, counts, rejections, the clock offset) are published once a second; they
 WARN on lost messages, an unstable clock offset or frequent beam breaks, and are an ERROR once the bag
 cannot be written. Subscriptions are reliable unless a publisher is best-effort (``reliability: auto``).
@@ -23,7 +26,7 @@ import signal
 import sys
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -38,10 +41,16 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
-from hybrid_kinematics_ros.calibration.alignment import AlignOptions, align
+from hybrid_kinematics_ros.calibration.alignment import AlignOptions
 from hybrid_kinematics_ros.calibration.clock import estimate_offset
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.io.columns import Columns
+from hybrid_kinematics_ros.calibration.windowed import (
+    CONTEXT_S,
+    SEGMENT_S,
+    SegmentPairs,
+    StreamingAligner,
+    fit_clock,
+)
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.io.pairs import JOINT_STATE, POSE_STAMPED
 from hybrid_kinematics_ros.io.raw_bag import BagWriter, RawRecording, decode_pose_stamped, write_pairs_into
@@ -72,6 +81,8 @@ class RecorderNode(Node):
             offset_s=None if np.isnan(offset) else offset,
             still_min_s=declare("static_min_s", 0.0, "> 0: static mode, one averaged pair per still window"),
         )
+        self.segment_s = declare("align_segment_s", SEGMENT_S, "align while recording, this much at a time (s)")
+        self.context_s = declare("align_context_s", CONTEXT_S, "data either side of a segment for its clock (s)")
         autostart = declare("autostart", True, "start recording at once")
         try:
             self.chain = load_robot_config(robot).chain
@@ -104,6 +115,9 @@ class RecorderNode(Node):
         self.last_pairs = 0
         self._offset_worker: threading.Thread | None = None
         self._next_offset = 0.0
+        self._align_worker: threading.Thread | None = None
+        self._aligned: deque[SegmentPairs] = deque()  # aligned by the worker, for the executor thread to write
+        self._align_error = ""
         if autostart:
             try:
                 self.start(self.bag_name or None)
@@ -148,11 +162,10 @@ class RecorderNode(Node):
         writer = BagWriter(self.output_dir / name)
         writer.add_topic(self.joints_topic, JOINT_STATE)
         writer.add_topic(self.pose_topic, POSE_STAMPED)
-        self.joints = Columns(self.chain.dof)
-        self.joint_rx = Columns(0)  # receive times (ns) of the joint states, the log time of their pairs
-        self.poses = Columns(7)
-        self.names: list[str] | None = None
-        self.frame = ""
+        self.aligner = StreamingAligner(
+            self.chain, self.options, self.pairs_frame or None, segment_s=self.segment_s, context_s=self.context_s
+        )
+        self._aligned, self._align_error = deque(), ""
         self.received = Counter()
         self.beam_breaks = 0
         self.last_pose_stamp: int | None = None
@@ -173,58 +186,92 @@ class RecorderNode(Node):
         if writer is None:
             raise DataError("not recording")
         message = f"closed {writer.path}"
+        aligner = self.aligner
         try:
             writer.split()  # the raw file: complete on disk
             self.get_logger().info(f"raw recording finalised ({dict(writer.counts)}); aligning")
-            rec = self._recording()
-            result = align(self.chain, rec, self.options, self.pairs_frame or None)
+            if self._align_worker is not None:
+                self._align_worker.join()  # a segment in progress
+            self._write_aligned(writer)
+            if aligner.joints.n == 0 or aligner.poses.n == 0:
+                raise DataError(
+                    f"nothing to align: {aligner.joints.n} joint states and {aligner.poses.n} tracker poses"
+                )
+            self._aligned.extend(aligner.poll(final=True))
+            self._write_aligned(writer)
+            clock = aligner.summary_clock()
+            offset = float("nan") if clock is None else clock.offset_s
+            skew = 0.0 if clock is None else clock.skew_ppm
             writer.custom_data.update(
                 {
-                    "clock_offset_s": repr(result.offset_s),
-                    "clock_skew_ppm": repr(result.skew_ppm),
-                    "pairs": str(len(result.pairs)),
-                    **{f"rejected_{k}": str(v) for k, v in result.rejected.items()},
+                    "clock_offset_s": repr(offset),
+                    "clock_skew_ppm": repr(skew),
+                    "pairs": str(aligner.pairs),
+                    **{f"rejected_{k}": str(v) for k, v in (+aligner.rejected).items()},
                 }
             )
-            write_pairs_into(writer, result.pairs, self._receive_times(result.pairs.stamps))
-            self.last_offset, self.last_rejected, self.last_pairs = result.offset_s, result.rejected, len(result.pairs)
+            writer.sync_metadata()
+            self.last_offset, self.last_rejected, self.last_pairs = offset, +aligner.rejected, aligner.pairs
             message += (
-                f" with {len(result.pairs)} pairs; clock offset {result.offset_s * 1e3:.3f} ms, "
-                f"skew {result.skew_ppm:.2f} ppm; rejected {dict(result.rejected)}"
+                f" with {aligner.pairs} pairs; clock offset {offset * 1e3:.3f} ms, "
+                f"skew {skew:.2f} ppm; rejected {dict(+aligner.rejected)}"
             )
         except (CalibrationError, DataError, ValueError) as exc:
-            message += f" without pairs ({exc}); align it later with hybrid-kinematics align"
+            done = f"{aligner.pairs} pairs of the earlier segments in the bag; " if aligner.pairs else ""
+            message += f" without pairs ({exc}); {done}align it later with hybrid-kinematics align"
         finally:
             with contextlib.suppress(DataError):  # a write failure is reported already
                 writer.close()
         self.get_logger().info(message)
         return message
 
-    def _receive_times(self, stamps: np.ndarray) -> np.ndarray:
-        """Log times of pairs: the receive time of the joint state each comes from, so that pairs and raw
-        topics share one time base in the bag (``starting_time``, ``duration``, playback order)."""
-        jt, rx = self.joints.view()[0], self.joint_rx.view()[0]
-        order = np.argsort(jt, kind="stable")
-        jt, rx = jt[order], rx[order]
-        index = np.clip(np.searchsorted(jt, stamps), 0, len(jt) - 1)
-        return np.where(jt[index] == stamps, rx[index], stamps)
+    def _write_aligned(self, writer: BagWriter | None = None) -> None:
+        """Write the pairs of the segments aligned so far (executor thread: the bag writer is not shared)."""
+        writer = writer or self.writer
+        while self._aligned:
+            segment = self._aligned.popleft()
+            if writer is None or self.write_error or not len(segment.result.pairs):
+                continue
+            try:
+                write_pairs_into(writer, segment.result.pairs, segment.log_ns)
+            except DataError as exc:
+                self.write_error = str(exc)
+                self.get_logger().error(f"{exc}; not recording any more")
 
-    def _recording(self, last_s: float | None = None) -> RawRecording:
-        """Everything recorded so far, or about the last ``last_s`` seconds of it (a copy either way)."""
-        if last_s is None:
-            (jt, q), (pt, p) = self.joints.view(), self.poses.view()
-        else:
-            elapsed = max(time.monotonic() - self.started, 1e-3)
-            (jt, q), (pt, p) = (c.view(int(1.5 * last_s * c.n / elapsed) + 2) for c in (self.joints, self.poses))
+    def _start_segment_alignment(self) -> None:
+        """Align the segments whose data is complete, in a worker thread (a segment takes seconds)."""
+        self._write_aligned()
+        if self._align_worker is not None and self._align_worker.is_alive():
+            return
+        aligner = self.aligner
+
+        def work() -> None:
+            try:
+                self._aligned.extend(aligner.poll())
+            except (CalibrationError, DataError, ValueError) as exc:  # the raw data is safe; say so once
+                if not self._align_error:
+                    self.get_logger().warning(f"aligning while recording failed ({exc}); it is retried on stop")
+                self._align_error = str(exc)
+
+        self._align_worker = threading.Thread(target=work, name="align_segments", daemon=True)
+        self._align_worker.start()
+
+    def _recording(self, last_s: float) -> RawRecording:
+        """About the last ``last_s`` seconds (a copy)."""
+        elapsed = max(time.monotonic() - self.started, 1e-3)
+        (jt, q), (pt, p) = self.aligner.recent(
+            int(1.5 * last_s * self.aligner.joints.n / elapsed) + 2,
+            int(1.5 * last_s * self.aligner.poses.n / elapsed) + 2,
+        )
         if not len(jt) or not len(pt):
             raise DataError(f"nothing to align: {len(jt)} joint states and {len(pt)} tracker poses")
         jo, po = np.argsort(jt, kind="stable"), np.argsort(pt, kind="stable")
         return RawRecording(
             jt[jo],
-            tuple(self.names or self.chain.joint_names),
-            q[jo],
+            self.chain.joint_names,
+            q[jo, :-1],
             pt[po],
-            self.frame,
+            self.aligner.frame,
             p[po, :3],
             p[po, 3:],
             False,
@@ -254,25 +301,24 @@ class RecorderNode(Node):
         if len(msg.name) != len(msg.position) or any(n not in index for n in self.chain.joint_names):
             self.received["joint_states_without_robot_joints"] += 1
             return
-        self.names = list(self.chain.joint_names)
-        self.joints.append(
+        self.aligner.add_joints(
             msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec,
             [msg.position[index[n]] for n in self.chain.joint_names],
+            now,
         )
-        self.joint_rx.append(now, ())
 
     def _on_pose(self, raw: bytes) -> None:
         if not self._write(self.pose_topic, time.time_ns(), raw):
             return
         self.received["tracker_poses"] += 1
         try:
-            stamp, self.frame, values = decode_pose_stamped(raw)
+            stamp, frame, values = decode_pose_stamped(raw)
         except DataError:  # a big-endian publisher: the slow, general path
             msg = deserialize_message(raw, PoseStamped)
             p, o = msg.pose.position, msg.pose.orientation
             stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-            self.frame, values = msg.header.frame_id, (p.x, p.y, p.z, o.x, o.y, o.z, o.w)
-        self.poses.append(stamp, values)
+            frame, values = msg.header.frame_id, (p.x, p.y, p.z, o.x, o.y, o.z, o.w)
+        self.aligner.add_pose(stamp, values, frame)
         if self.last_pose_stamp is not None and stamp - self.last_pose_stamp > self.options.max_gap_s * 1e9:
             self.beam_breaks += 1  # a gap alignment will not bridge
         self.last_pose_stamp = stamp
@@ -306,7 +352,9 @@ class RecorderNode(Node):
         busy = self._offset_worker is not None and self._offset_worker.is_alive()
         if self.options.offset_s is not None or busy or time.monotonic() < self._next_offset:
             return
-        if time.monotonic() - self.started < 20.0 or self.poses.n < 5000:
+        if time.monotonic() - self.started < 20.0 or self.aligner.poses.n < 5000:
+            return
+        if self.aligner.estimates:  # the segments' estimates (one a segment) take over from here
             return
         self._next_offset = time.monotonic() + 10.0
         recent = self._recording(last_s=30.0)
@@ -339,6 +387,12 @@ class RecorderNode(Node):
             values.update({f"lost_{t}": str(n) for t, n in self.lost.items()})
             problems = self._problems(elapsed)
             self._start_offset_estimate()
+            self._start_segment_alignment()
+            values["retained_samples"] = str(self.aligner.retained)
+            values["pairs_so_far"] = str(self.aligner.pairs)
+            estimates = self.aligner.estimates
+            if estimates:
+                self.last_offset = estimates[-1].offset_s
         if self.last_offset is not None:
             values["clock_offset_ms"] = f"{self.last_offset * 1e3:.3f}"
         values.update({f"rejected_{k}": str(v) for k, v in self.last_rejected.items()})
@@ -364,7 +418,18 @@ class RecorderNode(Node):
         per_min = 60.0 * self.beam_breaks / max(elapsed, 1.0)
         if self.beam_breaks >= 3 and per_min > self.max_beam_breaks:
             out.append((DiagnosticStatus.WARN, f"beam breaks {per_min:.1f}/min (more than {self.max_beam_breaks:g})"))
-        if len(self.offsets) >= 2 and abs(self.offsets[-1] - self.offsets[-2]) > self.offset_warn_s:
+        estimates = self.aligner.estimates if self.writer is not None else []
+        if len(estimates) >= 2:  # the segments': the newest against the trend (offset and skew) of the others
+            trend = fit_clock(estimates[:-1], estimates[0].stamp_ns)
+            off = abs(estimates[-1].offset_s - float(trend.offset_at(np.array([estimates[-1].stamp_ns]))[0]))
+            if off > self.offset_warn_s:
+                out.append(
+                    (
+                        DiagnosticStatus.WARN,
+                        f"clock offset unstable: the last segment's is {1e3 * off:.2f} ms off the trend",
+                    )
+                )
+        elif len(self.offsets) >= 2 and abs(self.offsets[-1] - self.offsets[-2]) > self.offset_warn_s:
             jump = 1e3 * abs(self.offsets[-1] - self.offsets[-2])
             out.append((DiagnosticStatus.WARN, f"clock offset unstable: the last estimates differ by {jump:.2f} ms"))
         return out
