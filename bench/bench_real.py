@@ -22,15 +22,17 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from bench.report import table, write_section
 from hybrid_kinematics_ros.calibration import train
-from hybrid_kinematics_ros.calibration.evaluate import error_stats, target_errors
-from hybrid_kinematics_ros.calibration.fit import fit, split
+from hybrid_kinematics_ros.calibration.evaluate import error_stats, measured_targets, target_errors
+from hybrid_kinematics_ros.calibration.fit import fit, reference_all, split
 from hybrid_kinematics_ros.calibration.report import repeated_poses
 from hybrid_kinematics_ros.io.import_spec import load_spec_dict, spec_from_dict
 from hybrid_kinematics_ros.io.importer import import_table
 from hybrid_kinematics_ros.io.pairs import Pairs
+from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.parametric import model_from_manifest
 from hybrid_kinematics_ros.model.referencing import to_base_frame
@@ -62,6 +64,21 @@ def repeatability_mm(pairs: Pairs) -> tuple[float, int]:
         spread.extend(np.linalg.norm(p - p.mean(axis=0), axis=1))
         groups += 1
     return 1e3 * float(np.mean(spread)), groups
+
+
+def noise_floor_mm(pairs: Pairs, chain, tolerance_rad: float = 1e-3) -> tuple[float, int]:
+    """What even a perfect model's mean error would be on one measurement, and the pair count: from pairs of
+    measurements of (nearly) the same joints, the mean of ``|Δ residual| / √2``, the residual taken against
+    the URDF model (its error barely changes over the pair's joint difference). The spread of repeated
+    poses about their mean (:func:`repeatability_mm`) is smaller by about √2 for pairs: it is not this floor.
+    """
+    close = cKDTree(pairs.q).query_pairs(tolerance_rad, p=np.inf, output_type="ndarray")
+    if not len(close):
+        return float("nan"), 0
+    base = to_base_frame([pairs], chain, reference_all(chain, [pairs]))
+    residual = measured_targets(base)[:, :3, 3] - se3.point_at(fk.fk(chain, base.q), base.targets[:, :3, 3])
+    diff = residual[close[:, 0]] - residual[close[:, 1]]
+    return 1e3 * float(np.mean(np.linalg.norm(diff, axis=1))) / np.sqrt(2.0), len(close)
 
 
 def rows_for(cfg, train_sets, test_sets, recipes, minutes, steps, seed=0):
@@ -146,8 +163,15 @@ def main() -> None:
         "contiguous blocks of rows. " + ", ".join(f"{k}: {len(v)} poses" for k, v in series.items()) + ".",
     ]
     for name in ("B", "D"):
-        floor, groups = repeatability_mm(series[name])
-        body.append(f"Repeatability floor, series {name}: {floor:.4f} mm over {groups} repeated poses.")
+        spread, groups = repeatability_mm(series[name])
+        body.append(f"Repeatability, series {name}: {spread:.4f} mm from the mean over {groups} repeated poses.")
+    floors = {name: noise_floor_mm(series[name], cfg.chain) for name in SERIES}
+    body.append(
+        "Noise floor (the mean error a perfect model would still show, from pairs of measurements of the "
+        "same joints to 1 mrad: mean |Δ residual| / √2): "
+        + ", ".join(f"{k} {v:.4f} mm ({n} pairs)" for k, (v, n) in floors.items() if n)
+        + "."
+    )
     timing = []
     for part in args.parts:
         if part in ("A", "C"):

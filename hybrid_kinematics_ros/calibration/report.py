@@ -21,6 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.calibration.evaluate import evaluate, measured_targets, plot_distributions, pose_errors_of
 from hybrid_kinematics_ros.io.pairs import Pairs
+from hybrid_kinematics_ros.kinematics.elastic import JointMap
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 # Readings of one commanded pose differ by a few encoder counts (6e-6 rad a count at 20 bits) and the
@@ -104,6 +105,28 @@ def _curve_plot(curve: list[dict[str, Any]], path: Path) -> Path:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend()
     fig.suptitle("Accuracy against the amount of training data")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def _joint_map_plot(joint_map: JointMap, names: list[str], path: Path) -> Path:
+    """Each joint's mapped error against its angle, where the map is not zero (where the joint went)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(11, 4))
+    for k, name in enumerate(names):
+        angle = np.degrees(joint_map.lower[k] + joint_map.step * np.arange(joint_map.values.shape[1]))
+        ax.plot(angle, np.degrees(joint_map.values[k]) * 3600.0, lw=0.8, label=name)
+    ax.set_xlabel("joint angle (deg)")
+    ax.set_ylabel("joint error (arcsec)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(ncol=min(len(names), 7), fontsize="small")
+    ax.set_title("Joint error map (parametric stage)")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -260,10 +283,24 @@ def write_report(
             values = np.array([p["value"] for p in fitted if p["kind"] == "harmonic" and p["index"] == joint])
             rms = np.degrees(np.sqrt(0.5 * np.sum(values**2))) * 3600.0
             rows.append([f"cyclic error of joint {joint + 1}, rms over a turn ({len(values)} terms)", rms, "arcsec"])
+        joint_map = JointMap.from_manifest(par["joint_map"]) if "joint_map" in par else None
+        if joint_map is not None:
+            for k, name in enumerate(m["joint_names"]):
+                rms = np.degrees(np.sqrt(np.mean(joint_map.values[k] ** 2))) * 3600.0
+                rows.append([f"joint error map of {name}, rms over its knots", rms, "arcsec"])
         parts += [
             f"<p>{len(fitted)} of {len(par['parameters'])} parameters identified; rms position error "
             f"{par['rms_before']['position_mm']:.4f} → {par['rms_after']['position_mm']:.4f} mm.</p>",
             _table(["parameter", "value", "unit"], rows),
+            *(
+                [
+                    f"<p>Joint error map: knots {np.degrees(joint_map.step):.3f} deg apart.</p>",
+                    f"<img src='{_joint_map_plot(joint_map, m['joint_names'], out_dir / 'joint_map.png').name}' "
+                    "alt='joint error map'>",
+                ]
+                if joint_map is not None
+                else []
+            ),
             "<h3>Not identifiable</h3>",
             _table(["parameter", "why"], [[p["name"], p.get("reason", "")] for p in free]),
         ]

@@ -105,6 +105,13 @@ def test_train_evaluate_fk_workflow(tmp_path, capsys):
     assert report["parametric"]["position_mm_mean"] < report["exported_urdf"]["position_mm_mean"]
     assert "_calibrated" in urdf.read_text()
 
+    # the report shows the parametric stage's joint error map, as a row per joint and as a plot
+    result = run("report", "--model", str(model_dir), "--bag", str(bag), "--out", str(tmp_path / "report"))
+    assert result.returncode == 0, result.stderr
+    page = (tmp_path / "report" / "index.html").read_text()
+    assert "joint error map of joint_2" in page and "joint_map.png" in page
+    assert (tmp_path / "report" / "joint_map.png").stat().st_size > 5000
+
 
 def test_bad_inputs_get_one_line_errors(tmp_path):
     bad = tmp_path / "bad.csv"
