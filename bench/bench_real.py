@@ -7,7 +7,10 @@ geometry-only fit (joint offsets and origins: what robot_calibration or pybotics
 parametric stage, the hybrid model with our recipe and with the paper's. Training runs by epochs with a
 wall-clock cap, so a loaded machine gives the same models.
 
-Usage: python -m bench.bench_real [A] [C] [CB] [all] [curve] [--minutes M] [--steps S] [--recipes R,...]
+Usage: python -m bench.bench_real [A] [C] [CB] [all] [curve] [floor] [--minutes M] [--steps S] [--recipes R,...]
+
+Every run writes the floor (repeatability and noise floor) to its own section; ``floor`` alone writes
+only that.
 
 The hybrid recipes named by ``--recipes`` are compared on A and C; the other parts (C tested on B, all
 series together, the data-amount curve) train our recipe only, to keep the whole run near an hour.
@@ -162,18 +165,22 @@ def main() -> None:
         "Real UR10 (ipa-robot-accuracy), tracker frame, at the probe; held-out fifth of each series in "
         "contiguous blocks of rows. " + ", ".join(f"{k}: {len(v)} poses" for k, v in series.items()) + ".",
     ]
+    floor = []
     for name in ("B", "D"):
         spread, groups = repeatability_mm(series[name])
-        body.append(f"Repeatability, series {name}: {spread:.4f} mm from the mean over {groups} repeated poses.")
+        floor.append(f"Repeatability, series {name}: {spread:.4f} mm from the mean over {groups} repeated poses.")
     floors = {name: noise_floor_mm(series[name], cfg.chain) for name in SERIES}
-    body.append(
+    floor.append(
         "Noise floor (the mean error a perfect model would still show, from pairs of measurements of the "
-        "same joints to 1 mrad: mean |Δ residual| / √2): "
-        + ", ".join(f"{k} {v:.4f} mm ({n} pairs)" for k, (v, n) in floors.items() if n)
-        + "."
+        "same joints to 1 mrad: mean |Δ residual| / √2; the spread about the mean is smaller by about √2 "
+        "and is not this floor): " + ", ".join(f"{k} {v:.4f} mm ({n} pairs)" for k, (v, n) in floors.items() if n) + "."
     )
+    write_section("real_floor", "Real UR10 data: the floor (bench_real)", "\n\n".join(floor))
+    parts = [p for p in args.parts if p != "floor"]
+    if not parts:
+        return
     timing = []
-    for part in args.parts:
+    for part in parts:
         if part in ("A", "C"):
             results, seconds = rows_for(cfg, [held[part][0]], {part: held[part][2]}, recipes, args.minutes, args.steps)
         elif part == "CB":
