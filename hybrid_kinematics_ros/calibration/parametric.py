@@ -55,6 +55,7 @@ MAP_STEP = 0.01  # rad between the joint error map's knots (0: no map)
 # this many metres in each of the pairs. Chosen on the real UR10 (A and C, held-out blocks): 0.01-0.1 do alike.
 MAP_SMOOTHNESS = 0.03
 MAP_RIDGE = 1e-3  # the same for the map's values themselves: where no data is, the map stays at zero
+MAP_MAX_PAIRS = 50_000  # a random draw of at most this many pairs fits the map (memory and time stay bounded)
 SCALE = {
     "zero": 1e-3,
     "compliance": 1e-4,
@@ -290,7 +291,8 @@ def identify(
     ``kinds``: the kinds of parameter to fit (default all of :data:`KINDS`; :data:`GEOMETRY_KINDS` is a
     geometry-only calibration); the others stay zero. ``harmonics``: how many harmonics of the cyclic
     joint errors (0: none), each coefficient held towards zero by ``harmonic_prior`` (in pairs).
-    ``map_step``: the joint error map's knot spacing (0: no map), fitted last from all the pairs.
+    ``map_step``: the joint error map's knot spacing (0: no map), fitted last from all the pairs (at most
+    :data:`MAP_MAX_PAIRS`).
     """
     com = np.zeros(3) if payload_com is None else np.asarray(payload_com, dtype=float)
     if len(q) < 20:
@@ -403,8 +405,11 @@ def identify(
     model = build_model(chain, params, values, payload_mass, com)
     joint_map = None
     if map_step > 0 and "harmonic" in chosen:
+        draw = np.sort(np.random.default_rng(seed).permutation(len(q))[:MAP_MAX_PAIRS])
+        if every_target is not None and np.ndim(every_target) == 2:
+            every_target = np.asarray(every_target)[draw]
         joint_map = fit_joint_map(
-            model, q, T, position_only, every_target, map_step, orientation_length=orientation_length
+            model, q[draw], T[draw], position_only, every_target, map_step, orientation_length=orientation_length
         )
         model = build_model(chain, params, values, payload_mass, com, joint_map)
     # The same with the geometry alone, for a URDF export: the geometry then absorbs what it can.
