@@ -40,11 +40,13 @@ from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.nodes.convert import (
     RequestError,
+    joint_list_from_msg,
     joint_state_msg,
     joints_from_msg,
     joints_from_msg_lenient,
     matrix_from_msg,
     pose_msg,
+    pose_msg_of_rows,
     pose_msgs,
     stamp_is_zero,
     trajectory_arrays,
@@ -261,13 +263,16 @@ class KinematicsNode(Node):
                 raise RequestError("joint_states is empty; send at least one configuration")
             analytic = request.analytic_only
             if len(states) == 1:
-                q = joints_from_msg(states[0], names, "joint_states[0]")
+                q = joint_list_from_msg(states[0], names, "joint_states[0]")
                 if not analytic:
                     model.check_range(q)
                 stamp = states[0].header.stamp
                 if stamp_is_zero(stamp):
                     stamp = self.get_clock().now().to_msg()
-                response.poses = [pose_msg(model.fk_single(q, analytic=analytic), model.chain.base_link, stamp)]
+                rows = model.fk_rows(q, analytic=analytic)
+                if rows is None:  # nets or a parametric stage: numpy
+                    rows = model.fk_single(np.array(q), analytic=analytic).tolist()
+                response.poses = [pose_msg_of_rows(rows, model.chain.base_link, stamp)]
                 response.in_calibrated_range = [model.in_calibrated_range_one(q)]
             else:
                 q = np.array([joints_from_msg(js, names, f"joint_states[{i}]") for i, js in enumerate(states)])
