@@ -89,10 +89,16 @@ def pose_msg(T: np.ndarray, frame_id: str, stamp: Time, quat: np.ndarray | None 
 
 
 def pose_msg_of_rows(
-    rows: list[list[float]], frame_id: str, stamp: Time, quat: np.ndarray | None = None
+    rows: list[list[float]],
+    frame_id: str,
+    stamp: Time,
+    quat: np.ndarray | None = None,
+    out: PoseStamped | None = None,
 ) -> PoseStamped:
-    """:func:`pose_msg` of a pose's rows as nested lists (``T.tolist()``, or :meth:`HybridModel.fk_rows`)."""
-    msg = PoseStamped()
+    """:func:`pose_msg` of a pose's rows as nested lists (``T.tolist()``, or :meth:`HybridModel.fk_rows`).
+    ``out``: a message to overwrite and return instead of a new one (building a PoseStamped, six nested
+    messages, costs more than the FK)."""
+    msg = PoseStamped() if out is None else out
     msg.header.frame_id = frame_id
     msg.header.stamp = stamp
     p, o = msg.pose.position, msg.pose.orientation

@@ -128,6 +128,7 @@ class KinematicsNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.compensator = self._compensator(self.model)
         self._latest: np.ndarray | None = None
+        self._reply = threading.local()  # see _fk_pose
         self.stats = RequestStats()
 
         # Replies share one writer; with the default depth of 10, a burst from many clients can overwrite a
@@ -272,7 +273,7 @@ class KinematicsNode(Node):
                 rows = model.fk_rows(q, analytic=analytic)
                 if rows is None:  # nets or a parametric stage: numpy
                     rows = model.fk_single(np.array(q), analytic=analytic).tolist()
-                response.poses = [pose_msg_of_rows(rows, model.chain.base_link, stamp)]
+                response.poses = [pose_msg_of_rows(rows, model.chain.base_link, stamp, out=self._fk_pose())]
                 response.in_calibrated_range = [model.in_calibrated_range_one(q)]
             else:
                 q = np.array([joints_from_msg(js, names, f"joint_states[{i}]") for i, js in enumerate(states)])
@@ -297,6 +298,15 @@ class KinematicsNode(Node):
         outside = response.in_calibrated_range.count(False) if response.success and model.nets else 0
         self.stats.record("fk", time.perf_counter() - start, response.success, outside)
         return response
+
+    def _fk_pose(self) -> PoseStamped:
+        """The reply pose of one-configuration FK, one message per executor thread, overwritten by each call.
+        Safe because a synchronous service callback's response is serialized on its thread before that
+        thread runs the next callback."""
+        pose = getattr(self._reply, "pose", None)
+        if pose is None:
+            pose = self._reply.pose = PoseStamped()
+        return pose
 
     def _unexpected(self, service: str, exc: Exception, response) -> None:
         """Any other exception: answer success=false with its message and keep serving."""
