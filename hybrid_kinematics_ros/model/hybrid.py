@@ -312,12 +312,14 @@ class HybridModel:
             T[:3, :3] = exp_so3(self._fast["orientation"](x)) @ T[:3, :3]
         return T
 
-    def fk_rows(self, q: list[float], analytic: bool = False) -> Rows | None:
-        """One pose as the top three rows of its 4x4, in Python floats, without numpy (see ``unrolled.py``),
-        for ``n`` finite joint values; None when the model needs numpy for it (nets or a parametric stage):
-        then use :meth:`fk_single`."""
+    def fk_rows(self, q: list[float], analytic: bool = False) -> Rows:
+        """:meth:`fk_single` as the top three rows of the 4x4 in Python floats, for ``n`` finite joint
+        values: without numpy (see ``unrolled.py``) when the pose needs none, i.e. no nets and no
+        parametric stage (or ``analytic``); else through :meth:`fk_single`."""
         rows_fk = self._rows_analytic if analytic else self._rows_model
-        return None if rows_fk is None else rows_fk(q)
+        if rows_fk is None:
+            return self.fk_single(np.array(q, dtype=float), analytic=analytic)[:3].tolist()
+        return rows_fk(q)
 
     def fk_and_jacobian(self, q: np.ndarray, analytic: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Poses ``(B, 4, 4)`` and the geometric Jacobian ``(B, 6, n)`` of the hybrid (or analytic) model.

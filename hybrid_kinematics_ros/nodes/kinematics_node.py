@@ -45,7 +45,6 @@ from hybrid_kinematics_ros.nodes.convert import (
     joints_from_msg,
     joints_from_msg_lenient,
     matrix_from_msg,
-    pose_msg,
     pose_msg_of_rows,
     pose_msgs,
     stamp_is_zero,
@@ -251,7 +250,8 @@ class KinematicsNode(Node):
                     throttle_duration_sec=5.0,
                 )
                 return
-            self.pose_pub.publish(pose_msg(model.fk_single(q), model.chain.base_link, msg.header.stamp))
+            rows = model.fk_rows(q.tolist())
+            self.pose_pub.publish(pose_msg_of_rows(rows, model.chain.base_link, msg.header.stamp))
 
     def _on_fk(self, request: ComputeFK.Request, response: ComputeFK.Response) -> ComputeFK.Response:
         """The round trip costs a few hundred µs in rclpy alone and the process wakes up with cold caches,
@@ -271,8 +271,6 @@ class KinematicsNode(Node):
                 if stamp_is_zero(stamp):
                     stamp = self.get_clock().now().to_msg()
                 rows = model.fk_rows(q, analytic=analytic)
-                if rows is None:  # nets or a parametric stage: numpy
-                    rows = model.fk_single(np.array(q), analytic=analytic).tolist()
                 response.poses = [pose_msg_of_rows(rows, model.chain.base_link, stamp, out=self._fk_pose())]
                 response.in_calibrated_range = [model.in_calibrated_range_one(q)]
             else:
