@@ -27,6 +27,7 @@ from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
 from hybrid_kinematics_ros.kinematics.se3 import exp_so3, skew
+from hybrid_kinematics_ros.kinematics.unrolled import Rows, unrolled_fk
 from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.model.nets import NumpyResidual
 from hybrid_kinematics_ros.model.parametric import model_from_manifest
@@ -73,6 +74,12 @@ class HybridModel:
         section = self.manifest.get("parametric")
         self.base = model_from_manifest(chain, section) if section else ElasticChain.rigid(chain)
         self._rigid_base = self.base.chain if self.base.is_rigid else None  # fk_single's shortcut
+        # fk_rows: generated float code, for the URDF chain and for the model when it is that chain alone
+        self._rows_analytic = unrolled_fk(chain)
+        if self._rigid_base is None or self.nets:
+            self._rows_model = None
+        else:
+            self._rows_model = self._rows_analytic if self._rigid_base is chain else unrolled_fk(self._rigid_base)
         section = self.manifest.get("referencing") or []
         refs = [Referencing.from_manifest(r) for r in ([section] if isinstance(section, dict) else section)]
         self.referencings = {r.frame_id: r for r in refs}  # one per tracker station
@@ -214,13 +221,14 @@ class HybridModel:
         lower, upper = self._range
         return ((q >= lower) & (q <= upper)).all(axis=1)
 
-    def in_calibrated_range_one(self, q: np.ndarray) -> bool:
-        """:meth:`in_calibrated_range` of one finite configuration ``(n,)``, compared in Python floats (the
+    def in_calibrated_range_one(self, q: np.ndarray | list[float]) -> bool:
+        """:meth:`in_calibrated_range` of one finite configuration ``(n,)`` (or a list), compared in Python floats (the
         services' path, where each numpy call costs microseconds)."""
         if self._coverage_radius is not None:
             return bool(self.in_calibrated_range(q)[0])
         lower, upper = self._range_lists
-        return all(lo <= v <= hi for lo, v, hi in zip(lower, q.tolist(), upper, strict=True))
+        values = q if isinstance(q, list) else q.tolist()
+        return all(lo <= v <= hi for lo, v, hi in zip(lower, values, upper, strict=True))
 
     def set_condition(self, name: str, value: float) -> None:
         """The current value of a condition channel (e.g. the cell's temperature), used from now on."""
@@ -303,6 +311,15 @@ class HybridModel:
         if "orientation" in self._fast:
             T[:3, :3] = exp_so3(self._fast["orientation"](x)) @ T[:3, :3]
         return T
+
+    def fk_rows(self, q: list[float], analytic: bool = False) -> Rows:
+        """:meth:`fk_single` as the top three rows of the 4x4 in Python floats, for ``n`` finite joint
+        values: without numpy (see ``unrolled.py``) when the pose needs none, i.e. no nets and no
+        parametric stage (or ``analytic``); else through :meth:`fk_single`."""
+        rows_fk = self._rows_analytic if analytic else self._rows_model
+        if rows_fk is None:
+            return self.fk_single(np.array(q, dtype=float), analytic=analytic)[:3].tolist()
+        return rows_fk(q)
 
     def fk_and_jacobian(self, q: np.ndarray, analytic: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Poses ``(B, 4, 4)`` and the geometric Jacobian ``(B, 6, n)`` of the hybrid (or analytic) model.

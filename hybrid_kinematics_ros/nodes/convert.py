@@ -21,40 +21,41 @@ class RequestError(ValueError):
     """A request the node cannot answer; the message says what to fix."""
 
 
-def joints_from_msg(msg: JointState, names: Sequence[str], what: str = "joint state") -> np.ndarray:
-    """Joint values in the model's order. Empty names mean the model's order."""
+def joint_list_from_msg(msg: JointState, names: Sequence[str], what: str = "joint state") -> list[float]:
+    """Joint values in the model's order, as Python floats (the services' path, where each numpy call
+    costs microseconds). Empty names mean the model's order."""
     position = list(msg.position)
-    if len(msg.name) == len(names) == len(position) and list(msg.name) == list(names):
-        # the common case, in the model's order already; checked in Python floats: on a service's path
-        # each numpy call costs ~10 µs when the process wakes up from waiting
-        if not all(map(math.isfinite, position)):
-            raise RequestError(f"{what} has NaN or infinite positions")
-        return np.array(position)
-    elif not msg.name:
-        if len(position) != len(names):
-            raise RequestError(
-                f"{what} has {len(position)} positions and no names; the model has {len(names)} "
-                f"joints ({', '.join(names)})"
-            )
-        q = np.asarray(position, dtype=float)
-    else:
-        if len(msg.name) != len(position):
-            raise RequestError(f"{what} has {len(msg.name)} names but {len(position)} positions")
-        if len(set(msg.name)) != len(msg.name):
-            dup = sorted({n for n in msg.name if list(msg.name).count(n) > 1})
-            raise RequestError(f"{what} names joint(s) {', '.join(dup)} more than once")
-        index = {n: i for i, n in enumerate(msg.name)}
-        missing = [n for n in names if n not in index]
-        if missing:
-            unknown = [n for n in msg.name if n not in names]
-            raise RequestError(
-                f"{what} lacks joint(s) {', '.join(missing)}"
-                + (f" and has unknown joint(s) {', '.join(unknown)}" if unknown else "")
-            )
-        q = np.array([position[index[n]] for n in names], dtype=float)
-    if not np.all(np.isfinite(q)):
+    given = list(msg.name)
+    if not (len(given) == len(position) == len(names) and given == list(names)):  # else the common case
+        if not given:
+            if len(position) != len(names):
+                raise RequestError(
+                    f"{what} has {len(position)} positions and no names; the model has {len(names)} "
+                    f"joints ({', '.join(names)})"
+                )
+        else:
+            if len(given) != len(position):
+                raise RequestError(f"{what} has {len(given)} names but {len(position)} positions")
+            if len(set(given)) != len(given):
+                dup = sorted({n for n in given if given.count(n) > 1})
+                raise RequestError(f"{what} names joint(s) {', '.join(dup)} more than once")
+            index = {n: i for i, n in enumerate(given)}
+            missing = [n for n in names if n not in index]
+            if missing:
+                unknown = [n for n in given if n not in names]
+                raise RequestError(
+                    f"{what} lacks joint(s) {', '.join(missing)}"
+                    + (f" and has unknown joint(s) {', '.join(unknown)}" if unknown else "")
+                )
+            position = [position[index[n]] for n in names]
+    if not all(map(math.isfinite, position)):
         raise RequestError(f"{what} has NaN or infinite positions")
-    return q
+    return position
+
+
+def joints_from_msg(msg: JointState, names: Sequence[str], what: str = "joint state") -> np.ndarray:
+    """:func:`joint_list_from_msg` as an array ``(n,)``."""
+    return np.array(joint_list_from_msg(msg, names, what), dtype=float)
 
 
 def joints_from_msg_lenient(msg: JointState, names: Sequence[str]) -> np.ndarray | None:
@@ -84,8 +85,20 @@ def pose_msg(T: np.ndarray, frame_id: str, stamp: Time, quat: np.ndarray | None 
     """A PoseStamped of one 4x4; pass ``quat`` when it was computed in a batch already. One numpy call
     (``tolist``), the rest in Python floats. (Fields are set on a default message: passing sub-messages
     to a constructor would build its default sub-messages as well.)"""
-    rows = T.tolist()
-    msg = PoseStamped()
+    return pose_msg_of_rows(T.tolist(), frame_id, stamp, quat)
+
+
+def pose_msg_of_rows(
+    rows: list[list[float]],
+    frame_id: str,
+    stamp: Time,
+    quat: np.ndarray | None = None,
+    out: PoseStamped | None = None,
+) -> PoseStamped:
+    """:func:`pose_msg` of a pose's rows as nested lists (``T.tolist()``, or :meth:`HybridModel.fk_rows`).
+    ``out``: a message to overwrite and return instead of a new one (building a PoseStamped, six nested
+    messages, costs more than the FK)."""
+    msg = PoseStamped() if out is None else out
     msg.header.frame_id = frame_id
     msg.header.stamp = stamp
     p, o = msg.pose.position, msg.pose.orientation

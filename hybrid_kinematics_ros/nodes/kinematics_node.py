@@ -40,11 +40,12 @@ from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.nodes.convert import (
     RequestError,
+    joint_list_from_msg,
     joint_state_msg,
     joints_from_msg,
     joints_from_msg_lenient,
     matrix_from_msg,
-    pose_msg,
+    pose_msg_of_rows,
     pose_msgs,
     stamp_is_zero,
     trajectory_arrays,
@@ -126,6 +127,7 @@ class KinematicsNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.compensator = self._compensator(self.model)
         self._latest: np.ndarray | None = None
+        self._reply = threading.local()  # see _fk_pose
         self.stats = RequestStats()
 
         # Replies share one writer; with the default depth of 10, a burst from many clients can overwrite a
@@ -248,7 +250,8 @@ class KinematicsNode(Node):
                     throttle_duration_sec=5.0,
                 )
                 return
-            self.pose_pub.publish(pose_msg(model.fk_single(q), model.chain.base_link, msg.header.stamp))
+            rows = model.fk_rows(q.tolist())
+            self.pose_pub.publish(pose_msg_of_rows(rows, model.chain.base_link, msg.header.stamp))
 
     def _on_fk(self, request: ComputeFK.Request, response: ComputeFK.Response) -> ComputeFK.Response:
         """The round trip costs a few hundred µs in rclpy alone and the process wakes up with cold caches,
@@ -261,13 +264,14 @@ class KinematicsNode(Node):
                 raise RequestError("joint_states is empty; send at least one configuration")
             analytic = request.analytic_only
             if len(states) == 1:
-                q = joints_from_msg(states[0], names, "joint_states[0]")
+                q = joint_list_from_msg(states[0], names, "joint_states[0]")
                 if not analytic:
                     model.check_range(q)
                 stamp = states[0].header.stamp
                 if stamp_is_zero(stamp):
                     stamp = self.get_clock().now().to_msg()
-                response.poses = [pose_msg(model.fk_single(q, analytic=analytic), model.chain.base_link, stamp)]
+                rows = model.fk_rows(q, analytic=analytic)
+                response.poses = [pose_msg_of_rows(rows, model.chain.base_link, stamp, out=self._fk_pose())]
                 response.in_calibrated_range = [model.in_calibrated_range_one(q)]
             else:
                 q = np.array([joints_from_msg(js, names, f"joint_states[{i}]") for i, js in enumerate(states)])
@@ -292,6 +296,15 @@ class KinematicsNode(Node):
         outside = response.in_calibrated_range.count(False) if response.success and model.nets else 0
         self.stats.record("fk", time.perf_counter() - start, response.success, outside)
         return response
+
+    def _fk_pose(self) -> PoseStamped:
+        """The reply pose of one-configuration FK, one message per executor thread, overwritten by each call.
+        Safe because a synchronous service callback's response is serialized on its thread before that
+        thread runs the next callback."""
+        pose = getattr(self._reply, "pose", None)
+        if pose is None:
+            pose = self._reply.pose = PoseStamped()
+        return pose
 
     def _unexpected(self, service: str, exc: Exception, response) -> None:
         """Any other exception: answer success=false with its message and keep serving."""
