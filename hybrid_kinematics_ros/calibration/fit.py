@@ -228,6 +228,9 @@ def fit(
     start = time.perf_counter()
     nets, histories = train.train_pair(jobs, progress=progress, parallel=parallel)
     seconds = time.perf_counter() - start
+    for kind, history in histories.items():
+        if history[-1].get("silenced"):
+            log(f"{kind} net: no better than the stage before it on validation, so it corrects nothing")
     manifest.update(
         {
             "base_link": chain.base_link,
@@ -295,4 +298,4 @@ def thinned(q: np.ndarray, spacing: float = COVERAGE_SPACING) -> np.ndarray:
 
 def _best(history: list[dict]) -> dict[str, float]:
     last = history[-1]
-    return {k: v for k, v in last.items() if k.startswith("best_val_")}
+    return {k: v for k, v in last.items() if k.startswith("best_val_") or k == "silenced"}

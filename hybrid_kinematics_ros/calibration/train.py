@@ -108,7 +108,12 @@ def _validation_error(net: ResidualNet, q: torch.Tensor, y: torch.Tensor) -> flo
 
 
 def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tuple[ResidualNet, list[dict]]:
-    """Train one residual net; returns the best net on validation and the per-epoch history."""
+    """Train one residual net; returns the best net on validation and the per-epoch history.
+
+    The net must beat correcting nothing: if no epoch's validation error is below that of the stage
+    before it (the targets' own size), the net is silenced (outputs zero), so the nets never make the
+    model worse on validation. With little or unstructured data this happens (real UR10, 1k pairs).
+    """
     torch.manual_seed(job.seed)
     p = job.preset
     net = build_net(job)
@@ -125,7 +130,8 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
     n = len(q_train)
     batch = min(p.batch, n)
     gen = torch.Generator().manual_seed(job.seed)
-    best = (math.inf, None)
+    nothing = torch.linalg.vector_norm(y_val, dim=1).mean().item() if len(y_val) else math.inf
+    best = (nothing, None)
     history: list[dict] = []
     start = time.perf_counter()
     stale = 0
@@ -174,9 +180,13 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
             report(entry)
         if out_of_time or (p.patience and stale >= p.patience):
             break
-    if best[1] is None:
+    if not history:
         raise CalibrationError(f"{job.kind} net: no training step fitted in the time budget; give more time")
-    net.load_state_dict(best[1])
+    if best[1] is None:
+        net.silence()
+        history[-1]["silenced"] = True
+    else:
+        net.load_state_dict(best[1])
     net.eval()
     return net, history
 

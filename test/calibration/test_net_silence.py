@@ -1,0 +1,43 @@
+"""A residual net must beat correcting nothing on validation, or it is silenced: the nets never make the
+stage before them worse where it can be checked."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from hybrid_kinematics_ros.calibration import train
+
+
+def _job(sign: float) -> train.NetJob:
+    rng = np.random.default_rng(0)
+    q_train, q_val = rng.uniform(-2.0, 2.0, (600, 6)), rng.uniform(-2.0, 2.0, (150, 6))
+
+    def residual(q: np.ndarray) -> np.ndarray:  # m: a smooth error of joint 2, 0.1 mm
+        return 1e-4 * np.column_stack([np.sin(2 * q[:, 1]), np.cos(q[:, 1]), np.sin(q[:, 1] + q[:, 2])])
+
+    preset = replace(train.PRESETS["fast"], arch="mlp:32x2:silu", batch=64, max_epochs=60)
+    lower, upper = np.full(6, -2.0), np.full(6, 2.0)
+    # sign -1: validation says the opposite of training, so whatever the net learns makes it worse there
+    return train.NetJob(
+        "position", preset, q_train, residual(q_train), q_val, sign * residual(q_val), lower, upper, None, 60.0, 0, 6
+    )
+
+
+def test_a_net_that_only_hurts_on_validation_is_silenced():
+    job = _job(-1.0)
+    net, history = train.train_net(job)
+    assert history[-1]["silenced"]
+    out = net(torch.tensor(job.q_val)).detach().numpy()
+    assert not out.any()  # exactly zero: the model serves the stage before the nets
+
+
+def test_a_net_that_helps_is_kept():
+    job = _job(1.0)
+    net, history = train.train_net(job)
+    assert "silenced" not in history[-1]
+    nothing = np.linalg.norm(job.y_val, axis=1).mean()
+    err = np.linalg.norm(net(torch.tensor(job.q_val)).detach().numpy() - job.y_val, axis=1).mean()
+    assert err < 0.5 * nothing
