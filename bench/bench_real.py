@@ -49,6 +49,15 @@ SERIES = {  # name: (file, import spec, stamp start override: B and C share a sp
 }
 
 
+TITLES = {
+    "A": "series A",
+    "C": "series C",
+    "CB": "trained on C, tested on B",
+    "all": "all series together",
+    "curve": "data-amount curve on A",
+}
+
+
 def load_series(name: str, joints: tuple[str, ...]) -> Pairs:
     path, spec_name, start = SERIES[name]
     data = load_spec_dict(spec_name)
@@ -161,10 +170,10 @@ def main() -> None:
     recipes = {name: every[name] for name in args.recipes.split(",")}
     ours = {"ours": every["ours"]}
     held = {name: split(p, 0, (0.0, 0.2)) for name, p in series.items()}  # train, _, test (a fifth, blocks)
-    body = [
+    intro = (
         "Real UR10 (ipa-robot-accuracy), tracker frame, at the probe; held-out fifth of each series in "
-        "contiguous blocks of rows. " + ", ".join(f"{k}: {len(v)} poses" for k, v in series.items()) + ".",
-    ]
+        "contiguous blocks of rows. " + ", ".join(f"{k}: {len(v)} poses" for k, v in series.items()) + "."
+    )
     floor = []
     for name in ("B", "D"):
         spread, groups = repeatability_mm(series[name])
@@ -179,7 +188,6 @@ def main() -> None:
     parts = [p for p in args.parts if p != "floor"]
     if not parts:
         return
-    timing = []
     for part in parts:
         if part in ("A", "C"):
             results, seconds = rows_for(cfg, [held[part][0]], {part: held[part][2]}, recipes, args.minutes, args.steps)
@@ -213,10 +221,15 @@ def main() -> None:
                 seconds.update({f"{count}": s["ours"]})
         else:
             raise SystemExit(f"unknown part {part}")
-        body.append(f"### {part}\n\n" + table_of(results))
-        timing.append(f"{part}: " + ", ".join(f"{k} {v:.0f} s" for k, v in seconds.items()))
-    body.append("Training time per model (referencing, parametric stage, nets): " + "; ".join(timing) + ".")
-    write_section("real", "Real UR10 data (bench_real)", "\n\n".join(body))
+        timing = "Training time per model (referencing, parametric stage, nets): " + ", ".join(
+            f"{k} {v:.0f} s" for k, v in seconds.items()
+        )
+        # each part its own section, written as soon as it is done: parts can be rerun one at a time
+        write_section(
+            f"real_{part}",
+            f"Real UR10 data, {TITLES[part]} (bench_real)",
+            f"{intro}\n\n{table_of(results)}\n\n{timing}.",
+        )
 
 
 if __name__ == "__main__":
