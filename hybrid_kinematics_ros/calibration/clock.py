@@ -96,7 +96,7 @@ def estimate_clock(
         positions = np.column_stack([np.convolve(positions[:, i], kernel, mode="valid") for i in range(3)])
         times = np.convolve(times, kernel, mode="valid")
         step = max(1, smooth // 3)  # the averages change smoothly: keep about three a joint period, for speed
-        positions, times = positions[::step], times[::step]
+        positions, times = positions[::step].copy(), times[::step].copy()  # copies: the full ones go
     max_gap = 5.0 * float(np.median(np.diff(times)))  # beam breaks: interpolating across them is no data
 
     def at(query: np.ndarray, pos: np.ndarray = positions) -> tuple[np.ndarray, np.ndarray]:
