@@ -148,7 +148,9 @@ def simulated(minutes: int) -> None:
     wall = time.perf_counter() - wall
     rss = np.array(rss)
     growth = rss[-1] - rss[0]
-    late = rss[len(rss) // 2 :]  # the second half: is there still a trend?
+    running = rss[1:-1]  # once a simulated minute while recording (the last sample is after the stop)
+    plateau = float(running[len(running) // 4 :].max()) - rss[0]  # the highest once settled, over the start
+    late = running[len(running) // 2 :]  # the second half: is there still a trend?
     slope_h = 60.0 * float(np.polyfit(np.arange(len(late)), late, 1)[0])  # MB an hour, from per-minute samples
     dropped_j = fed["joints"] - counts.get(RAW_JOINTS_TOPIC, 0)
     dropped_p = fed["poses"] - counts.get(RAW_POSE_TOPIC, 0)
@@ -174,12 +176,19 @@ def simulated(minutes: int) -> None:
                 ["clock offset, estimated / true (ms)", f"{1e3 * clock.offset_s:.3f} / {1e3 * offset:.3f}"],
                 ["samples held, peak", f"{retained_peak:,}"],
                 ["RSS at start / after 1 min / at end (MB)", f"{rss[0]:.0f} / {rss[1]:.0f} / {rss[-1]:.0f}"],
-                [f"RSS growth over {minutes} min (MB)", f"{growth:.0f}"],
-                ["RSS peak (VmHWM, while a segment's clock is estimated) (MB)", f"{hwm:.0f}"],
+                [f"RSS growth over {minutes} min, at the end after the stop (MB)", f"{growth:.0f}"],
+                [
+                    "RSS plateau: highest minute sample from the first quarter on, and its growth over the start (MB)",
+                    f"{rss[0] + plateau:.0f} / +{plateau:.0f}",
+                ],
+                [
+                    "RSS peak (VmHWM, transient, while a segment's clock is estimated), and over the start (MB)",
+                    f"{hwm:.0f} / +{hwm - rss[0]:.0f}",
+                ],
                 ["RSS trend over the second half (MB/h)", f"{slope_h:.1f}"],
                 [
-                    "projected RSS growth for 8 h (MB)",
-                    f"{growth + 8 * max(slope_h, 0.0) - max(slope_h, 0.0) * minutes / 60:.0f}",
+                    "projected RSS growth for 8 h: plateau + trend (MB)",
+                    f"{plateau + max(slope_h, 0.0) * (8 - minutes / 60):.0f}",
                 ],
                 ["aligning the last segment on stop (s)", f"{finalise_s:.1f}"],
             ],

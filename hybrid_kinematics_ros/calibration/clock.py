@@ -9,7 +9,6 @@ a model of the nominal FK's error (:func:`error_features`). Pairing the streams 
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -94,10 +93,12 @@ def estimate_clock(
     positions, times = rec.positions, tp
     if smooth > 1 and len(tp) > 2 * smooth:
         kernel = np.ones(smooth) / smooth
-        positions = np.column_stack([np.convolve(positions[:, i], kernel, mode="valid") for i in range(3)])
-        times = np.convolve(times, kernel, mode="valid")
         step = max(1, smooth // 3)  # the averages change smoothly: keep about three a joint period, for speed
-        positions, times = positions[::step], times[::step]
+        # one column at a time, thinned at once: the full averages of 2 minutes at 3 kHz are 12 MB a column
+        positions = np.column_stack(
+            [np.convolve(positions[:, i], kernel, mode="valid")[::step].copy() for i in range(3)]
+        )
+        times = np.convolve(times, kernel, mode="valid")[::step].copy()
     max_gap = 5.0 * float(np.median(np.diff(times)))  # beam breaks: interpolating across them is no data
 
     def at(query: np.ndarray, pos: np.ndarray = positions) -> tuple[np.ndarray, np.ndarray]:
@@ -125,7 +126,8 @@ def estimate_clock(
     clock = Clock(float(grid[int(np.argmin(costs))]), 0.0, 0)
 
     # 2. the tracker frame, then 3. the position mismatch in the base frame near the coarse offset
-    base, p_target = _to_base_frame(tip, tj, clock, positions, at)
+    base, target = _to_base_frame(tip, tj, clock, positions, at)
+    p_target = p_tip_all(tip, target)
     blocks = len(tj) // per_window
     used = blocks * per_window
     t_blocks = tj[:used].reshape(blocks, per_window)
@@ -151,16 +153,14 @@ def estimate_clock(
     cache: dict = {}
     fit_skew = tj[-1] - tj[0] >= skew_min_span_s
     for _ in range(2):
-        clock = _refine_clock(
-            chain, tj, rec.q, frames, p_target, times, base, clock, max_gap, cache=cache, skew=fit_skew
-        )
-        base, p_target = _to_base_frame(tip, tj, clock, positions, at)
-    clock = _refine_clock(chain, tj, rec.q, frames, p_target, times, base, clock, max_gap, cache=cache, skew=fit_skew)
+        clock = _refine_clock(chain, tj, rec.q, frames, target, times, base, clock, max_gap, cache=cache, skew=fit_skew)
+        base, target = _to_base_frame(tip, tj, clock, positions, at)
+    clock = _refine_clock(chain, tj, rec.q, frames, target, times, base, clock, max_gap, cache=cache, skew=fit_skew)
     return Clock(clock.offset_s, clock.skew, int(rec.joint_stamps[0]))
 
 
 def _to_base_frame(tip: np.ndarray, tj: np.ndarray, clock: Clock, positions: np.ndarray, at) -> tuple:
-    """Tracker positions in the base frame and the target positions of the nominal FK, for a trial clock.
+    """Tracker positions in the base frame and the target's offset on the flange, for a trial clock.
 
     ``p_tip + R_tip t = R p_tracker + c`` is linear in the tracker frame ``(R, c)`` and the target's
     offset ``t`` on the flange; ``R`` is solved for unconstrained, projected onto the rotations, and ``c``
@@ -188,7 +188,7 @@ def _to_base_frame(tip: np.ndarray, tj: np.ndarray, clock: Clock, positions: np.
     rot = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
     rest = np.concatenate([np.tile(np.eye(3), (m, 1, 1)), -r_tip], axis=2).reshape(-1, 6)
     c_t = np.linalg.lstsq(rest, (p_tip - moved[idx] @ rot.T).reshape(-1), rcond=None)[0]
-    return positions @ rot.T + c_t[:3], p_tip_all(tip, c_t[3:])
+    return positions @ rot.T + c_t[:3], c_t[3:]
 
 
 def p_tip_all(tip: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -235,7 +235,7 @@ def _refine_clock(
     tj: np.ndarray,
     q: np.ndarray,
     frames: np.ndarray,
-    p_fk: np.ndarray,
+    target: np.ndarray,
     times: np.ndarray,
     positions: np.ndarray,
     clock: Clock,
@@ -253,12 +253,15 @@ def _refine_clock(
     follow the error across the whole workspace, and what it misses leaks into the clock (0.12 ms after
     10 minutes with one global fit, against 0.2 ms allowed). ``δ`` and ``σ`` are shared; they come from
     the velocity and mismatch residuals after each window's own fit (Frisch-Waugh-Lovell).
+
+    Memory stays that of one window: the features are built per window, and only the velocity columns
+    projected off each window's model are kept (:func:`_projected_velocity`), not the model's basis; the
+    mismatch needs no projection of its own, ``(P r₁)ᵀ m = r₁ᵀ m`` for the projected columns ``r₁``.
+    Two minutes at 110 Hz held 80 MB of features and bases before, a 60-minute recording 2 GB.
     """
-    v = np.gradient(p_fk, tj, axis=0)
-    bases = cache if cache is not None else {}
-    if "features" not in bases:
-        bases["features"] = error_features(chain, q, frames)  # the same for every call of one estimate
-    features = bases["features"]
+    tip = frames[:, -1]
+    p_fk = p_tip_all(tip, target)
+    cache = cache if cache is not None else {}
     window = np.floor((tj - tj[0]) / window_s).astype(int)
     n_windows = window[-1] + 1
     if n_windows > 1 and np.sum(window == n_windows - 1) < 0.5 * np.sum(window == 0):
@@ -269,20 +272,21 @@ def _refine_clock(
     # samples usable within ±5 ms of the starting clock: a fixed set, so each window's basis is computed once
     start = tj + offset + skew * (tj - t_mid)
     valid = np.logical_and.reduce([_bridged(start + d, times, max_gap) for d in (-0.005, 0.0, 0.005)])
+    # the velocity of the target is linear in its offset on the flange: v = v_tip + Σ_k v_(R e_k) target_k
+    weights = np.r_[1.0, target]
+    n_features = error_features(chain, q[:1], frames[:1]).shape[2]
     for _ in range(rounds):
         query = tj + offset + skew * (tj - t_mid)
         normal, rhs_total = np.zeros((2, 2)), np.zeros(2)
         for w in np.unique(window):
             idx = np.flatnonzero(valid & (window == w))
-            if 3 * len(idx) <= 2 * features.shape[2]:
+            if 3 * len(idx) <= 2 * n_features:
                 continue  # too few equations to fit this window's model
             moved = np.column_stack([np.interp(query[idx], times, positions[:, i]) for i in range(3)])
-            dt = np.repeat(tj[idx] - t_mid, 3)
-            rhs = np.column_stack([(moved - p_fk[idx]).reshape(-1), v[idx].reshape(-1), v[idx].reshape(-1) * dt])
-            basis = _basis(lambda idx=idx: features[idx].reshape(-1, features.shape[2]), (w, idx.tobytes()), bases)
-            r = rhs - basis @ (basis.T @ rhs)
-            normal += r[:, 1:].T @ r[:, 1:]
-            rhs_total += r[:, 1:].T @ r[:, 0]
+            parts = _projected_velocity(chain, tj, q, frames, idx, t_mid, (w, idx.tobytes()), cache)
+            r = parts @ weights  # (3 n, 2): velocity and velocity · (t − t̄), off the window's model
+            normal += r.T @ r
+            rhs_total += r.T @ (moved - p_fk[idx]).reshape(-1)
         if normal[0, 0] <= 0.0:
             raise CalibrationError("too few samples to estimate the clock offset; record longer or give it explicitly")
         if not fit_skew or normal[1, 1] * normal[0, 0] - normal[0, 1] ** 2 <= 1e-12 * normal[1, 1] * normal[0, 0]:
@@ -294,16 +298,33 @@ def _refine_clock(
     return Clock(offset - skew * t_mid, skew, 0)
 
 
-def _basis(design: Callable[[], np.ndarray], key: tuple, cache: dict) -> np.ndarray:
-    """Orthonormal basis of the columns of ``design`` (SVD), cached: the windows' samples rarely change
-    between rounds, and the factorisation is most of the refinement's cost.
+def _projected_velocity(
+    chain: Chain, tj: np.ndarray, q: np.ndarray, frames: np.ndarray, idx: np.ndarray, t_mid: float, key, cache: dict
+) -> np.ndarray:
+    """``(3 n, 2, 4)``: the parts of the target's velocity (tip, and the flange's three axes) and the same
+    times ``t − t̄``, projected off the span of one window's FK error features, cached by ``key``.
 
-    Directions down to 1e-13 of the largest singular value are kept: the weak ones carry model structure,
-    and dropping those below 1e-10 moved the offset by 0.07-0.18 ms on a 30 s recording (a basis from the
-    Gram matrix, which squares the condition number, did the same). scipy's divide-and-conquer SVD: numpy's
-    least squares was 10x slower here.
+    The span is the one of an SVD basis, computed once per window's samples (the factorisation is most of
+    the refinement's cost). Directions down to 1e-13 of the largest singular value are kept: the weak ones
+    carry model structure, and dropping those below 1e-10 moved the offset by 0.07-0.18 ms on a 30 s
+    recording (a basis from the Gram matrix, which squares the condition number, did the same). scipy's
+    divide-and-conquer SVD: numpy's least squares was 10x slower here.
     """
     if key not in cache:
-        u, s, _ = svd(design(), full_matrices=False, lapack_driver="gesdd")
-        cache[key] = u[:, s > 1e-13 * s[0]]
+        # the gradient at a window's samples needs their neighbours: it is taken on the whole series, lazily
+        if "velocity" not in cache:
+            tip = frames[:, -1]
+            cache["velocity"] = np.stack(
+                [np.gradient(tip[:, :3, 3], tj, axis=0)] + [np.gradient(tip[:, :3, k], tj, axis=0) for k in range(3)],
+                axis=2,
+            )  # (N, 3, 4)
+        v = cache["velocity"][idx]
+        dt = (tj[idx] - t_mid)[:, None, None]
+        columns = np.stack([v, v * dt], axis=2).reshape(-1, 2, 4)  # (3 n, 2, 4)
+        design = error_features(chain, q[idx], frames[idx]).reshape(3 * len(idx), -1)
+        u, s, _ = svd(design, full_matrices=False, lapack_driver="gesdd")
+        del design
+        u = u[:, s > 1e-13 * s[0]]
+        flat = columns.reshape(len(u), -1)
+        cache[key] = (flat - u @ (u.T @ flat)).reshape(columns.shape)
     return cache[key]

@@ -141,7 +141,8 @@ class BagWriter:
         self.channels[topic] = self.writer.register_channel(topic, "cdr", self.schemas[msgtype])
 
     def _trailer(self) -> bytes:
-        """What ``Writer.finish`` would append now, computed on a copy (the chunk builder is empty here)."""
+        """What ``Writer.finish`` would append now, computed on a copy; the chunk builder must be empty (it is
+        shared with the copy): right after a chunk, or after ``add_topic`` ended one."""
         copy_ = copy.copy(self.writer)
         out = _Pending(self.pending.tell())
         copy_._Writer__stream = out  # mcap has no public way to get the summary bytes before finish
@@ -185,6 +186,12 @@ class BagWriter:
         if topic in self.topics:
             return
         self.topics[topic] = msgtype
+        # a topic added mid-recording (the recorder's pairs, segment by segment): the chunk in progress
+        # ends first. _trailer needs an empty chunk builder: its copy of the writer shares the builder,
+        # and finishing that copy took the chunk's messages and left the file unreadable from there on.
+        self.writer._Writer__finalize_chunk()
+        if self.pending.buf:
+            self.files[-1]["chunks"] += 1
         self._register(topic, msgtype)
         self._commit()
 

@@ -3,11 +3,13 @@ in memory that does not grow with the recording's length."""
 
 from __future__ import annotations
 
+import tracemalloc
 from collections import Counter
 
 import numpy as np
 
 from hybrid_kinematics_ros.calibration.alignment import AlignOptions, align
+from hybrid_kinematics_ros.calibration.clock import error_features, estimate_clock
 from hybrid_kinematics_ros.calibration.windowed import StreamingAligner
 from hybrid_kinematics_ros.io.raw_bag import RawRecording
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
@@ -108,3 +110,21 @@ def test_memory_is_bounded_whatever_the_length():
     pairs += sum(len(s.result.pairs) for s in aligner.poll(final=True))
     assert peaks[1200] <= peaks[300] + aligner.joints.BLOCK + aligner.poses.BLOCK, peaks
     assert pairs + aligner.rejected.total() == 20 * 60 * 110  # every joint state paired or counted
+
+
+def test_clock_estimate_memory_does_not_hold_the_error_model_of_the_whole_window():
+    """The clock estimate of each window ran on 2 minutes of joint states, and held the FK error features
+    and their bases for all of them (2 × 38 MB per 2 minutes at 110 Hz): that memory is what kept the
+    recorder's resident memory 195 MB above its start. Two more minutes of recording may now cost the
+    estimate no more than those features would for them once (traced, so numpy's arrays are counted)."""
+    cfg, _, _, short = recording(seconds=60.0, tracker_hz=250.0, waypoints=20)
+    _, _, _, long = recording(seconds=180.0, tracker_hz=250.0, waypoints=60)
+    peaks = []
+    for rec in (short, long):
+        tracemalloc.start()
+        estimate_clock(cfg.chain, rec)
+        peaks.append(tracemalloc.get_traced_memory()[1])
+        tracemalloc.stop()
+    extra = len(long.joint_stamps) - len(short.joint_stamps)
+    features = extra * 3 * error_features(cfg.chain, short.q[:1]).shape[2] * 8  # bytes
+    assert peaks[1] - peaks[0] < features, (peaks, features)

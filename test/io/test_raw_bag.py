@@ -16,7 +16,8 @@ from rclpy.serialization import serialize_message
 from rosbags.rosbag2 import Reader
 
 from hybrid_kinematics_ros.io.errors import DataError
-from hybrid_kinematics_ros.io.raw_bag import decode_pose_stamped, read_raw
+from hybrid_kinematics_ros.io.pairs import Pairs, pose_stamped_msg
+from hybrid_kinematics_ros.io.raw_bag import BagWriter, decode_pose_stamped, iter_messages, read_raw, write_pairs_into
 
 
 @pytest.mark.parametrize("frame", ["", "t", "ab", "tracker", "tracker1", "laser_tracker_frame_at_the_cell"])
@@ -87,3 +88,25 @@ def test_a_sigkilled_bag_reads_with_its_real_message_count(tmp_path, file_chunks
     assert in_files == counted.total() and (len(meta["files"]) > 2) == (file_chunks == 7)
     raw = read_raw(bag, "/joint_states", "/tracker/pose")
     assert len(raw.pose_stamps) + len(raw.joint_stamps) >= counted.total()  # plus a started file's messages
+
+
+def test_pairs_added_mid_chunk_keep_every_raw_message(tmp_path):
+    """The recorder writes each segment's pairs while the raw streams go on, so the pair topics are added
+    in the middle of a chunk: that used to hand the chunk's messages to the trailer's throwaway copy of
+    the writer, and the file could not be read past that point (a 2.5-minute live run kept 63 % of it)."""
+    writer = BagWriter(tmp_path / "mid")
+    writer.add_topic("/tracker/pose", "geometry_msgs/msg/PoseStamped")
+    names = ("a", "b")
+    for i in range(3000):
+        ns = 1_700_000_000_000_000_000 + i * 1_000_000
+        writer.write_msg("/tracker/pose", ns, pose_stamped_msg(ns, "tracker", np.array([i, 0.0, 0.0]), [0, 0, 0, 1]))
+        if i in (1000, 2000):  # mid-chunk (a chunk holds about 2,600 of these)
+            stamps = ns + np.arange(3)
+            write_pairs_into(writer, Pairs(np.zeros((3, 2)), np.tile(np.eye(4), (3, 1, 1)), stamps, names, "base"))
+    writer.close()
+    read = Counter(topic for topic, *_ in iter_messages(tmp_path / "mid"))
+    assert read == writer.counts, (read, writer.counts)
+    reader = Reader(tmp_path / "mid")
+    reader.open()
+    assert reader.message_count == sum(1 for _ in reader.messages()) == 3012
+    reader.close()
