@@ -6,6 +6,12 @@
 from __future__ import annotations
 
 import os
+
+# One BLAS thread per process: on the 2-core machine the suite's processes (nodes, CLI runs, net workers)
+# share the cores, and multithreaded OpenBLAS then makes least squares 10-20× slower (measured on the
+# alignment tests: 280 s against 26 s). Set before numpy loads; subprocesses inherit it.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 from dataclasses import replace
 from pathlib import Path
 
