@@ -177,8 +177,7 @@ def fit_joint_map(
     """
     n = model.dof
     lower = q.min(axis=0) - step
-    count = np.floor((q.max(axis=0) - lower) / step).astype(int) + 2
-    width = int(count.max())
+    width = int(np.floor((q.max(axis=0) - lower) / step).max()) + 2  # knots per joint: the widest range's
     joint_map = JointMap(lower, step, np.zeros((n, width)))
     res = pose_residuals(model, q, T, position_only, target, orientation_length)
     rows = _joint_rows(model, q, position_only, target, orientation_length)  # (N, w, n)

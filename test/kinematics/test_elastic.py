@@ -36,6 +36,16 @@ def test_rigid_elastic_chain_is_the_plain_chain(elastic):
     assert rigid.is_rigid and not elastic.is_rigid
 
 
+def _single_paths_agree(model: ElasticChain, q: np.ndarray) -> np.ndarray:
+    """The single-pose paths give the batch's poses and Jacobians for the first three of ``q``; returns
+    the batch's Jacobians."""
+    T, J = model.fk_and_jacobian(q)
+    for i in range(3):
+        np.testing.assert_allclose(model.fk_single(q[i]), T[i], atol=1e-14)
+        np.testing.assert_allclose(model.fk_and_jacobian_single(q[i])[1], J[i], atol=1e-12)
+    return J
+
+
 def test_single_pose_paths_equal_the_batch(elastic):
     q = joints(elastic.chain, 20, seed=1)
     T, J = elastic.fk_and_jacobian(q)
@@ -83,10 +93,7 @@ def test_cyclic_joint_errors_turn_the_joints(elastic, rigid):
     plain = replace(model, joint_error=None)
     np.testing.assert_allclose(model.fk(q), plain.fk(q + shift), atol=1e-14)
     assert not model.is_rigid and model.has_joint_error
-    T, J = model.fk_and_jacobian(q)
-    for i in range(3):
-        np.testing.assert_allclose(model.fk_single(q[i]), T[i], atol=1e-14)
-        np.testing.assert_allclose(model.fk_and_jacobian_single(q[i])[1], J[i], atol=1e-12)
+    J = _single_paths_agree(model, q)
     eps = 1e-6
     for j in range(model.dof):
         dq = np.zeros(model.dof)
@@ -126,8 +133,5 @@ def test_joint_map_turns_the_joints(elastic):
     model = replace(elastic, joint_map=joint_map)
     q = joints(chain, 20, seed=4)
     np.testing.assert_allclose(model.fk(q), elastic.fk(q + joint_map(q)[0]), atol=1e-14)
-    T, J = model.fk_and_jacobian(q)
-    for i in range(3):
-        np.testing.assert_allclose(model.fk_single(q[i]), T[i], atol=1e-14)
-        np.testing.assert_allclose(model.fk_and_jacobian_single(q[i])[1], J[i], atol=1e-12)
+    _single_paths_agree(model, q)
     assert not model.is_rigid
