@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import shutil
 import signal
 import subprocess
 import time
@@ -54,10 +55,17 @@ def cell(tmp_path_factory):
     rclpy.shutdown()
 
 
-def recorder(tmp_path, name, *extra):
-    """A recorder with a node name of its own: a SIGKILLed one stays in discovery for a while."""
+def recorder(client, tmp_path, name, *extra, service: str = "stop"):
+    """A recorder with a node name of its own (a SIGKILLed one stays in discovery for a while), once its
+    ``service`` is up. A restart begins from an empty output directory."""
     args = ["-r", f"__node:=recorder_{name}", "-p", f"output_dir:={tmp_path}", "-p", "pairs_frame_id:=base_link"]
-    return start("recorder_node", *args, *extra, log=tmp_path / f"{name}.log")
+
+    def launch():
+        for bag in (p for p in tmp_path.iterdir() if p.is_dir()):
+            shutil.rmtree(bag)
+        return start("recorder_node", *args, *extra, log=tmp_path / f"{name}.log")
+
+    return client.service_of(launch(), Trigger, f"/recorder_{name}/{service}", launch)
 
 
 def recording_status(diagnostics: list, name: str) -> list[dict]:
@@ -72,8 +80,7 @@ def recording_status(diagnostics: list, name: str) -> list[dict]:
 
 def test_thirty_seconds_recorded_and_aligned(cell, tmp_path):
     client, _ = cell
-    proc = recorder(tmp_path, "run", "-p", "bag_name:=run")
-    client.service(Trigger, "/recorder_run/stop")  # up and recording
+    proc, _ = recorder(client, tmp_path, "run", "-p", "bag_name:=run")  # up and recording
     diagnostics = []
     sub = client.node.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
     client.spin_for(30.0)
@@ -100,9 +107,10 @@ def test_thirty_seconds_recorded_and_aligned(cell, tmp_path):
 
 def test_start_stop_services_split_recordings(cell, tmp_path):
     client, _ = cell
-    proc = recorder(tmp_path, "split", "-p", "autostart:=false", "-p", f"clock_offset_s:={OFFSET}")
+    proc, start_srv = recorder(
+        client, tmp_path, "split", "-p", "autostart:=false", "-p", f"clock_offset_s:={OFFSET}", service="start"
+    )
     try:
-        start_srv = client.service(Trigger, "/recorder_split/start")
         stop_srv = client.service(Trigger, "/recorder_split/stop")
         assert not client.call(stop_srv, Trigger.Request()).success  # not recording yet
         counts = []
@@ -136,8 +144,7 @@ def test_sigkill_keeps_what_was_written_and_align_recovers_it(cell, tmp_path):
     # Last in this module: a SIGKILLed subscriber stalls the sim's publishers for seconds (Fast DDS's
     # shared-memory transport waits on the dead reader's full port until discovery drops it).
     client, _ = cell
-    proc = recorder(tmp_path, "killed", "-p", "bag_name:=killed")
-    client.service(Trigger, "/recorder_killed/stop")
+    proc, _ = recorder(client, tmp_path, "killed", "-p", "bag_name:=killed")
     # kill once it has taken in 7 s of poses (its /diagnostics say so), however slowly it started
     diagnostics = []
     sub = client.node.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
