@@ -53,7 +53,7 @@ TITLES = {
     "A": "series A",
     "C": "series C",
     "CB": "trained on C, tested on B",
-    "all": "all series together",
+    "all": "all series together, and each alone",
     "curve": "data-amount curve on A",
 }
 
@@ -204,6 +204,11 @@ def main() -> None:
                 args.minutes,
                 args.steps,
             )
+            seconds = {"all": seconds["ours"]}
+            for n in SERIES:  # the target compares each series with itself trained alone: side by side
+                r, s = rows_for(cfg, [held[n][0]], {f"{n} (alone)": held[n][2]}, ours, args.minutes, args.steps)
+                results.update(r)
+                seconds[f"{n} alone"] = s["ours"]
         elif part == "curve":
             results, seconds = {}, {}
             for count in (250, 500, 1000, 2000, 4000):  # all of them: the A part's row

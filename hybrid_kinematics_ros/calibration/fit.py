@@ -14,8 +14,13 @@ from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.alignment import AlignOptions, AlignResult, align
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
-from hybrid_kinematics_ros.calibration.parametric import identify
-from hybrid_kinematics_ros.calibration.referencing import anchor_stations, reference_stations
+from hybrid_kinematics_ros.calibration.parametric import ParametricResult, identify
+from hybrid_kinematics_ros.calibration.referencing import (
+    anchor_stations,
+    reference_stations,
+    refine_stations,
+    station_labels,
+)
 from hybrid_kinematics_ros.io.model_dir import save_model_dir
 from hybrid_kinematics_ros.io.pairs import (
     JOINTS_TOPIC,
@@ -99,6 +104,40 @@ def reference_all(
     return out
 
 
+def identify_stations(
+    chain: Chain,
+    stations: Sequence[Pairs],
+    refs: dict[str, Referencing],
+    payload: tuple[float, np.ndarray] = (0.0, np.zeros(3)),
+    seed: int = 0,
+) -> tuple[dict[str, Referencing], ParametricResult]:
+    """The parametric stage from the pairs of every station, each referenced (``refs``, from
+    :func:`reference_all`): identified with a correction of each station's placement and target mount
+    (the nominal model's referencing absorbs a different share of the robot's errors at each station),
+    which then moves into the referencings; and the base anchored at the first joint
+    (:func:`anchor_stations`). Returns the referencings and the stage."""
+    base = to_base_frame(stations, chain, refs)
+    labels = station_labels(refs, any(p.frame_id == chain.base_link for p in stations))
+    placement, mount = (
+        np.concatenate([np.full(len(p), labels.get(p.frame_id, (-1, -1))[k]) for p in stations]) for k in (0, 1)
+    )
+    result = identify(
+        chain,
+        base.q,
+        base.T,
+        *payload,
+        position_only=base.position_only,
+        seed=seed,
+        target=_target_offsets(base),
+        placement=placement,
+        mount=mount,
+    )
+    if not refs:
+        return refs, result
+    anchored, result = anchor_stations(chain, list(refine_stations(refs, labels, result).values()), result)
+    return {ref.frame_id: ref for ref in anchored}, result
+
+
 SPLIT_BLOCKS = 100  # time blocks a split cuts the pairs into, by default
 
 
@@ -176,17 +215,11 @@ def fit(
         log(f"referenced frame '{ref.frame_id}': rms {ref.rms_position_mm:.4f} mm ({ref.outliers} outliers)")
     train_pairs, val_pairs, test_pairs = (to_base_frame(p, chain, refs) for p in raw)
     position_only = train_pairs.position_only
-    # position-only: the models predict the target points, wherever each station's target sat
-    target = _target_offsets(train_pairs)
     base = ElasticChain.rigid(chain)
     if parametric:
         start = time.perf_counter()
-        result = identify(
-            chain, train_pairs.q, train_pairs.T, *payload, position_only=position_only, seed=seed, target=target
-        )
+        refs, result = identify_stations(chain, raw[0], refs, payload, seed)
         if refs:
-            anchored, result = anchor_stations(chain, list(refs.values()), result)
-            refs = {ref.frame_id: ref for ref in anchored}
             train_pairs, val_pairs, test_pairs = (to_base_frame(p, chain, refs) for p in raw)
         base = result.model
         manifest["parametric"] = {**result.manifest(), "seconds": round(time.perf_counter() - start, 1)}
@@ -196,6 +229,8 @@ def fit(
         )
     if refs:
         manifest["referencing"] = [ref.manifest() for ref in refs.values()]
+    # position-only: the models predict the target points, wherever each station's target sat
+    target = _target_offsets(train_pairs)
     lower, upper = train_pairs.q.min(axis=0), train_pairs.q.max(axis=0)
     norm_lower, norm_upper = (chain.lower, chain.upper) if preset.full_range else (lower, upper)
     norm_lower = np.where(np.isfinite(norm_lower), norm_lower, lower)

@@ -17,6 +17,13 @@ Parameters (all small, starting from the nominal URDF):
   few Fourier terms). It is fitted last, linearly on the other parameters' residuals, with a smoothness
   prior (``MAP_SMOOTHNESS``) and a small pull to zero where a joint never went.
 
+Pairs from several tracker stations come referenced each on its own, with the nominal model, and that
+referencing absorbs a different share of the robot's errors at each station: their base-frame poses
+disagree by a small rigid move at the base and at the target (on the real UR10, A and C: 0.15 and 0.38 mm
+after a joint fit, against 0.07 and 0.08 mm alone). So every station but the first gets a correction of
+its placement, and every target mount but the first's a correction of the mount, identified with the
+robot's parameters; the caller folds them into the referencings (:func:`station_moves`).
+
 Many of these are not identifiable from end-effector poses (a zero offset is the same as turning the joint
 origin about the joint axis; parallel axes leave some translations free). Identifiability is decided by
 Gram-Schmidt on the scaled identification Jacobian's columns in a fixed order (:func:`parameter_list`'s,
@@ -28,7 +35,7 @@ with a robust loss.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -73,6 +80,8 @@ UNITS = {
     "harmonic": "rad",
 }
 KINDS = tuple(SCALE)
+STATION_KINDS = ("placement", "mount")  # per-station corrections of the referencing (see the module text)
+STATION_SCALE = 1e-3  # m or rad: the scaled unit of a station's correction
 # What robot_calibration or pybotics fit, and what a URDF can carry: joint offsets and joint origins.
 GEOMETRY_KINDS = ("zero", "translation", "rotation")
 
@@ -97,6 +106,41 @@ def parameter_list(chain: Chain, harmonics: int = 0) -> list[Parameter]:
                 for i, t in enumerate(("sin", "cos"))
             ]
     return out
+
+
+def _station_parameters(placements: int, mounts: int) -> list[Parameter]:
+    axes = ("x", "y", "z", "rx", "ry", "rz")
+    out = [Parameter(f"placement {k} {c}", "placement", k, i) for k in range(placements) for i, c in enumerate(axes)]
+    return out + [Parameter(f"mount {k} {c}", "mount", k, i) for k in range(mounts) for i, c in enumerate(axes)]
+
+
+def station_moves(params: Sequence[Parameter], values: np.ndarray, kind: str, count: int) -> np.ndarray:
+    """``(count + 1, 4, 4)``: each station's ``kind`` correction (``placement`` or ``mount``) from the
+    parameter values, then the identity, which label -1 (no correction) indexes."""
+    x = np.zeros((count + 1, 6))
+    for p, v in zip(params, values, strict=True):
+        if p.kind == kind:
+            x[p.index, p.component] = v
+    return se3.from_rotvec(x[:, :3], x[:, 3:])
+
+
+def _moved_measurements(
+    T: np.ndarray,
+    target: np.ndarray | None,
+    position_only: bool,
+    placement: np.ndarray,
+    mount: np.ndarray,
+    placements: np.ndarray,
+    mounts: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The measurements as corrected referencings give them: ``D⁻¹ · T · E⁻¹`` for a 6-DoF pose, with ``D``
+    the pair's placement correction and ``E`` its mount's; a point is moved by ``D⁻¹`` and its target
+    offset by ``E`` instead (a point has no orientation to carry ``E⁻¹``)."""
+    moved = se3.inverse(placements)[placement] @ T
+    if not position_only:
+        return moved @ se3.inverse(mounts)[mount], target
+    offset = np.zeros(3) if target is None else target
+    return moved, se3.point_at(mounts[mount], np.broadcast_to(offset, (len(T), 3)))
 
 
 def pose_residuals(
@@ -220,6 +264,10 @@ class ParametricResult:
     position_only: bool
     nominal: Chain | None = None  # the chain the parameters are relative to
     joint_map: JointMap | None = None
+    # Corrections of the tracker placements and target mounts (``identify``'s labels 0, 1, …), ``(k, 4, 4)``:
+    # the measurements fit the model as ``placement⁻¹ · T · mount⁻¹``; see referencing.refine_stations.
+    placements: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    mounts: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
 
     def geometry_model(self) -> ElasticChain:
         """The geometry-only calibration (joint offsets and joint origins, no compliance, bending or
@@ -278,6 +326,8 @@ def identify(
     orientation_length: float = ORIENTATION_LENGTH,
     robust_scale: float = ROBUST_SCALE,
     map_step: float = MAP_STEP,
+    placement: np.ndarray | None = None,
+    mount: np.ndarray | None = None,
 ) -> ParametricResult:
     """Identify the elasto-geometric parameters from joints ``q (N, n)`` and measured base-frame poses ``T``.
 
@@ -292,6 +342,10 @@ def identify(
     joint errors (0: none), each coefficient held towards zero by ``harmonic_prior`` (in pairs).
     ``map_step``: the joint error map's knot spacing (0: no map), fitted last from all the pairs (at most
     :data:`MAP_MAX_PAIRS`).
+
+    ``placement`` and ``mount`` (``(N,)`` ints): which tracker placement and which target mount each pair
+    was measured with, -1 for the reference ones that get no correction (the first station's; see the
+    module text). The corrections come back as :attr:`ParametricResult.placements` and ``mounts``.
     """
     com = np.zeros(3) if payload_com is None else np.asarray(payload_com, dtype=float)
     if len(q) < 20:
@@ -303,26 +357,42 @@ def identify(
     if "harmonic" not in chosen:
         harmonics = 0
     pick = np.random.default_rng(seed).permutation(len(q))[:max_pairs]
-    q_fit, T_fit = q[pick], T[pick]
-    every_target = target
-    if target is not None and np.ndim(target) == 2:  # one offset per pair (several tracker stations)
-        target = np.asarray(target)[pick]
-    params = parameter_list(chain, harmonics)
-    scale = np.array([SCALE[p.kind] for p in params])
+    q_fit = q[pick]
+    every_target = None if target is None else np.asarray(target, dtype=float)  # (3,), or (N, 3): one per pair
+    placement = np.full(len(q), -1) if placement is None else np.asarray(placement, dtype=int)
+    mount = np.full(len(q), -1) if mount is None else np.asarray(mount, dtype=int)
+    counts = (int(placement.max()) + 1, int(mount.max()) + 1)
+    geometric_params = parameter_list(chain, 0)
+    params = geometric_params + _station_parameters(*counts) + parameter_list(chain, harmonics)[len(geometric_params) :]
+    scale = np.array([SCALE.get(p.kind, STATION_SCALE) for p in params])
+    movable = np.array([p.kind in STATION_KINDS for p in params])
+    chain_params = [p for p, m in zip(params, movable, strict=True) if not m]
     cyclic = np.array([p.kind == "harmonic" for p in params])
     joints = np.array([p.index for p in params])
     components = np.array([p.component for p in params])
-    prior = np.sqrt(harmonic_prior) * scale  # residual (m) per scaled unit of a cyclic coefficient, × 1 m
+    prior = np.where(cyclic, np.sqrt(harmonic_prior), 0.0) * scale  # residual (m) per scaled unit, × 1 m
+    held_back = prior > 0
     # Each cyclic coefficient's basis function at the fitted joints, (N, m): computed once, not per evaluation.
     f = components[cyclic] // 2 + 1
     phase = q_fit[:, joints[cyclic]] * f
     basis = np.where(components[cyclic] % 2 == 0, np.sin(phase), np.cos(phase))
     position = np.cumsum(cyclic) - 1  # column of a cyclic parameter in ``basis``
 
-    def values_at(z: np.ndarray, active: np.ndarray) -> np.ndarray:
-        values = np.zeros(len(params))
+    def values_at(z: np.ndarray, active: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+        values = fixed.copy()
         values[active] = z * scale[active]
         return values
+
+    def chain_model(values: np.ndarray, joint_map: JointMap | None = None) -> ElasticChain:
+        return build_model(chain, chain_params, values[~movable], payload_mass, com, joint_map)
+
+    def measurements(values: np.ndarray, rows: np.ndarray | slice = pick) -> tuple[np.ndarray, np.ndarray | None]:
+        """The measured poses of pairs ``rows`` and their target offsets, moved by the station corrections."""
+        offsets = every_target if every_target is None or np.ndim(every_target) == 1 else every_target[rows]
+        if not movable.any():
+            return T[rows], offsets
+        moves = (station_moves(params, values, kind, n) for kind, n in zip(STATION_KINDS, counts, strict=True))
+        return _moved_measurements(T[rows], offsets, position_only, placement[rows], mount[rows], *moves)
 
     def shifted_joints(values: np.ndarray, active: np.ndarray) -> np.ndarray:
         """The fitted joints shifted by the cyclic errors (the model itself is then built without them)."""
@@ -331,33 +401,36 @@ def identify(
             return q_fit
         return q_fit + (basis[:, position[on]] * values[on]) @ (joints[on][:, None] == np.arange(chain.dof))
 
-    def model_at(z: np.ndarray, active: np.ndarray) -> tuple[ElasticChain, np.ndarray]:
-        """The model without its cyclic errors, and the joints they shift the fitted ones to."""
-        values = values_at(z, active)
-        return build_model(chain, params, np.where(cyclic, 0.0, values), payload_mass, com), shifted_joints(
-            values, active
-        )
+    def model_at(z: np.ndarray, active: np.ndarray, fixed: np.ndarray) -> tuple[ElasticChain, np.ndarray, np.ndarray]:
+        """The model without its cyclic errors, the joints they shift the fitted ones to, and the values."""
+        values = values_at(z, active, fixed)
+        return chain_model(np.where(cyclic, 0.0, values)), shifted_joints(values, active), values
 
-    def pose_part(model: ElasticChain, shifted: np.ndarray) -> np.ndarray:
-        return pose_residuals(model, shifted, T_fit, position_only, target, orientation_length).ravel()
+    def pose_part(model: ElasticChain, shifted: np.ndarray, values: np.ndarray) -> np.ndarray:
+        measured, offsets = measurements(values)
+        return pose_residuals(model, shifted, measured, position_only, offsets, orientation_length).ravel()
 
-    def residual(z: np.ndarray, active: np.ndarray) -> np.ndarray:
-        return np.concatenate([pose_part(*model_at(z, active)), prior[active & cyclic] * z[cyclic[active]]])
+    def residual(z: np.ndarray, active: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+        pulled = prior[active & held_back] * z[held_back[active]]
+        return np.concatenate([pose_part(*model_at(z, active, fixed)), pulled])
 
-    def jacobian(z: np.ndarray, active: np.ndarray) -> np.ndarray:
-        """Forward differences for the geometric and elastic parameters, closed form for the cyclic ones."""
-        model, shifted = model_at(z, active)
-        r0 = pose_part(model, shifted)
+    def jacobian(z: np.ndarray, active: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+        """Forward differences for the geometric, elastic and station parameters, closed form for the cyclic."""
+        model, shifted, values = model_at(z, active, fixed)
+        r0 = pose_part(model, shifted, values)
         cols = np.flatnonzero(active)
-        jac = np.zeros((len(r0) + int(np.sum(active & cyclic)), len(cols)))
+        jac = np.zeros((len(r0) + int(np.sum(active & held_back)), len(cols)))
+        back = np.flatnonzero(held_back[cols])
+        jac[len(r0) + np.arange(len(back)), back] = prior[cols[back]]
         step = 1e-3
         for i, c in enumerate(cols):
             if cyclic[c]:
                 continue
             zi = z.copy()
             zi[i] += step
-            moved = build_model(chain, params, np.where(cyclic, 0.0, values_at(zi, active)), payload_mass, com)
-            jac[: len(r0), i] = (pose_part(moved, shifted) - r0) / step
+            moved_values = values_at(zi, active, fixed)
+            moved = model if movable[c] else chain_model(np.where(cyclic, 0.0, moved_values))
+            jac[: len(r0), i] = (pose_part(moved, shifted, moved_values) - r0) / step
         on = cyclic[cols]
         if on.any():
             block = _joint_error_jacobian(
@@ -366,30 +439,30 @@ def identify(
                 basis[:, position[cols[on]]],
                 joints[cols[on]],
                 position_only,
-                target,
+                measurements(values)[1],
                 orientation_length,
             )
             first = int(np.argmax(on))  # the cyclic parameters come last
             jac[: len(r0), first:] = block * scale[cols[on]]
-            jac[len(r0) :, first:] = np.diag(prior[cols[on]])
         return jac
 
     everything = np.ones(len(params), dtype=bool)
-    r0 = pose_part(*model_at(np.zeros(len(params)), everything))
-    jac = jacobian(np.zeros(len(params)), everything)[: len(r0)]
-    wanted = np.array([p.kind in chosen for p in params])
+    nothing = np.zeros(len(params))
+    r0 = pose_part(*model_at(nothing, everything, nothing))
+    jac = jacobian(nothing, everything, nothing)[: len(r0)]
+    wanted = np.array([p.kind in chosen for p in params]) | movable
     active, reasons = _identifiable(
         jac[:, wanted], [p for p, w in zip(params, wanted, strict=True) if w], position_only
     )
     active = _expand(active, wanted)
     reasons.update({p.name: "not fitted (kinds)" for p, w in zip(params, wanted, strict=True) if not w})
 
-    def solve(subset: np.ndarray, start: np.ndarray):
+    def solve(subset: np.ndarray, start: np.ndarray, fixed: np.ndarray = nothing):
         return least_squares(
             residual,
             start,
             jac=jacobian,
-            args=(subset,),
+            args=(subset, fixed),
             loss="soft_l1",
             f_scale=robust_scale,
             x_scale="jac",
@@ -399,35 +472,39 @@ def identify(
         )
 
     fit = solve(active, np.zeros(int(active.sum())))
-    values = np.zeros(len(params))
-    values[active] = fit.x * scale[active]
-    model = build_model(chain, params, values, payload_mass, com)
+    values = values_at(fit.x, active, nothing)
+    model = chain_model(values)
     joint_map = None
     if map_step > 0 and "harmonic" in chosen:
         draw = np.sort(np.random.default_rng(seed).permutation(len(q))[:MAP_MAX_PAIRS])
-        if every_target is not None and np.ndim(every_target) == 2:
-            every_target = np.asarray(every_target)[draw]
+        measured, offsets = measurements(values, draw)
         joint_map = fit_joint_map(
-            model, q[draw], T[draw], position_only, every_target, map_step, orientation_length=orientation_length
+            model, q[draw], measured, position_only, offsets, map_step, orientation_length=orientation_length
         )
-        model = build_model(chain, params, values, payload_mass, com, joint_map)
-    # The same with the geometry alone, for a URDF export: the geometry then absorbs what it can.
+        model = chain_model(values, joint_map)
+    # The same with the geometry alone, for a URDF export: the geometry then absorbs what it can, with
+    # the station corrections held (the referencings carry them for both).
     geometric = active & np.array([p.kind in GEOMETRY_KINDS for p in params])
-    rigid_values = np.zeros(len(params))
-    rigid_values[geometric] = solve(geometric, values[geometric] / scale[geometric]).x * scale[geometric]
+    held = np.where(movable, values, 0.0)
+    rigid_values = held.copy()
+    rigid_values[geometric] = solve(geometric, values[geometric] / scale[geometric], held).x * scale[geometric]
     width = 3 if position_only else 6
+    keep = ~movable
+    measured, offsets = measurements(values)
     return ParametricResult(
         model=model,
-        params=params,
-        values=values,
-        rigid_values=rigid_values,
-        identifiable=active,
-        reasons=reasons,
+        params=chain_params,
+        values=values[keep],
+        rigid_values=rigid_values[keep],
+        identifiable=active[keep],
+        reasons={name: why for name, why in reasons.items() if not name.startswith(("placement ", "mount "))},
         rms_before=_rms(r0.reshape(-1, width)),
-        rms_after=_rms(pose_residuals(model, q_fit, T_fit, position_only, target, orientation_length)),
+        rms_after=_rms(pose_residuals(model, q_fit, measured, position_only, offsets, orientation_length)),
         position_only=position_only,
         nominal=chain,
         joint_map=joint_map,
+        placements=station_moves(params, values, "placement", counts[0])[:-1],
+        mounts=station_moves(params, values, "mount", counts[1])[:-1],
     )
 
 

@@ -17,7 +17,7 @@ point less ``R_model · t`` (the orientation stays the parametric model's).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -34,6 +34,52 @@ from hybrid_kinematics_ros.model.referencing import Referencing
 
 ROBUST_SCALE = 1e-3  # m: residuals well above this (a broken beam, a wrong reflector) are down-weighted
 OUTLIER_M = 0.01  # after the fit, pairs this far off are counted as outliers
+
+
+def station_labels(refs: Mapping[str, Referencing], base_frame_pairs: bool) -> dict[str, tuple[int, int]]:
+    """Each tracker frame's placement and mount label for the parametric stage's station corrections
+    (:func:`~hybrid_kinematics_ros.calibration.parametric.identify`; -1: none).
+
+    The first frame is the reference, its placement and mount uncorrected (the robot's own first joint
+    origin and flange parameters play that part), unless pairs measured in the base frame are the
+    reference. Frames with one ``flange_to_target`` (a target shared by :func:`reference_stations`) share
+    a mount label.
+    """
+    frames = list(refs)
+    first = None if base_frame_pairs or not frames else frames[0]
+    mounts: list[np.ndarray] = [] if first is None else [refs[first].flange_to_target]
+    labels: dict[str, tuple[int, int]] = {}
+    placements = 0
+    for frame in frames:
+        placement = -1
+        if frame != first:
+            placement, placements = placements, placements + 1
+        target = refs[frame].flange_to_target
+        mount = next((k for k, m in enumerate(mounts) if np.array_equal(m, target)), None)
+        if mount is None:
+            mounts.append(target)
+            mount = len(mounts) - 1
+        labels[frame] = (placement, mount - (first is not None))
+    return labels
+
+
+def refine_stations(
+    refs: Mapping[str, Referencing], labels: Mapping[str, tuple[int, int]], result: ParametricResult
+) -> dict[str, Referencing]:
+    """The referencings with the station corrections identified beside the robot folded in: the stage fits
+    ``D⁻¹ · T · E⁻¹``, with ``T = B · T_meas · F⁻¹``, so ``B' = D⁻¹ · B`` and ``F' = E · F``."""
+    out = {}
+    for frame, ref in refs.items():
+        placement, mount = labels[frame]
+        base, target = ref.base_to_tracker, ref.flange_to_target
+        if placement >= 0:
+            base = se3.inverse(result.placements[placement]) @ base
+        if mount >= 0:
+            target = result.mounts[mount] @ target
+        refined = placement >= 0 or mount >= 0
+        method = f"{ref.method}, refined with the parametric stage" if refined else ref.method
+        out[frame] = replace(ref, base_to_tracker=base, flange_to_target=target, method=method)
+    return out
 
 
 def anchor_base(chain: Chain, ref: Referencing, result: ParametricResult) -> tuple[Referencing, ParametricResult]:
