@@ -69,15 +69,24 @@ def refine_stations(
     """The referencings with the station corrections identified beside the robot folded in: the stage fits
     ``D⁻¹ · T · E⁻¹``, with ``T = B · T_meas · F⁻¹``, so ``B' = D⁻¹ · B`` and ``F' = E · F``."""
     out = {}
+    identity = np.eye(4)[None]
     for frame, ref in refs.items():
         placement, mount = labels[frame]
-        base, target = ref.base_to_tracker, ref.flange_to_target
+        base, target, moves = ref.base_to_tracker, ref.flange_to_target, []
         if placement >= 0:
             base = se3.inverse(result.placements[placement]) @ base
+            moves.append(("tracker", result.placements[placement]))
         if mount >= 0:
             target = result.mounts[mount] @ target
-        refined = placement >= 0 or mount >= 0
-        method = f"{ref.method}, refined with the parametric stage" if refined else ref.method
+            moves.append(("target", result.mounts[mount]))
+        method = ref.method
+        if moves:
+            sizes = [(what, *se3.pose_errors(move[None], identity)) for what, move in moves]
+            method += (
+                ", refined with the parametric stage ("
+                + "; ".join(f"{what} moved {mm[0]:.3f} mm, {deg[0]:.4f} deg" for what, mm, deg in sizes)
+                + ")"
+            )
         out[frame] = replace(ref, base_to_tracker=base, flange_to_target=target, method=method)
     return out
 
