@@ -19,10 +19,11 @@ Parameters (all small, starting from the nominal URDF):
 
 Pairs from several tracker stations come referenced each on its own, with the nominal model, and that
 referencing absorbs a different share of the robot's errors at each station: their base-frame poses
-disagree by a small rigid move at the base and at the target (on the real UR10, A and C: 0.15 and 0.38 mm
-after a joint fit, against 0.07 and 0.08 mm alone). So every station but the first gets a correction of
-its placement, and every target mount but the first's a correction of the mount, identified with the
-robot's parameters; the caller folds them into the referencings (:func:`station_moves`).
+disagree by a small rigid move at the base and at the target (on the real UR10, A and C fitted together:
+0.15 and 0.38 mm on held-out poses, against 0.07 and 0.08 mm alone). So every station but the first gets a
+correction of its placement, and every target mount but the first's a correction of the mount, identified
+with the robot's parameters (A and C together then: 0.075 and 0.092 mm); the caller folds them into the
+referencings (``calibration.referencing.refine_stations``).
 
 Many of these are not identifiable from end-effector poses (a zero offset is the same as turning the joint
 origin about the joint axis; parallel axes leave some translations free). Identifiability is decided by

@@ -38,7 +38,7 @@ class Preset:
     batch: int
     sincos: bool  # sin/cos joint features beside the normalised joints
     turn: bool  # learn the residual in the frame that turns with joint 1
-    cosine: bool  # cosine learning-rate decay reaching zero at the time budget or at max_epochs, the sooner
+    cosine: bool  # cosine learning-rate decay to zero at max_epochs (or at the time budget, if the steps lag)
     max_epochs: int  # with a generous time budget, a schedule that machine load does not change
     patience: int  # epochs without validation improvement before stopping; 0: never stop early
     full_range: bool  # normalise over the joint limits (else over the range seen in the data)
@@ -148,7 +148,11 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
                 out_of_time = True
                 break
             if p.cosine:
-                progress = max(elapsed / job.max_seconds, done_steps / total_steps)
+                # By steps, so that a run is the same on a loaded machine; by time only once half the
+                # budget is gone and the steps lag behind it (early on, start-up would make it random).
+                progress = done_steps / total_steps
+                if elapsed > 0.5 * job.max_seconds:
+                    progress = max(progress, elapsed / job.max_seconds)
                 for group in opt.param_groups:
                     group["lr"] = p.lr * 0.5 * (1.0 + math.cos(math.pi * progress))
             idx = perm[s : s + batch]

@@ -7,6 +7,7 @@ import ast
 import json
 import re
 import resource
+import shutil
 import signal
 import subprocess
 import time
@@ -67,19 +68,14 @@ def record(client, tmp_path, name: str, seconds: float, sim_args=(), recorder_ar
         log=tmp_path / "sim.log",
     )
     node = f"recorder_{name}"
-    proc = start(
-        "recorder_node",
-        "-r",
-        f"__node:={node}",
-        "-p",
-        f"output_dir:={tmp_path}",
-        "-p",
-        f"bag_name:={name}",
-        *recorder_args,
-        log=tmp_path / f"{name}.log",
-    )
+
+    def launch():
+        shutil.rmtree(tmp_path / name, ignore_errors=True)  # what a restart's predecessor began
+        args = ["-r", f"__node:={node}", "-p", f"output_dir:={tmp_path}", "-p", f"bag_name:={name}"]
+        return start("recorder_node", *args, *recorder_args, log=tmp_path / f"{name}.log")
+
+    proc, _ = client.service_of(launch(), Trigger, f"/{node}/stop", launch)  # up
     try:
-        client.service(Trigger, f"/{node}/stop")  # up
         diagnostics = []
         sub = client.node.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
 
@@ -196,16 +192,13 @@ def test_many_beam_breaks_warn(client, tmp_path):
 
 def test_best_effort_tracker_driver_is_recorded(client, tmp_path):
     """A driver publishing best-effort: a reliable-only subscription never matched it."""
-    proc = start(
-        "recorder_node",
-        "-r",
-        "__node:=recorder_be",
-        "-p",
-        f"output_dir:={tmp_path}",
-        "-p",
-        "bag_name:=be",
-        log=tmp_path / "be.log",
-    )
+
+    def launch():
+        shutil.rmtree(tmp_path / "be", ignore_errors=True)  # what a restart's predecessor began
+        args = ["-r", "__node:=recorder_be", "-p", f"output_dir:={tmp_path}", "-p", "bag_name:=be"]
+        return start("recorder_node", *args, log=tmp_path / "be.log")
+
+    proc, _ = client.service_of(launch(), Trigger, "/recorder_be/stop", launch)
     best_effort = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
     pose_pub = client.node.create_publisher(PoseStamped, "/tracker/pose", best_effort)
     joint_pub = client.node.create_publisher(JointState, "/joint_states", 10)
@@ -222,7 +215,6 @@ def test_best_effort_tracker_driver_is_recorded(client, tmp_path):
 
     timer = client.node.create_timer(0.01, publish)
     try:
-        client.service(Trigger, "/recorder_be/stop")
         diagnostics = []
         sub = client.node.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
 
