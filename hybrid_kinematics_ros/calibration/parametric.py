@@ -109,6 +109,24 @@ def parameter_list(chain: Chain, harmonics: int = 0) -> list[Parameter]:
     return out
 
 
+def _draw(station: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    """At most ``count`` pair indices, shared out evenly among the stations (a station with fewer pairs
+    gives all it has, the others share the rest), each station's drawn at random: one large series must
+    not decide the robot's parameters alone."""
+    order = rng.permutation(len(station))
+    groups = [order[station[order] == s] for s in np.unique(station)]
+    share = np.zeros(len(groups), dtype=int)
+    left = min(count, len(station))
+    while left > 0:
+        open_ = [k for k, g in enumerate(groups) if share[k] < len(g)]
+        each = max(1, left // len(open_))
+        for k in open_:
+            take = min(each, len(groups[k]) - share[k], left)
+            share[k] += take
+            left -= take
+    return np.concatenate([g[:n] for g, n in zip(groups, share, strict=True)])
+
+
 def _station_parameters(placements: int, mounts: int) -> list[Parameter]:
     axes = ("x", "y", "z", "rx", "ry", "rz")
     out = [Parameter(f"placement {k} {c}", "placement", k, i) for k in range(placements) for i, c in enumerate(axes)]
@@ -335,8 +353,8 @@ def identify(
     Position-only: ``T`` holds the measured target points and ``target`` (m, ``(3,)`` or ``(N, 3)``) their
     offset in the tip frame, which makes the flange's rotation observable.
 
-    At most ``max_pairs`` pairs (drawn reproducibly) enter the fit: a few thousand pin down the
-    parameters far below the tracker noise, and the cost grows with the count.
+    At most ``max_pairs`` pairs (drawn reproducibly, evenly from each ``placement``) enter the fit: a few
+    thousand pin down the parameters far below the tracker noise, and the cost grows with the count.
 
     ``kinds``: the kinds of parameter to fit (default all of :data:`KINDS`; :data:`GEOMETRY_KINDS` is a
     geometry-only calibration); the others stay zero. ``harmonics``: how many harmonics of the cyclic
@@ -357,11 +375,11 @@ def identify(
         raise CalibrationError(f"unknown parameter kinds {unknown}; choose from {list(KINDS)}")
     if "harmonic" not in chosen:
         harmonics = 0
-    pick = np.random.default_rng(seed).permutation(len(q))[:max_pairs]
-    q_fit = q[pick]
     every_target = None if target is None else np.asarray(target, dtype=float)  # (3,), or (N, 3): one per pair
     placement = np.full(len(q), -1) if placement is None else np.asarray(placement, dtype=int)
     mount = np.full(len(q), -1) if mount is None else np.asarray(mount, dtype=int)
+    pick = _draw(placement, max_pairs, np.random.default_rng(seed))
+    q_fit = q[pick]
     counts = (int(placement.max()) + 1, int(mount.max()) + 1)
     geometric_params = parameter_list(chain, 0)
     params = geometric_params + _station_parameters(*counts) + parameter_list(chain, harmonics)[len(geometric_params) :]

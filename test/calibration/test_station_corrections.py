@@ -13,6 +13,7 @@ import pytest
 from hybrid_kinematics_ros.calibration import fit as calibration_fit
 from hybrid_kinematics_ros.calibration.evaluate import target_errors
 from hybrid_kinematics_ros.calibration.fit import identify_stations, reference_all
+from hybrid_kinematics_ros.calibration.parametric import _draw
 from hybrid_kinematics_ros.calibration.referencing import station_labels
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import se3
@@ -95,3 +96,12 @@ def test_labels_share_a_mount_where_the_target_stayed(ur10, stations):
         "tracker_b": (1, 0),
         "tracker_d": (2, 1),
     }
+
+
+def test_the_parametric_fit_draws_each_station_evenly():
+    station = np.repeat([-1, 0, 1], [9000, 1200, 300])  # a large series, a middle one, a small one
+    pick = _draw(station, 3000, np.random.default_rng(0))
+    assert len(pick) == len(set(pick)) == 3000
+    assert np.bincount(station[pick] + 1).tolist() == [1500, 1200, 300]  # the smaller ones give all they have
+    one = _draw(np.full(500, -1), 200, np.random.default_rng(1))
+    np.testing.assert_array_equal(one, np.random.default_rng(1).permutation(500)[:200])  # one station: any 200
