@@ -50,11 +50,19 @@ def stations(ur10):
     return cells, train
 
 
-def _held_out_errors(ur10, cells, refs, result) -> dict[str, float]:
+def _points(pairs: Pairs) -> Pairs:
+    """What a plain reflector reports of the same measurements: positions only."""
+    T = pairs.T.copy()
+    T[:, :3, :3] = np.eye(3)
+    return replace(pairs, T=T, position_only=True)
+
+
+def _held_out_errors(ur10, cells, refs, result, points: bool = False) -> dict[str, float]:
     """Mean position error (mm) of the stage on fresh poses of each station, against noise-free measurements."""
     out = {}
     for k, (frame, (_, shoulder)) in enumerate(STATIONS.items()):
         exact = _pairs(cells[frame], shoulder, 500, seed=100 + k, noise=False)
+        exact = _points(exact) if points else exact
         base = to_base_frame([exact], ur10.chain, refs)
         out[frame] = float(np.mean(target_errors(base, result.model.fk(base.q))[0]))
     return out
@@ -83,6 +91,20 @@ def test_station_corrections_make_the_stations_agree(ur10, stations, monkeypatch
     assert min(uncorrected.values()) > 3 * max(corrected.values()), (corrected, uncorrected)
     # measured: 0.009 mm and 0.0002° from the truth (1.16 mm uncorrected)
     assert pos[0] < 0.05 and rot[0] < 0.002 and pos0[0] > 5 * pos[0], (pos, rot, pos0)  # mm, deg
+
+
+def test_plain_reflectors_at_two_stations_are_corrected_too(ur10, stations, monkeypatch):
+    cells, train = stations
+    points = [_points(p) for p in train]  # each frame its own target: a mount correction for the second
+    payload = (ur10.payload_mass, ur10.payload_com)
+    refs, result = identify_stations(ur10.chain, points, reference_all(ur10.chain, points), payload)
+    assert result.placements.shape == (1, 4, 4) and result.mounts.shape == (1, 4, 4)
+    corrected = _held_out_errors(ur10, cells, refs, result, points=True)
+    monkeypatch.setattr(calibration_fit, "station_labels", lambda refs, _: {f: (-1, -1) for f in refs})
+    refs0, result0 = identify_stations(ur10.chain, points, reference_all(ur10.chain, points), payload)
+    uncorrected = _held_out_errors(ur10, cells, refs0, result0, points=True)
+    assert max(corrected.values()) < 0.08, (corrected, uncorrected)  # mm; measured 0.044 (0.30 uncorrected)
+    assert min(uncorrected.values()) > 3 * max(corrected.values()), (corrected, uncorrected)
 
 
 def test_labels_share_a_mount_where_the_target_stayed(ur10, stations):
