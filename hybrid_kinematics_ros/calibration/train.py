@@ -38,7 +38,7 @@ class Preset:
     batch: int
     sincos: bool  # sin/cos joint features beside the normalised joints
     turn: bool  # learn the residual in the frame that turns with joint 1
-    cosine: bool  # cosine learning-rate decay to zero at max_epochs (or at the time budget, if the steps lag)
+    cosine: bool  # cosine learning-rate decay to zero at max_epochs (or by the time budget, if they will not fit)
     max_epochs: int  # with a generous time budget, a schedule that machine load does not change
     patience: int  # epochs without validation improvement before stopping; 0: never stop early
     full_range: bool  # normalise over the joint limits (else over the range seen in the data)
@@ -137,6 +137,7 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
     stale = 0
     total_steps = p.max_epochs * (n // batch)
     done_steps = 0
+    time_limited: bool | None = None
     unit, factor = UNIT[job.kind]
     for epoch in range(1, p.max_epochs + 1):
         perm = torch.randperm(n, generator=gen)
@@ -148,10 +149,13 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
                 out_of_time = True
                 break
             if p.cosine:
-                # By steps, so that a run is the same on a loaded machine; by time only once half the
-                # budget is gone and the steps lag behind it (early on, start-up would make it random).
+                # By steps, so that a run is the same on a loaded machine, unless the steps will not fit
+                # the time budget: then by time as well. Decided once, when 5 % of the budget has gone
+                # (the first steps' pace, start-up included, says nothing).
+                if time_limited is None and elapsed >= 0.05 * job.max_seconds:
+                    time_limited = elapsed / max(done_steps, 1) * total_steps > job.max_seconds
                 progress = done_steps / total_steps
-                if elapsed > 0.5 * job.max_seconds:
+                if time_limited:
                     progress = max(progress, elapsed / job.max_seconds)
                 for group in opt.param_groups:
                     group["lr"] = p.lr * 0.5 * (1.0 + math.cos(math.pi * progress))
