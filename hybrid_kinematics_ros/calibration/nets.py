@@ -10,6 +10,10 @@ Condition channels (temperature, say) are extra input columns after the joints: 
 them, without ``sin``/``cos`` features. The input is then ``(B, n + k)``; :class:`HybridModel` appends the
 current values.
 
+An ensemble (``members`` > 1) averages the standardised outputs of several bodies of the same
+architecture, trained from different seeds: on a few thousand noisy real pairs one net's error on unseen
+poses depends on its seed, and the average of a few depends on it much less.
+
 Architectures are named: the paper's ``D1``, ``D4``, ``D4w``, ``D4W`` (ReLU MLPs) and ``Rw``, ``Rd``
 (ResNets of dense and identity blocks after Chen et al.), and ``mlp:WxD[:act]`` for plain MLPs.
 """
@@ -93,6 +97,18 @@ def build_body(arch: str, n_in: int, out: int = 3) -> nn.Module:
     raise CalibrationError(f"unknown architecture '{arch}'; choose one of {', '.join(ARCHITECTURES)}")
 
 
+class Ensemble(nn.Module):
+    """The mean of several bodies' outputs."""
+
+    def __init__(self, members: list[nn.Module]) -> None:
+        super().__init__()
+        self.members = nn.ModuleList(members)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out = [member(x) for member in self.members]
+        return torch.stack(out).mean(dim=0)
+
+
 class ResidualNet(nn.Module):
     """Joints ``(B, n)`` rad (any float dtype), then any condition columns, to a residual ``(B, 3)`` float64
     in m or rad. ``lower``/``upper`` span every input column; ``n_joints`` says how many are joints."""
@@ -107,6 +123,7 @@ class ResidualNet(nn.Module):
         sincos: bool = True,
         joint1_axis: np.ndarray | None = None,
         n_joints: int | None = None,
+        members: int = 1,
     ) -> None:
         super().__init__()
         n_in = len(lower)
@@ -121,7 +138,10 @@ class ResidualNet(nn.Module):
         self.register_buffer("axis", torch.tensor(axis, dtype=torch.float64))
         self.sincos = sincos
         self.turn = joint1_axis is not None
-        self.body = build_body(arch, n_in + 2 * n if sincos else n_in)
+        width = n_in + 2 * n if sincos else n_in
+        self.body = (
+            build_body(arch, width) if members == 1 else Ensemble([build_body(arch, width) for _ in range(members)])
+        )
 
     def features(self, q: torch.Tensor) -> torch.Tensor:
         # features in float64, then the float32 network: no quantisation of large joint values

@@ -42,6 +42,7 @@ class Preset:
     max_epochs: int  # with a generous time budget, a schedule that machine load does not change
     patience: int  # epochs without validation improvement before stopping; 0: never stop early
     full_range: bool  # normalise over the joint limits (else over the range seen in the data)
+    members: int = 1  # nets averaged per residual, each from its own seed, one after the other
 
 
 PRESETS = {
@@ -95,7 +96,15 @@ def build_net(job: NetJob) -> ResidualNet:
     mean = local.mean(axis=0)
     scale = float(np.sqrt(np.mean(np.sum((local - mean) ** 2, axis=1)) / 3.0)) or 1.0
     return ResidualNet(
-        p.arch, job.lower, job.upper, mean, np.full(3, scale), sincos=p.sincos, joint1_axis=axis, n_joints=job.n_joints
+        p.arch,
+        job.lower,
+        job.upper,
+        mean,
+        np.full(3, scale),
+        sincos=p.sincos,
+        joint1_axis=axis,
+        n_joints=job.n_joints,
+        members=p.members,
     )
 
 
@@ -113,7 +122,10 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
     The net must beat correcting nothing: if no epoch's validation error is below that of the stage
     before it (the targets' own size), the net is silenced (outputs zero), so the nets never make the
     model worse on validation. With little or unstructured data this happens (real UR10, 1k pairs).
+    An ensemble's members train one after the other (:func:`_train_members`).
     """
+    if job.preset.members > 1:
+        return _train_members(job, report)
     torch.manual_seed(job.seed)
     p = job.preset
     net = build_net(job)
@@ -199,6 +211,48 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
     return net, history
 
 
+MEMBER_SEED_STRIDE = 1000  # member i trains from seed + i * this: apart from the other net's seed (+1)
+
+
+def _train_members(job: NetJob, report: Callable[[dict], None] | None) -> tuple[ResidualNet, list[dict]]:
+    """Each member as a single net from its own seed, with an equal share of the steps and the time
+    budget; the ensemble is silenced like a single net if its average does not beat correcting nothing.
+    History entries carry ``member``; their epochs and seconds count on across members."""
+    k = job.preset.members
+    single = replace(job, preset=replace(job.preset, members=1), max_seconds=job.max_seconds / k)
+    history: list[dict] = []
+
+    def counted_on(entry: dict, epochs: int, seconds: float, member: int) -> dict:
+        return {
+            **entry,
+            "member": member,
+            "epoch": entry["epoch"] + epochs,
+            "seconds": round(entry["seconds"] + seconds, 2),
+        }
+
+    bodies = []
+    for i in range(k):
+        epochs, seconds = (history[-1]["epoch"], history[-1]["seconds"]) if history else (0, 0.0)
+        relay = None if report is None else (lambda e, a=epochs, b=seconds, m=i: report(counted_on(e, a, b, m)))
+        member, member_history = train_net(replace(single, seed=job.seed + i * MEMBER_SEED_STRIDE), relay)
+        history += [counted_on(e, epochs, seconds, i) for e in member_history]
+        bodies.append(member.body)
+    net = build_net(job)
+    for target, body in zip(net.body.members, bodies, strict=True):
+        target.load_state_dict(body.state_dict())
+    q_val, y_val = torch.tensor(job.q_val), torch.tensor(job.y_val)
+    unit, factor = UNIT[job.kind]
+    nothing = torch.linalg.vector_norm(y_val, dim=1).mean().item() if len(y_val) else math.inf
+    val = _validation_error(net, q_val, y_val)
+    last = {k: v for k, v in history[-1].items() if k != "silenced"}
+    history[-1] = {**last, f"val_{unit}": val * factor, f"best_val_{unit}": min(val, nothing) * factor}
+    if val >= nothing:
+        net.silence()
+        history[-1]["silenced"] = True
+    net.eval()
+    return net, history
+
+
 def _worker(job: NetJob, progress: mp.Queue) -> tuple[dict, list[dict]]:
     torch.set_num_threads(1)
     net, history = train_net(job, report=progress.put)
@@ -244,4 +298,7 @@ def train_pair(
 def preset(name: str, **overrides: object) -> Preset:
     if name not in PRESETS:
         raise CalibrationError(f"unknown preset '{name}'; choose one of {', '.join(PRESETS)}")
-    return replace(PRESETS[name], **{k: v for k, v in overrides.items() if v is not None})
+    chosen = replace(PRESETS[name], **{k: v for k, v in overrides.items() if v is not None})
+    if chosen.members < 1:
+        raise CalibrationError(f"members = {chosen.members}: an ensemble needs at least 1 net")
+    return chosen

@@ -36,6 +36,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="stop (and end the cosine schedule) after this many epochs: the same model on a loaded machine, "
         "given a --max-minutes that is not reached",
     )
+    p.add_argument(
+        "--members",
+        type=int,
+        help="nets averaged per residual, each from its own seed, one after the other in the same budget "
+        "(default 1; 4 on a few thousand real pairs, see the README)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
         "--raw-frame-id", help="raw recordings: frame of their pairs (the base link if the tracker frame is it)"
@@ -160,6 +166,7 @@ def _is_terminal(stream: TextIO) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
+    preset = train.preset(args.preset, max_epochs=args.max_epochs, members=args.members)  # before reading bags
     chain = chain_from_args(args)
     stations = load_stations(args.bag, chain, args.raw_frame_id)
     blocks = None if args.split_blocks == 0 else args.split_blocks
@@ -185,7 +192,7 @@ def run(args: argparse.Namespace) -> int:
             val_pairs,
             test_pairs,
             args.out,
-            train.preset(args.preset, max_epochs=args.max_epochs),
+            preset,
             args.max_minutes,
             seed=args.seed,
             arch={"position": args.arch_position, "orientation": args.arch_orientation},

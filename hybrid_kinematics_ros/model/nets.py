@@ -59,7 +59,7 @@ class NumpyResidual:
         "Tanh": (np.tanh, lambda x: 1.0 - np.tanh(x) ** 2),
     }
 
-    def __init__(self, module: torch.jit.ScriptModule, layers: list) -> None:
+    def __init__(self, module: torch.jit.ScriptModule, stacks: list[list]) -> None:
         self.center = module.center.numpy()
         self.half_span = module.half_span.numpy()
         self.mean = module.target_mean.numpy()
@@ -68,14 +68,23 @@ class NumpyResidual:
         self.sincos = bool(module.sincos)  # ScriptModules keep plain attributes
         self.n_joints = int(getattr(module, "n_joints", len(self.center)))
         self.turn = bool(module.turn)
-        self.layers = layers
+        self.stacks = stacks  # one list of layers per ensemble member (one for a single net)
         self.turner = AxisTurn(self.axis)
 
     @classmethod
     def from_module(cls, module: torch.nn.Module) -> NumpyResidual | None:
-        """From a loaded TorchScript net or an eager :class:`ResidualNet`; None if not a plain MLP."""
+        """From a loaded TorchScript net or an eager :class:`ResidualNet`; None if not a plain MLP or an
+        ensemble of them."""
+        body = module.body
+        kind = getattr(body, "original_name", None) or type(body).__name__
+        members = list(body.members.children()) if kind == "Ensemble" else [body]
+        stacks = [cls._layers(member) for member in members]
+        return None if any(stack is None for stack in stacks) else cls(module, stacks)
+
+    @classmethod
+    def _layers(cls, body: torch.nn.Module) -> list | None:
         layers: list = []
-        for child in module.body.children():
+        for child in body.children():
             kind = getattr(child, "original_name", None) or type(child).__name__
             if kind == "Linear":
                 # float32 as in the net: the weights' memory traffic dominates the cost at batch size 1
@@ -85,7 +94,7 @@ class NumpyResidual:
                 layers.append(("act", *cls._ACT[kind]))
             else:
                 return None
-        return cls(module, layers)
+        return layers
 
     def __call__(self, q: np.ndarray) -> np.ndarray:
         x = (q - self.center) / self.half_span
@@ -93,9 +102,13 @@ class NumpyResidual:
             joints = q[..., : self.n_joints]
             x = np.concatenate([x, np.sin(joints), np.cos(joints)], axis=-1)
         x = x.astype(np.float32)
-        for kind, a, b in self.layers:
-            x = x @ a + b if kind == "linear" else a(x)
-        r = x.astype(np.float64) * self.scale + self.mean
+        out = []
+        for layers in self.stacks:
+            y = x
+            for kind, a, b in layers:
+                y = y @ a + b if kind == "linear" else a(y)
+            out.append(y)
+        r = np.mean(out, axis=0, dtype=np.float64) * self.scale + self.mean
         return self.turner.apply(r, q[..., 0]) if self.turn else r
 
     def value_and_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -111,13 +124,18 @@ class NumpyResidual:
             jac = np.concatenate([jac, trig], axis=1)
         x = x.astype(np.float32)
         jac = jac.astype(np.float32)
-        for kind, a, b in self.layers:
-            if kind == "linear":
-                x, jac = x @ a + b, jac @ a
-            else:
-                x, jac = a(x), jac * b(x)
-        local = x.astype(np.float64) * self.scale + self.mean
-        dlocal = (jac.astype(np.float64) * self.scale).T  # (3, n)
+        outs, jacs = [], []
+        for layers in self.stacks:
+            y, dy = x, jac
+            for kind, a, b in layers:
+                if kind == "linear":
+                    y, dy = y @ a + b, dy @ a
+                else:
+                    y, dy = a(y), dy * b(y)
+            outs.append(y)
+            jacs.append(dy)
+        local = np.mean(outs, axis=0, dtype=np.float64) * self.scale + self.mean
+        dlocal = (np.mean(jacs, axis=0, dtype=np.float64) * self.scale).T  # (3, n)
         if not self.turn:
             return local, dlocal
         rot = self.turner.matrix(q[0])
