@@ -33,6 +33,7 @@ from hybrid_kinematics_ros.io.pairs import (
 from hybrid_kinematics_ros.io.raw_bag import RawRecording, read_raw
 from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
+from hybrid_kinematics_ros.model import approach
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.model.referencing import Referencing, to_base_frame
 
@@ -57,6 +58,8 @@ def load_stations(bags: Sequence[str | Path], chain: Chain, raw_frame_id: str | 
 
     ``raw_frame_id`` names the frame of raw recordings' pairs (e.g. the base link when the tracker frame
     is the robot base, as in the simulated cell).
+
+    Each bag's pairs carry the joints' approach directions (:meth:`Pairs.with_approach`), from their own order.
     """
     parts: dict[str, list[Pairs]] = {}
     for bag in bags:
@@ -65,7 +68,7 @@ def load_stations(bags: Sequence[str | Path], chain: Chain, raw_frame_id: str | 
             pairs = align_raw(bag, chain, frame_id=raw_frame_id)[0].pairs
         else:
             pairs = read_pairs(bag, chain.joint_names)
-        parts.setdefault(pairs.frame_id, []).append(pairs)
+        parts.setdefault(pairs.frame_id, []).append(pairs.with_approach())
     return [Pairs.concatenate(group) for group in parts.values()]
 
 
@@ -238,7 +241,9 @@ def fit(
     x_train, x_val = (_net_inputs(p, conditions) for p in (train_pairs, val_pairs))
     if conditions:  # condition columns follow the joints, normalised over the range seen in training
         c = x_train[:, chain.dof :]
-        norm_lower, norm_upper = np.r_[norm_lower, c.min(axis=0)], np.r_[norm_upper, c.max(axis=0)]
+        directions = np.array([approach.is_channel(name) for name in conditions])  # always over -1 … +1
+        low, high = np.where(directions, -1.0, c.min(axis=0)), np.where(directions, 1.0, c.max(axis=0))
+        norm_lower, norm_upper = np.r_[norm_lower, low], np.r_[norm_upper, high]
     y_train = train.residual_targets(base, train_pairs.q, train_pairs.T, target)
     y_val = train.residual_targets(base, val_pairs.q, val_pairs.T, _target_offsets(val_pairs))
     arch = arch or {}
@@ -279,7 +284,12 @@ def fit(
     )
     if conditions:
         manifest["conditions"] = {
-            name: {"default": float(np.mean(train_pairs.conditions[name])), "lower": float(lo), "upper": float(hi)}
+            name: {
+                # an approach direction is unknown (0) until the joint moves; other channels: the training mean
+                "default": 0.0 if approach.is_channel(name) else float(np.mean(train_pairs.conditions[name])),
+                "lower": float(lo),
+                "upper": float(hi),
+            }
             for name, lo, hi in zip(conditions, norm_lower[chain.dof :], norm_upper[chain.dof :], strict=True)
         }
     model = HybridModel(chain, nets, manifest)

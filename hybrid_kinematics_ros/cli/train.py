@@ -15,6 +15,7 @@ from tqdm import tqdm
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.fit import SPLIT_BLOCKS, fit, load_stations, split, split_summary
 from hybrid_kinematics_ros.cli.common import add_robot_args, chain_from_args, payload_from_args
+from hybrid_kinematics_ros.model import approach
 
 PLAIN_INTERVAL_S = 5.0  # off a terminal: one progress line this often
 
@@ -62,6 +63,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="NAME",
         help="a condition channel of the pairs (e.g. temperature) that the nets take as an input beside the joints; "
         "the node then needs its current value (parameter conditions.NAME); repeat for several",
+    )
+    p.add_argument(
+        "--approach",
+        action="store_true",
+        help="give the nets each joint's approach direction (the sign of its last move, from the order of the "
+        "pairs) beside the joints: backlash and friction depend on it; the node follows it from /joint_states",
     )
     p.add_argument(
         "--shared-target",
@@ -206,7 +213,7 @@ def run(args: argparse.Namespace) -> int:
             payload=payload_from_args(args),
             log=progress.write,
             shared_targets=[names.split(",") for names in args.shared_target or []],
-            conditions=args.condition or (),
+            conditions=[*(args.condition or ()), *(approach.channel_names(chain.joint_names) if args.approach else ())],
         )
     finally:
         progress.close()

@@ -26,6 +26,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.se3 import matrix_from_pose, pose_from_matrix
+from hybrid_kinematics_ros.model.approach import approach_directions, channel_names, is_channel
 
 JOINTS_TOPIC = "/calibration/joint_states"
 POSE_TOPIC = "/calibration/tracker_pose"
@@ -91,6 +92,14 @@ class Pairs:
     def targets(self) -> np.ndarray:
         """``(N, 4, 4)``: :attr:`target`, identity where none is set."""
         return np.tile(np.eye(4), (len(self), 1, 1)) if self.target is None else self.target
+
+    def with_approach(self) -> Pairs:
+        """The same samples with each joint's approach direction (:mod:`model.approach`) as condition
+        channels ``approach_<joint>``, from the order of the samples: call it on one recording, in stamp
+        order, before it is concatenated or split."""
+        directions = approach_directions(self.q)
+        channels = dict(zip(channel_names(self.joint_names), directions.T, strict=True))
+        return replace(self, conditions={**self.conditions, **channels})
 
     def with_poses(self, T: np.ndarray, frame_id: str) -> Pairs:
         """The same samples with the poses expressed in another frame."""
@@ -210,8 +219,10 @@ class PairsWriter:
 
 
 def write_pairs(path: str | Path, pairs: Pairs) -> None:
-    with PairsWriter(path, pairs.joint_names, pairs.frame_id, pairs.position_only, list(pairs.conditions)) as writer:
-        writer.write(pairs.q, pairs.T, pairs.stamps, pairs.conditions)
+    """Approach directions are not written: they are derived from the order of the samples when read."""
+    conditions = {k: v for k, v in pairs.conditions.items() if not is_channel(k)}
+    with PairsWriter(path, pairs.joint_names, pairs.frame_id, pairs.position_only, list(conditions)) as writer:
+        writer.write(pairs.q, pairs.T, pairs.stamps, conditions)
 
 
 def _ns(header) -> int:

@@ -28,6 +28,7 @@ from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
 from hybrid_kinematics_ros.kinematics.se3 import exp_so3, skew
 from hybrid_kinematics_ros.kinematics.unrolled import Rows, unrolled_fk
+from hybrid_kinematics_ros.model import approach
 from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.model.nets import NumpyResidual
 from hybrid_kinematics_ros.model.parametric import model_from_manifest
@@ -87,6 +88,11 @@ class HybridModel:
         conditions = self.manifest.get("conditions") or {}
         self.condition_names = tuple(conditions)  # condition channels the nets take after the joints
         self.condition_values = np.array([float(conditions[c]["default"]) for c in self.condition_names])
+        # where the joints' approach directions sit among them, in joint order (None: the nets take none)
+        names = approach.channel_names(chain.joint_names)
+        self.approach_index = (
+            np.array([self.condition_names.index(n) for n in names]) if names[0] in self.condition_names else None
+        )
 
     @property
     def range_policy(self) -> str:
@@ -239,6 +245,12 @@ class HybridModel:
         if not np.isfinite(value):
             raise ModelError(f"condition '{name}' = {value} is not a finite number")
         self.condition_values[self.condition_names.index(name)] = float(value)
+
+    def set_approach(self, directions: np.ndarray) -> None:
+        """The joints' current approach directions ``(n,)`` in {-1, 0, +1} (:mod:`model.approach`), used
+        from now on; ignored by a model whose nets do not take them."""
+        if self.approach_index is not None:
+            self.condition_values[self.approach_index] = directions
 
     def conditions_of(self, pairs_conditions: dict[str, np.ndarray], count: int) -> np.ndarray | None:
         """``(count, k)``: the model's condition channels from measured ones (evaluation); None if it has none."""

@@ -36,6 +36,7 @@ from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 from hybrid_kinematics_ros.kinematics.paths import resolve_path
+from hybrid_kinematics_ros.model.approach import ApproachTracker
 from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.nodes.convert import (
@@ -127,6 +128,7 @@ class KinematicsNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.compensator = self._compensator(self.model)
         self._latest: np.ndarray | None = None
+        self._approach: tuple[HybridModel, ApproachTracker] | None = None
         self._reply = threading.local()  # see _fk_pose
         self.stats = RequestStats()
 
@@ -243,6 +245,11 @@ class KinematicsNode(Node):
             )
             return
         self._latest = q
+        # a model with approach inputs follows the joints' directions of motion (a reload starts afresh)
+        if model.approach_index is not None:
+            if self._approach is None or self._approach[0] is not model:
+                self._approach = (model, ApproachTracker(len(q)))
+            model.set_approach(self._approach[1].update(q))
         if self.pose_pub is not None:
             if model.range_policy == "refuse" and model.nets and not model.in_calibrated_range(q)[0]:
                 self.get_logger().warn(
