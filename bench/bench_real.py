@@ -169,8 +169,8 @@ def main() -> None:
         "ours": (fast, ()),
         "ours + temperature": (fast, ("temperature",)),
         "ours + approach": (fast, directions),
-        "ours, 4 nets": (replace(fast, members=4), ()),
-        "ours + approach, 4 nets": (replace(fast, members=4), directions),
+        "ours (4 nets)": (replace(fast, members=4), ()),
+        "ours + approach (4 nets)": (replace(fast, members=4), directions),
         "paper": (train.PRESETS["paper"], ()),
     }
     recipes = {name: every[name] for name in args.recipes.split(",")}

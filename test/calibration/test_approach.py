@@ -4,17 +4,12 @@ direction it came from), trained with and without the directions, judged on a he
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
-from hybrid_kinematics_ros.calibration.fit import fit, load_stations, split
-from hybrid_kinematics_ros.io.pairs import Pairs, write_pairs
+from hybrid_kinematics_ros.calibration.fit import load_stations
+from hybrid_kinematics_ros.io.pairs import write_pairs
 from hybrid_kinematics_ros.model.approach import ApproachTracker, approach_directions, channel_names
-from hybrid_kinematics_ros.model.hybrid import HybridModel
-from hybrid_kinematics_ros.simulation.cell import VirtualCell
-from test.conftest import THERMAL_PRESET
-
-HALF_BACKLASH = np.array([4e-4, 3e-4, 3e-4, 0.0, 0.0, 0.0])  # rad: where each joint stops, either side
+from test.conftest import backlash_pairs
 
 
 def test_directions_by_hand():
@@ -29,31 +24,6 @@ def test_streaming_tracker_agrees_with_the_sequence():
     tracker = ApproachTracker(6)
     streamed = np.array([tracker.update(row).copy() for row in q])
     np.testing.assert_array_equal(streamed, approach_directions(q))
-
-
-def backlash_pairs(ur10, count: int, seed: int) -> Pairs:
-    """A random walk of the joints (as a measurement program visits poses), measured with backlash."""
-    rng = np.random.default_rng(seed)
-    lower, upper = 0.8 * ur10.chain.lower, 0.8 * ur10.chain.upper
-    q = np.empty((count, 6))
-    q[0] = rng.uniform(lower, upper)
-    for i in range(1, count):
-        q[i] = np.clip(q[i - 1] + rng.uniform(-0.3, 0.3, 6), lower, upper)
-    cell = VirtualCell.from_config(ur10, noise=False)
-    T = cell.measure(q + HALF_BACKLASH * approach_directions(q), rng)
-    return Pairs(q, T, 10**9 + 10**7 * np.arange(count), ur10.chain.joint_names, "base_link").with_approach()
-
-
-@pytest.fixture(scope="module")
-def backlash_models(ur10, tmp_path_factory):
-    tr, va, _ = split(backlash_pairs(ur10, 3000, seed=1), seed=0)
-    test = backlash_pairs(ur10, 500, seed=2)
-    out = {}
-    for name, conditions in (("plain", ()), ("approach", channel_names(ur10.chain.joint_names))):
-        path = tmp_path_factory.mktemp("approach") / name
-        fit(ur10.chain, tr, va, test, path, THERMAL_PRESET, 5.0, conditions=conditions, parametric=True)
-        out[name] = HybridModel.load(path)
-    return out, test
 
 
 def test_the_directions_learn_what_the_joints_cannot(backlash_models):

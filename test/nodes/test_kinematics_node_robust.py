@@ -245,3 +245,50 @@ def test_condition_channels_come_from_parameters_settable_at_run_time(ros, therm
     finally:
         client.close()
         node.destroy_node()
+
+
+def test_approach_directions_follow_the_joint_states(ros, backlash_models):
+    """A model trained with approach directions serves with the directions the joints last moved in."""
+    from sensor_msgs.msg import JointState
+
+    from hybrid_kinematics_ros.model.hybrid import HybridModel
+
+    path = backlash_models[0]["approach"].path
+    core = HybridModel.load(path)
+    topic = "/approach_test/joint_states"
+    node, client = in_process("approach", path, publish_corrected_pose=False, joint_states_topic=topic)
+    publisher = client.node.create_publisher(JointState, topic, 10)
+    q = np.array([0.3, -1.2, 1.3, -0.9, 1.1, 0.2])
+
+    def reach(joints: np.ndarray) -> None:  # publish until the node has taken it (discovery can be slow)
+        msg = JointState(name=list(core.joint_names), position=joints.tolist())
+        end = time.monotonic() + 60.0
+        while time.monotonic() < end:
+            publisher.publish(msg)
+            for _ in range(5):
+                client.executor.spin_once(timeout_sec=0.02)
+            if node._latest is not None and np.array_equal(node._latest, joints):
+                return
+        raise TimeoutError("the node never received the joint states")
+
+    def served() -> np.ndarray:
+        answer = client.call(fk, fk_request([q], core.joint_names))
+        assert answer.success, answer.message
+        return poses_of(answer)[0]
+
+    try:
+        fk = client.service(ComputeFK, "/approach/compute_fk")
+        reach(q - 0.01)
+        reach(q)  # every joint came up from below
+        core.set_approach(np.ones(6))
+        rising = served()
+        np.testing.assert_allclose(rising, core.fk(q)[0], atol=1e-9)
+        reach(q + 0.01)
+        reach(q)  # and now from above
+        core.set_approach(-np.ones(6))
+        falling = served()
+        np.testing.assert_allclose(falling, core.fk(q)[0], atol=1e-9)
+        assert np.linalg.norm(falling[:3, 3] - rising[:3, 3]) > 0.2e-3  # m: the shoulder's backlash
+    finally:
+        client.close()
+        node.destroy_node()
