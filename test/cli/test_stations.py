@@ -12,6 +12,7 @@ import pytest
 
 from hybrid_kinematics_ros.io.pairs import Pairs, write_pairs
 from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.model import approach
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from hybrid_kinematics_ros.simulation.tracker import Tracker
@@ -56,6 +57,7 @@ def stations_model(ur10, tmp_path_factory):
     result = run(
         *("train", "--bag", *bags, "--robot", "ur10", "--out", str(out), "--shared-target", "tracker_a,tracker_b"),
         *("--max-epochs", "40", "--max-minutes", "5", "--arch-position", "mlp:32x2", "--arch-orientation", "mlp:32x2"),
+        *("--approach", "--members", "2"),
     )
     assert result.returncode == 0, result.stderr
     assert "from 3 frames (tracker_a, tracker_b, tracker_d)" in result.stdout
@@ -67,6 +69,9 @@ def test_each_station_is_referenced_and_the_target_shared_where_it_stayed(statio
     model = HybridModel.load(out)
     refs = model.referencings
     assert list(refs) == list(STATIONS)
+    # --approach and --members reach the model: direction inputs, two nets per residual
+    assert model.condition_names == approach.channel_names(model.joint_names)
+    assert model.manifest["preset"]["members"] == 2 and len(list(model.nets["position"].body.members.children())) == 2
     np.testing.assert_array_equal(refs["tracker_a"].flange_to_target, refs["tracker_b"].flange_to_target)
     assert not np.allclose(refs["tracker_d"].flange_to_target, refs["tracker_a"].flange_to_target, atol=1e-3)
     # where the trackers stood relative to each other does not depend on the base convention
