@@ -202,9 +202,12 @@ def main() -> None:
                 cfg, [series["C"]], {"B (trained on C)": series["B"]}, ours, args.minutes, args.steps
             )
         elif part == "all":
+            frames: dict[str, list[Pairs]] = {}  # one set per tracker frame, as the CLI reads them: B and C share one
+            for n in SERIES:
+                frames.setdefault(held[n][0].frame_id, []).append(held[n][0])
             results, seconds = rows_for(
                 cfg,
-                [held[n][0] for n in SERIES],
+                [Pairs.concatenate(group) for group in frames.values()],
                 {f"{n} (all)": held[n][2] for n in SERIES},
                 ours,
                 args.minutes,

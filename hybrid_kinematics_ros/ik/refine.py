@@ -158,14 +158,15 @@ class HybridRefiner:
                 break
         return q, ep, er
 
-    def batch_chord(self, targets: np.ndarray, q: np.ndarray) -> np.ndarray:
+    def batch_chord(self, targets: np.ndarray, q: np.ndarray, conditions: np.ndarray | None = None) -> np.ndarray:
         """Newton's chord method on all poses at once through the batched hybrid FK; ``q`` ``(N, n)`` is
-        updated in place. Returns the errors ``(N, 2)`` (mm, deg) of the converged poses, inf elsewhere."""
+        updated in place; ``conditions`` ``(N, k)``: the nets' condition channels per pose (else the current
+        values). Returns the errors ``(N, 2)`` (mm, deg) of the converged poses, inf elsewhere."""
         tol_m, tol_rad = self.inner_tol
         errors = np.full((len(targets), 2), np.inf)
         active = np.arange(len(targets))
         for _ in range(BATCH_CHORD_STEPS):
-            T = self.model.fk(q[active])
+            T = self.model.fk(q[active], conditions=None if conditions is None else conditions[active])
             e = np.concatenate(
                 [targets[active, :3, 3] - T[:, :3, 3], se3.rotvec(targets[active, :3, :3] @ T[:, :3, :3].mT)], axis=1
             )

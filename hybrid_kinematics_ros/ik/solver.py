@@ -12,6 +12,11 @@ composes the parts, with ``solve``, ``solve_many`` and ``solve_trajectory``.
    configurations, each finished by unbounded LM on the hybrid model, until one reaches the target or
    the budget ends. A near miss at a near-singular configuration first restarts along the Jacobian's
    weak direction, where the hybrid near-solutions form a valley with local minima.
+4. A model whose nets take the joints' approach directions (:mod:`~hybrid_kinematics_ros.model.approach`)
+   is refined with the directions the robot arrives in when it moves from the seed (where it is) to the
+   solution, not with the last ones it moved in: the sign of each joint's move, the current direction for
+   a joint that does not move. A trajectory's poses arrive from the pose before. As the solution fixes the
+   directions and the directions move the solution, a refinement that changes a sign runs once more.
 
 Several solutions come from several seeds, deduplicated modulo 2π on revolute joints (keeping the
 representative nearest the seed) and ordered by distance to the seed. Every result says whether it
@@ -36,6 +41,7 @@ from hybrid_kinematics_ros.ik import seeds as seeding
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.lm import joint_limits, lm_solve
 from hybrid_kinematics_ros.ik.refine import HybridRefiner
+from hybrid_kinematics_ros.model import approach
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 # Budget shares. CLASSICAL_SHARE (650d758): a target the URDF model cannot reach exactly (near the edge of its
@@ -58,6 +64,7 @@ class IKOptions:
     max_iterations: int = 100  # classical stage, per seed
     timeout_s: float = 0.05  # per solution, restarts included
     require_calibrated_range: bool = False  # True: a solution outside the trained range fails
+    arrive_from_seed: bool = True  # approach-direction models: the directions of the move from the seed (4.)
 
 
 @dataclass
@@ -143,7 +150,9 @@ class IKSolver:
         analytic branches follow, from the restart table's configurations nearest the target, while the time
         budget lasts."""
         start = time.perf_counter()
+        given = seed is not None
         target, seed = self.check(target, seed)
+        origin = seed if given else None  # where the robot comes from, if the caller said (4.)
         o = self.options
         deadline = start + o.timeout_s
         stats = {"attempts": 0, "refinements": 0}
@@ -154,7 +163,7 @@ class IKSolver:
             return self.result(q, target, analytic, start, stats)
         q0, _, _, attempts = self.classical(target, seed, start + CLASSICAL_SHARE * o.timeout_s)
         stats["attempts"] += attempts
-        best = self._from_branch(target, q0, analytic, start, deadline, stats)
+        best = self._from_branch(target, q0, analytic, start, deadline, stats, origin)
         if best.success:
             return best
         # the other branches (module docstring, 3.)
@@ -166,7 +175,7 @@ class IKSolver:
             if time.perf_counter() > deadline:
                 break
             if valley:  # straight to the hybrid LM: these start next to a hybrid near-solution
-                result = self._other_branch(target, valley.pop(0), analytic, start, deadline, stats)
+                result = self._other_branch(target, valley.pop(0), analytic, start, deadline, stats, origin)
                 stats["valley"] = stats.get("valley", 0) + 1
             else:
                 s = starts[i] if i < len(starts) else self.seeds.random()
@@ -177,7 +186,7 @@ class IKSolver:
                 if ep > seeding.NEAR_M or er > seeding.NEAR_RAD or not seeding.is_new_branch(q0, tried):
                     continue
                 tried.append(q0)
-                result = self._other_branch(target, q0, analytic, start, deadline, stats)
+                result = self._other_branch(target, q0, analytic, start, deadline, stats, origin)
                 if not analytic:
                     valley = seeding.valley_seeds(self.model, result.q, result.position_error_mm, self.limits)
             if result.position_error_mm < best.position_error_mm:
@@ -188,18 +197,59 @@ class IKSolver:
         best.seconds = time.perf_counter() - start
         return best
 
+    def _arrival(self, origin: np.ndarray | None, q: np.ndarray) -> np.ndarray | None:
+        """The approach directions of a move from ``origin`` to ``q`` (4.); None: keep the current ones
+        (no origin, or a model whose nets do not take directions)."""
+        current = self.model.approach
+        if origin is None or current is None or not self.options.arrive_from_seed:
+            return None
+        return approach.arrival_directions(origin, q, current)
+
     def _other_branch(
-        self, target: np.ndarray, q0: np.ndarray, analytic: bool, start: float, deadline: float, stats: dict
+        self,
+        target: np.ndarray,
+        q0: np.ndarray,
+        analytic: bool,
+        start: float,
+        deadline: float,
+        stats: dict,
+        origin: np.ndarray | None = None,
     ) -> IKResult:
         """A cheaper :meth:`_from_branch` for the fallback branches: unbounded LM with the chord Jacobian
         (one hybrid FK per step), then with the hybrid one. At an exact singularity the error only halves
         per step; the floor and stall rules stop the runs that make no progress."""
         if analytic or not self.model.is_corrected:
             return self.result(q0, target, analytic, start, dict(stats))
-        q, *_ = self.refiner.unbounded(target, q0, deadline, chord_first=True)
-        return self.result(q, target, analytic, start, dict(stats))
+        with self.model.approaching(self._arrival(origin, q0)):
+            q, *_ = self.refiner.unbounded(target, q0, deadline, chord_first=True)
+            return self.result(q, target, analytic, start, dict(stats))
 
     def _from_branch(
+        self,
+        target: np.ndarray,
+        q0: np.ndarray,
+        analytic: bool,
+        start: float,
+        deadline: float,
+        stats: dict,
+        origin: np.ndarray | None = None,
+    ) -> IKResult:
+        """:meth:`_refine_branch` with the directions of the move from ``origin`` (4.): once more if the
+        refinement moved a joint to the other side of the origin."""
+        directions = self._arrival(origin, q0)
+        with self.model.approaching(directions):
+            result = self._refine_branch(target, q0, analytic, start, deadline, stats)
+        if directions is None:
+            return result
+        again = self._arrival(origin, result.q)
+        if not np.array_equal(again, directions):
+            directions = again
+            with self.model.approaching(directions):
+                result = self._refine_branch(target, result.q, analytic, start, deadline, stats)
+        result.stats["approach"] = directions.tolist()
+        return result
+
+    def _refine_branch(
         self, target: np.ndarray, q0: np.ndarray, analytic: bool, start: float, deadline: float, stats: dict
     ) -> IKResult:
         """The hybrid solution near the classical answer ``q0``: the box refinement, then, if that misses,
@@ -263,7 +313,9 @@ class IKSolver:
         the first half of the time left, refinement the rest; solutions not refined by then are dropped.
         """
         start = time.perf_counter()
+        given = seed is not None
         target, seed = self.check(target, seed)
+        origin = seed if given else None  # where the robot comes from, if the caller said (4.)
         found: list[np.ndarray] = []
         o = self.options
         tol_m, tol_rad = 1e-3 * o.position_tolerance_mm, np.radians(o.orientation_tolerance_deg)
@@ -288,8 +340,9 @@ class IKSolver:
             if time.perf_counter() > end:
                 break
             corrected = not analytic and self.model.is_corrected
-            q, stats = self.refiner.refine(target, q0, deadline=end) if corrected else (q0, {})
-            result = self.result(q, target, analytic, start, stats, stats.pop("errors", None))
+            with self.model.approaching(self._arrival(origin, q0)):
+                q, stats = self.refiner.refine(target, q0, deadline=end) if corrected else (q0, {})
+                result = self.result(q, target, analytic, start, stats, stats.pop("errors", None))
             if result.success:
                 results.append(result)
         return results
@@ -335,13 +388,20 @@ class IKSolver:
                 if ep < seeding.NEAR_M and er < seeding.NEAR_RAD and np.abs(q[i] - from_q).max() < PATH_JUMP_RAD:
                     break
             prev = q[i]
-        errors = self.refiner.batch_chord(targets, q)
+        # each pose arrives from the one before, the first from the seed (4.)
+        arrive = None
+        if n and self.model.approach is not None and self.options.arrive_from_seed:
+            origin = q[:1] if seed is None else np.asarray(seed, dtype=float)[None]
+            arrive = approach.approach_directions(np.vstack([origin, q]), start=self.model.approach)[1:]
+        conditions = None if arrive is None else self.model.conditions_with_approach(arrive)
+        errors = self.refiner.batch_chord(targets, q, conditions)
         results = []
         for i in range(n):
             if np.isfinite(errors[i, 0]):
                 result = self.result(q[i], targets[i], False, start, {"method": "batch chord"}, tuple(errors[i]))
-            else:
-                result = self.solve(targets[i], q[i - 1] if i else seed)
+            else:  # from the pose before, on the side its joints arrived from
+                with self.model.approaching(None if arrive is None or not i else arrive[i - 1]):
+                    result = self.solve(targets[i], q[i - 1] if i else seed)
             results.append(result)
         per_pose = (time.perf_counter() - start) / max(n, 1)
         for result in results:

@@ -45,6 +45,14 @@ def approach_directions(q: np.ndarray, still: float = STILL_RAD, start: np.ndarr
     return np.where(last >= 0, np.take_along_axis(sign, np.maximum(last, 0), axis=0), before)
 
 
+def arrival_directions(start: np.ndarray, end: np.ndarray, current: np.ndarray, still: float = STILL_RAD) -> np.ndarray:
+    """The directions the joints arrive at ``end`` in when they move there from ``start`` (each ``(n,)`` or
+    ``(N, n)``): the sign of the move, or ``current`` for a joint that moves less than ``still`` (it stays
+    on the side it is on). What IK answers with: the robot goes from the seed (where it is) to the solution."""
+    move = np.asarray(end, dtype=float) - np.asarray(start, dtype=float)
+    return np.where(np.abs(move) > still, np.sign(move), np.asarray(current, dtype=float))
+
+
 class ApproachTracker:
     """The same directions from a stream of joint positions, one at a time (a node's joint states)."""
 

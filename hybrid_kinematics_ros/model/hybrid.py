@@ -13,6 +13,8 @@ distance of a training configuration instead.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -251,6 +253,33 @@ class HybridModel:
         from now on; ignored by a model whose nets do not take them."""
         if self.approach_index is not None:
             self.condition_values[self.approach_index] = directions
+
+    @property
+    def approach(self) -> np.ndarray | None:
+        """The joints' current approach directions ``(n,)``, or None for a model whose nets do not take them."""
+        return None if self.approach_index is None else self.condition_values[self.approach_index].copy()
+
+    @contextmanager
+    def approaching(self, directions: np.ndarray | None) -> Iterator[None]:
+        """Within the block, the model computes with these approach directions (None: the current ones);
+        then the current ones return. IK uses it for the directions a solution is reached in."""
+        saved = self.condition_values.copy()
+        if directions is not None:
+            self.set_approach(directions)
+        try:
+            yield
+        finally:
+            self.condition_values = saved
+
+    def conditions_with_approach(self, directions: np.ndarray) -> np.ndarray | None:
+        """``(N, k)``: the current condition values, with the approach directions ``(N, n)`` per row; None
+        for a model without condition channels."""
+        if not self.condition_names:
+            return None
+        rows = np.tile(self.condition_values, (len(directions), 1))
+        if self.approach_index is not None:
+            rows[:, self.approach_index] = directions
+        return rows
 
     def conditions_of(self, pairs_conditions: dict[str, np.ndarray], count: int) -> np.ndarray | None:
         """``(count, k)``: the model's condition channels from measured ones (evaluation); None if it has none."""

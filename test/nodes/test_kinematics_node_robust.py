@@ -15,6 +15,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from std_srvs.srv import Trigger
 
 from hybrid_kinematics_interfaces.srv import CompensateTrajectory, ComputeFK, ComputeIK
+from hybrid_kinematics_ros.kinematics import se3
 from test.nodes.rosutil import Client
 from test.nodes.test_kinematics_node import fk_request, ik_request, poses_of
 
@@ -289,6 +290,17 @@ def test_approach_directions_follow_the_joint_states(ros, backlash_models):
         falling = served()
         np.testing.assert_allclose(falling, core.fk(q)[0], atol=1e-9)
         assert np.linalg.norm(falling[:3, 3] - rising[:3, 3]) > 0.2e-3  # m: the shoulder's backlash
+        # IK from where the joints are (no seed: the latest joint states) answers for the directions the robot
+        # will arrive in, every joint rising to a goal above, not for the falling ones it last moved in
+        with core.approaching(np.ones(6)):
+            target = core.fk(q + 0.05)[0]
+        answer = client.call(client.service(ComputeIK, "/approach/compute_ik"), ik_request(target))
+        assert answer.success, answer.message
+        solution = np.array(answer.solutions[0].position)
+        with core.approaching(np.ones(6)):
+            assert se3.pose_errors(core.fk_single(solution), target)[0] < 1e-3  # mm
+        assert se3.pose_errors(core.fk_single(solution), target)[0] > 0.1  # with the falling directions
+        np.testing.assert_array_equal(node.model.approach, -np.ones(6))  # and the node still follows the joints
     finally:
         client.close()
         node.destroy_node()
