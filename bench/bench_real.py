@@ -121,10 +121,14 @@ def rows_for(cfg, train_sets, test_sets, recipes, minutes, steps, seed=0):
             )
             seconds[recipe] = time.perf_counter() - start
         geometry = model_from_manifest(cfg.chain, manifest["parametric"], rigid=True)
+        # the URDF model with its own referencing of each station: the stage's referencings carry its base and
+        # tool corrections (a station seen over a small volume can move them by decimetres)
+        nominal = reference_all(cfg.chain, list(tr))
         for name, te in test_sets.items():
+            urdf = to_base_frame([te], cfg.chain, nominal)
+            out.setdefault(name, {})["URDF model"] = error_stats(*target_errors(urdf, model.fk(urdf.q, analytic=True)))
             base = to_base_frame([te], cfg.chain, model.referencings)
             models = {
-                "URDF model": model.fk(base.q, analytic=True),
                 "geometry only": geometry.fk(base.q),
                 "parametric stage": model.fk(base.q, nets=False),
                 f"hybrid, {recipe}": model.fk(base.q, conditions=model.conditions_of(base.conditions, len(base))),

@@ -64,8 +64,6 @@ class ApproachTracker:
     def update(self, q: np.ndarray) -> np.ndarray:
         q = np.asarray(q, dtype=float)
         if self.previous is not None:
-            step = q - self.previous
-            moved = np.abs(step) > self.still
-            self.directions = np.where(moved, np.sign(step), self.directions)
+            self.directions = arrival_directions(self.previous, q, self.directions, self.still)
         self.previous = q
         return self.directions
