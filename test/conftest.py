@@ -22,8 +22,9 @@ from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.fit import fit, split
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
-from hybrid_kinematics_ros.model.approach import approach_directions, channel_names
+from hybrid_kinematics_ros.model.approach import channel_names
 from hybrid_kinematics_ros.model.hybrid import HybridModel
+from hybrid_kinematics_ros.simulation.backlash import BacklashCell
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 
 os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
@@ -98,20 +99,9 @@ def thermal_models(ur10, tmp_path_factory):
 
 
 # A cell whose joints have backlash: models trained with and without the approach directions.
-HALF_BACKLASH = np.array([4e-4, 3e-4, 3e-4, 0.0, 0.0, 0.0])  # rad: where each joint stops, either side
-
-
 def backlash_pairs(ur10, count: int, seed: int) -> Pairs:
     """A random walk of the joints (as a measurement program visits poses), measured with backlash."""
-    rng = np.random.default_rng(seed)
-    lower, upper = 0.8 * ur10.chain.lower, 0.8 * ur10.chain.upper
-    q = np.empty((count, 6))
-    q[0] = rng.uniform(lower, upper)
-    for i in range(1, count):
-        q[i] = np.clip(q[i - 1] + rng.uniform(-0.3, 0.3, 6), lower, upper)
-    cell = VirtualCell.from_config(ur10, noise=False)
-    T = cell.measure(q + HALF_BACKLASH * approach_directions(q), rng)
-    return Pairs(q, T, 10**9 + 10**7 * np.arange(count), ur10.chain.joint_names, "base_link").with_approach()
+    return BacklashCell.from_config(ur10).walk(count, seed)
 
 
 @pytest.fixture(scope="session")

@@ -10,16 +10,15 @@ import numpy as np
 
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.model.approach import approach_directions, arrival_directions
-from hybrid_kinematics_ros.simulation.cell import VirtualCell
-from test.conftest import HALF_BACKLASH
+from hybrid_kinematics_ros.simulation.backlash import BacklashCell
 
 # a budget no loaded machine runs out of, and tolerances far below the tenths of a millimetre at stake
 OPTIONS = partial(IKOptions, position_tolerance_mm=1e-3, orientation_tolerance_deg=1e-3, timeout_s=5.0)
 
 
-def reached_mm(cell: VirtualCell, q: np.ndarray, directions: np.ndarray, targets: np.ndarray) -> np.ndarray:
+def reached_mm(cell: BacklashCell, q: np.ndarray, directions: np.ndarray, targets: np.ndarray) -> np.ndarray:
     """Position error (mm) of where the backlash cell really stops, commanded to ``q`` arriving in ``directions``."""
-    T = cell.measure(np.atleast_2d(q + HALF_BACKLASH * directions), np.random.default_rng(0))
+    T = cell.measure(q, directions, np.random.default_rng(0))
     return 1e3 * np.linalg.norm(T[:, :3, 3] - np.reshape(targets, (-1, 4, 4))[:, :3, 3], axis=1)
 
 
@@ -31,7 +30,7 @@ def test_arrival_directions_by_hand():
 def test_ik_answers_for_the_side_the_joints_arrive_from(ur10, backlash_models):
     loaded, _ = backlash_models
     model = loaded["approach"]
-    cell = VirtualCell.from_config(ur10, noise=False)
+    cell = BacklashCell.from_config(ur10)
     rng = np.random.default_rng(5)
     lower, upper = 0.6 * ur10.chain.lower, 0.6 * ur10.chain.upper
     errors = {True: [], False: []}
@@ -39,7 +38,7 @@ def test_ik_answers_for_the_side_the_joints_arrive_from(ur10, backlash_models):
         seed = rng.uniform(lower, upper)
         goal = np.clip(seed + rng.uniform(-0.3, 0.3, 6), lower, upper)
         arrive = np.sign(goal - seed)
-        target = cell.measure((goal + HALF_BACKLASH * arrive)[None], rng)[0]  # where the robot stops
+        target = cell.measure(goal, arrive, rng)[0]  # where the robot stops
         for on in (True, False):
             model.set_approach(-arrive)  # the joints last moved the other way
             result = IKSolver(model, OPTIONS(arrive_from_seed=on)).solve(target, seed)
@@ -57,14 +56,14 @@ def test_ik_answers_for_the_side_the_joints_arrive_from(ur10, backlash_models):
 def test_trajectory_poses_arrive_from_the_pose_before(ur10, backlash_models):
     loaded, _ = backlash_models
     model = loaded["approach"]
-    cell = VirtualCell.from_config(ur10, noise=False)
+    cell = BacklashCell.from_config(ur10)
     rng = np.random.default_rng(6)
     seed = rng.uniform(0.5 * ur10.chain.lower, 0.5 * ur10.chain.upper)
     # a path that turns back: every joint reverses halfway
     steps = np.r_[np.linspace(0.0, 0.3, 8)[1:], np.linspace(0.3, 0.1, 6)[1:]]
     path = seed + np.outer(steps, rng.choice([-1.0, 1.0], 6))
     arrive = approach_directions(np.vstack([seed, path]), start=np.zeros(6))[1:]
-    targets = cell.measure(path + HALF_BACKLASH * arrive, rng)
+    targets = cell.measure(path, arrive, rng)
     errors = {}
     for on in (True, False):
         model.set_approach(np.zeros(6))
