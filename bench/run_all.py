@@ -11,6 +11,7 @@ STEPS = [
     ["bench.bench_hybrid", "inference"],
     ["bench.bench_ik"],
     ["bench.bench_ik_arms"],
+    ["bench.bench_ik_approach"],
     ["bench.bench_nodes"],
     ["bench.bench_hybrid", "table1", "noise", "paper", "--minutes", "10"],
     ["bench.bench_hybrid", "curve", "--minutes", "8"],
