@@ -68,15 +68,19 @@ def single_moves(cell: BacklashCell, models: dict[str, HybridModel], count: int)
 
 
 def trajectories(cell: BacklashCell, models: dict[str, HybridModel], count: int) -> dict[str, tuple]:
-    """``count`` paths of 12 poses on which every joint turns back halfway, solved as trajectories from
-    the robot's pose: errors (mm) per pose and solve times (s) per pose of each way."""
+    """``count`` paths of 12 poses within the joint limits on which every joint turns back halfway, solved
+    as trajectories from the robot's pose: errors (mm) per pose and solve times (s) per pose of each way."""
     chain = cell.cell.config.chain
     rng = np.random.default_rng(6)
     steps = np.r_[np.linspace(0.0, 0.3, 8)[1:], np.linspace(0.3, 0.1, 6)[1:]]
     out: dict[str, tuple[list, list]] = {way: ([], []) for way in WAYS}
-    for _ in range(count):
+    done = 0
+    while done < count:
         seed = rng.uniform(0.5 * chain.lower, 0.5 * chain.upper)
         path = seed + np.outer(steps, rng.choice([-1.0, 1.0], chain.dof))
+        if np.any(path < chain.lower) or np.any(path > chain.upper):
+            continue  # beyond a joint limit (the shoulder's upper one is 0 rad): no IK can reach it
+        done += 1
         arrive = approach_directions(np.vstack([seed, path]), start=np.zeros(chain.dof))[1:]
         targets = cell.measure(path, arrive, rng)
         for way in WAYS:
