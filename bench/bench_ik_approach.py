@@ -38,12 +38,6 @@ LABELS = {"plain": "without directions", "approach": "with the approach directio
 WAYS = ("model without directions", "directions last moved (stale)", "directions of arrival (ours)")
 
 
-def reached_mm(cell: BacklashCell, q: np.ndarray, directions: np.ndarray, targets: np.ndarray) -> np.ndarray:
-    """Position error (mm) of where the cell really stops, commanded to ``q`` arriving in ``directions``."""
-    T = cell.measure(q, directions, np.random.default_rng(0))
-    return 1e3 * np.linalg.norm(T[:, :3, 3] - np.reshape(targets, (-1, 4, 4))[:, :3, 3], axis=1)
-
-
 def single_moves(cell: BacklashCell, models: dict[str, HybridModel], count: int) -> dict[str, tuple]:
     """``count`` moves from a random seed (where the robot stands) to a pose up to 0.3 rad per joint away:
     errors (mm) and solve times (s) of each way."""
@@ -62,7 +56,7 @@ def single_moves(cell: BacklashCell, models: dict[str, HybridModel], count: int)
                 model.set_approach(-arrive)  # the joints last moved the other way
             result = IKSolver(model, replace(OPTIONS, arrive_from_seed=way == WAYS[2])).solve(target, seed)
             directions = arrival_directions(seed, result.q, -arrive)
-            out[way][0].append(reached_mm(cell, result.q, directions, target)[0] if result.success else np.nan)
+            out[way][0].append(cell.miss_mm(result.q, directions, target)[0] if result.success else np.nan)
             out[way][1].append(result.seconds)
     return {way: (np.array(e), np.array(s)) for way, (e, s) in out.items()}
 
@@ -92,7 +86,7 @@ def trajectories(cell: BacklashCell, models: dict[str, HybridModel], count: int)
             seconds = (time.perf_counter() - start) / len(targets)
             q = np.array([r.q for r in results])
             directions = approach_directions(np.vstack([seed, q]), start=np.zeros(chain.dof))[1:]
-            errors = reached_mm(cell, q, directions, targets)
+            errors = cell.miss_mm(q, directions, targets)
             errors[[not r.success for r in results]] = np.nan
             out[way][0].extend(errors)
             out[way][1].extend([seconds] * len(targets))

@@ -35,6 +35,12 @@ class BacklashCell:
         q = np.atleast_2d(q)
         return self.cell.measure(q + self.half * np.broadcast_to(directions, q.shape), rng)
 
+    def miss_mm(self, q: np.ndarray, directions: np.ndarray, targets: np.ndarray) -> np.ndarray:
+        """``(B,)``: how far (mm) from ``targets (B, 4, 4)`` the robot really stops, commanded to ``q`` and
+        arriving in ``directions``."""
+        T = self.measure(q, directions, np.random.default_rng(0))
+        return 1e3 * np.linalg.norm(T[:, :3, 3] - np.reshape(targets, (-1, 4, 4))[:, :3, 3], axis=1)
+
     def walk(self, count: int, seed: int, step: float = 0.3, fraction: float = 0.8) -> Pairs:
         """``count`` pairs along a random walk of the joints (as a measurement program visits poses, each
         joint moving up to ``step`` rad per pose within ``fraction`` of its limits), measured with the play,

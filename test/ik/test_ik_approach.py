@@ -16,12 +16,6 @@ from hybrid_kinematics_ros.simulation.backlash import BacklashCell
 OPTIONS = partial(IKOptions, position_tolerance_mm=1e-3, orientation_tolerance_deg=1e-3, timeout_s=5.0)
 
 
-def reached_mm(cell: BacklashCell, q: np.ndarray, directions: np.ndarray, targets: np.ndarray) -> np.ndarray:
-    """Position error (mm) of where the backlash cell really stops, commanded to ``q`` arriving in ``directions``."""
-    T = cell.measure(q, directions, np.random.default_rng(0))
-    return 1e3 * np.linalg.norm(T[:, :3, 3] - np.reshape(targets, (-1, 4, 4))[:, :3, 3], axis=1)
-
-
 def test_arrival_directions_by_hand():
     seed, q, current = np.array([0.0, 0.0, 0.0]), np.array([0.2, -0.1, 5e-5]), np.array([-1.0, -1.0, 1.0])
     np.testing.assert_array_equal(arrival_directions(seed, q, current), [1, -1, 1])  # 5e-5 rad: no move
@@ -47,7 +41,7 @@ def test_ik_answers_for_the_side_the_joints_arrive_from(ur10, backlash_models):
             directions = arrival_directions(seed, result.q, -arrive)
             if on:
                 np.testing.assert_array_equal(result.stats["approach"], directions)
-            errors[on].append(reached_mm(cell, result.q, directions, target)[0])
+            errors[on].append(cell.miss_mm(result.q, directions, target)[0])
     with_arrival, stale = np.mean(errors[True]), np.mean(errors[False])
     # the shoulder's ±0.3-0.4 mrad about 1 m out: a few tenths of a millimetre on the stale side
     assert stale > 0.2 and with_arrival < stale / 2, (with_arrival, stale)
@@ -71,5 +65,5 @@ def test_trajectory_poses_arrive_from_the_pose_before(ur10, backlash_models):
         assert all(r.success for r in results), [r.message for r in results]
         q = np.array([r.q for r in results])
         directions = approach_directions(np.vstack([seed, q]), start=np.zeros(6))[1:]
-        errors[on] = reached_mm(cell, q, directions, targets).mean()
+        errors[on] = cell.miss_mm(q, directions, targets).mean()
     assert errors[False] > 0.1 and errors[True] < errors[False] / 2, errors
