@@ -79,19 +79,29 @@ def repeatability_mm(pairs: Pairs) -> tuple[float, int]:
     return 1e3 * float(np.mean(spread)), groups
 
 
-def noise_floor_mm(pairs: Pairs, chain, tolerance_rad: float = 1e-3) -> tuple[float, int]:
-    """What even a perfect model's mean error would be on one measurement, and the pair count: from pairs of
-    measurements of (nearly) the same joints, the mean of ``|Δ residual| / √2``, the residual taken against
-    the URDF model (its error barely changes over the pair's joint difference). The spread of repeated
-    poses about their mean (:func:`repeatability_mm`) is smaller by about √2 for pairs: it is not this floor.
+def noise_floor(pairs: Pairs, chain, tolerance_rad: float = 1e-3) -> tuple[float, float, int]:
+    """What even a perfect model's mean error would be on one measurement: position (mm), orientation (deg)
+    and the pair count, from pairs of measurements of (nearly) the same joints: the mean of
+    ``|Δ residual| / √2``, the residual taken against the URDF model (its error barely changes over the
+    pair's joint difference). The spread of repeated poses about their mean (:func:`repeatability_mm`) is
+    smaller by about √2 for pairs: it is not this floor.
     """
     close = cKDTree(pairs.q).query_pairs(tolerance_rad, p=np.inf, output_type="ndarray")
     if not len(close):
-        return float("nan"), 0
+        return float("nan"), float("nan"), 0
     base = to_base_frame([pairs], chain, reference_all(chain, [pairs]))
-    residual = measured_targets(base)[:, :3, 3] - se3.point_at(fk.fk(chain, base.q), base.targets[:, :3, 3])
+    model = fk.fk(chain, base.q) @ base.targets
+    measured = measured_targets(base)
+    residual = measured[:, :3, 3] - model[:, :3, 3]
     diff = residual[close[:, 0]] - residual[close[:, 1]]
-    return 1e3 * float(np.mean(np.linalg.norm(diff, axis=1))) / np.sqrt(2.0), len(close)
+    turn = np.swapaxes(model[:, :3, :3], 1, 2) @ measured[:, :3, :3]  # measured rotation in the model's frame
+    angle = se3.rotation_angle(np.swapaxes(turn[close[:, 0]], 1, 2) @ turn[close[:, 1]])
+    root2 = np.sqrt(2.0)
+    return (
+        1e3 * float(np.mean(np.linalg.norm(diff, axis=1))) / root2,
+        float(np.degrees(np.mean(angle))) / root2,
+        len(close),
+    )
 
 
 def rows_for(cfg, train_sets, test_sets, recipes, minutes, steps, seed=0):
@@ -188,11 +198,15 @@ def main() -> None:
     for name in ("B", "D"):
         spread, groups = repeatability_mm(series[name])
         floor.append(f"Repeatability, series {name}: {spread:.4f} mm from the mean over {groups} repeated poses.")
-    floors = {name: noise_floor_mm(series[name], cfg.chain) for name in SERIES}
+    floors = {name: noise_floor(series[name], cfg.chain) for name in SERIES}
     floor.append(
         "Noise floor (the mean error a perfect model would still show, from pairs of measurements of the "
         "same joints to 1 mrad: mean |Δ residual| / √2; the spread about the mean is smaller by about √2 "
-        "and is not this floor): " + ", ".join(f"{k} {v:.4f} mm ({n} pairs)" for k, (v, n) in floors.items() if n) + "."
+        "and is not this floor): "
+        + ", ".join(f"{k} {mm:.4f} mm / {deg:.4f} deg ({n} pairs)" for k, (mm, deg, n) in floors.items() if n)
+        + ". A's pairs are not repeats of one command: they are grid poses commanded with other Euler angles "
+        "(roll and yaw 10 deg apart at pitch 90 deg) that the controller reached with joints up to 1 mrad "
+        "apart; B's and D's are the same command measured again."
     )
     write_section("real_floor", "Real UR10 data: the floor (bench_real)", "\n\n".join(floor))
     parts = [p for p in args.parts if p != "floor"]
