@@ -94,14 +94,10 @@ def noise_floor(pairs: Pairs, chain, tolerance_rad: float = 1e-3) -> tuple[float
     measured = measured_targets(base)
     residual = measured[:, :3, 3] - model[:, :3, 3]
     diff = residual[close[:, 0]] - residual[close[:, 1]]
-    turn = np.swapaxes(model[:, :3, :3], 1, 2) @ measured[:, :3, :3]  # measured rotation in the model's frame
-    angle = se3.rotation_angle(np.swapaxes(turn[close[:, 0]], 1, 2) @ turn[close[:, 1]])
+    local = se3.inverse(model) @ measured  # the measured pose in the model's frame
+    _, angle_deg = se3.pose_errors(local[close[:, 0]], local[close[:, 1]])
     root2 = np.sqrt(2.0)
-    return (
-        1e3 * float(np.mean(np.linalg.norm(diff, axis=1))) / root2,
-        float(np.degrees(np.mean(angle))) / root2,
-        len(close),
-    )
+    return 1e3 * float(np.mean(np.linalg.norm(diff, axis=1))) / root2, float(np.mean(angle_deg)) / root2, len(close)
 
 
 def rows_for(cfg, train_sets, test_sets, recipes, minutes, steps, seed=0):
