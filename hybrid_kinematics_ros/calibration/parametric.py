@@ -478,7 +478,9 @@ def identify(
     active = _expand(active, wanted)
     reasons.update({p.name: "not fitted (kinds)" for p, w in zip(params, wanted, strict=True) if not w})
 
-    def solve(subset: np.ndarray, start: np.ndarray, fixed: np.ndarray = nothing, first_jac: np.ndarray | None = None) -> np.ndarray:
+    def solve(
+        subset: np.ndarray, start: np.ndarray, fixed: np.ndarray = nothing, first_jac: np.ndarray | None = None
+    ) -> np.ndarray:
         return robust_gauss_newton(
             lambda z: residual(z, subset, fixed),
             lambda z: jacobian(z, subset, fixed),
