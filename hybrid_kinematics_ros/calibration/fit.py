@@ -10,11 +10,12 @@ from typing import Any
 
 import numpy as np
 
+from hybrid_kinematics_ros.calibration import capacity as capacity_module
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.alignment import AlignOptions, AlignResult, align
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
-from hybrid_kinematics_ros.calibration.parametric import ParametricResult, identify
+from hybrid_kinematics_ros.calibration.parametric import ParametricResult, identify, linearise
 from hybrid_kinematics_ros.calibration.referencing import (
     anchor_stations,
     reference_stations,
@@ -113,28 +114,43 @@ def identify_stations(
     refs: dict[str, Referencing],
     payload: tuple[float, np.ndarray] = (0.0, np.zeros(3)),
     seed: int = 0,
+    capacity: Mapping[str, Any] | None = None,
+    choose: bool = True,
 ) -> tuple[dict[str, Referencing], ParametricResult]:
     """The parametric stage from the pairs of every station, each referenced (``refs``, from
     :func:`reference_all`): identified with a correction of each station's placement and target mount
     (the nominal model's referencing absorbs a different share of the robot's errors at each station),
     which then moves into the referencings; and the base anchored at the first joint
-    (:func:`anchor_stations`). Returns the referencings and the stage."""
+    (:func:`anchor_stations`). Returns the referencings and the stage.
+
+    ``choose``: the stage's capacity is chosen from these pairs (:func:`capacity.select_capacity`; the
+    result's ``capacity`` says how), except for the settings given in ``capacity`` (``elastic``,
+    ``harmonics``, ``harmonic_prior``, ``map_step``, ``map_smoothness``). Without ``choose``, settings not
+    given take :func:`parametric.identify`'s defaults."""
     base = to_base_frame(stations, chain, refs)
     labels = station_labels(refs, any(p.frame_id == chain.base_link for p in stations))
     placement, mount = (
         np.concatenate([np.full(len(p), labels.get(p.frame_id, (-1, -1))[k]) for p in stations]) for k in (0, 1)
     )
-    result = identify(
-        chain,
-        base.q,
-        base.T,
-        *payload,
-        position_only=base.position_only,
-        seed=seed,
-        target=_target_offsets(base),
-        placement=placement,
-        mount=mount,
-    )
+    common = {
+        "payload_mass": payload[0],
+        "payload_com": payload[1],
+        "position_only": base.position_only,
+        "seed": seed,
+        "target": _target_offsets(base),
+        "placement": placement,
+        "mount": mount,
+    }
+    given = {k: v for k, v in (capacity or {}).items() if v is not None}
+    chosen = None
+    if choose:
+        linear = linearise(chain, base.q, base.T, harmonics=max(capacity_module.HARMONICS), **common)
+        chosen = capacity_module.select_capacity(linear, len(base), given)
+        options = chosen.identify_options()
+    else:
+        options = capacity_module.options_from(given)
+    result = identify(chain, base.q, base.T, **common, **options)
+    result.capacity = None if chosen is None else chosen.manifest()
     if not refs:
         return refs, result
     anchored, result = anchor_stations(chain, list(refine_stations(refs, labels, result).values()), result)
@@ -202,6 +218,8 @@ def fit(
     log: Callable[[str], None] = lambda _: None,
     shared_targets: Sequence[Sequence[str]] = (),
     conditions: Sequence[str] = (),
+    capacity: Mapping[str, Any] | None = None,
+    choose_capacity: bool = True,
 ) -> tuple[HybridModel, dict[str, Any]]:
     """Reference, identify, train both nets within ``max_minutes`` (side by side), write the model directory.
 
@@ -209,7 +227,8 @@ def fit(
     tracker frame is referenced first (:func:`reference_all`); with ``parametric`` the elasto-geometric
     stage is identified next, from all stations together, and the nets learn what it leaves.
     Position-only pairs train the position net alone. ``conditions`` names condition channels of the
-    pairs (``temperature``, say) that the nets take as inputs beside the joints.
+    pairs (``temperature``, say) that the nets take as inputs beside the joints. ``capacity`` and
+    ``choose_capacity``: the stage's size, given or chosen from the training pairs (:func:`identify_stations`).
     """
     manifest: dict[str, Any] = {}
     raw = [[p] if isinstance(p, Pairs) else list(p) for p in (train_pairs, val_pairs, test_pairs)]
@@ -221,7 +240,10 @@ def fit(
     base = ElasticChain.rigid(chain)
     if parametric:
         start = time.perf_counter()
-        refs, result = identify_stations(chain, raw[0], refs, payload, seed)
+        refs, result = identify_stations(chain, raw[0], refs, payload, seed, capacity, choose_capacity)
+        if result.capacity is not None:
+            manifest["capacity"] = result.capacity
+            log("parametric stage capacity (cross-validated): " + capacity_module.summary(result.capacity))
         if refs:
             train_pairs, val_pairs, test_pairs = (to_base_frame(p, chain, refs) for p in raw)
         base = result.model

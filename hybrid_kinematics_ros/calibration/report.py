@@ -174,6 +174,48 @@ def _coverage_section(coverage: dict[str, Any] | None) -> list[str]:
     ]
 
 
+def _capacity_section(capacity: dict[str, Any] | None, nets: dict[str, Any]) -> list[str]:
+    """One table of every capacity choice: each candidate's held-out figures on the training pairs' blocks."""
+    if not capacity and not nets:
+        return []
+    rows = []
+    for d in (capacity or {}).get("decisions", []):
+        if d.get("given"):
+            rows.append([d["setting"], d["chosen"], "given", "", "", "", ""])
+            continue
+        for c in d["candidates"]:
+            rows.append(
+                [
+                    d["setting"],
+                    c["candidate"],
+                    "chosen" if c["candidate"] == d["chosen"] else ("best" if c["candidate"] == d["best"] else ""),
+                    c["val_position_mm"],
+                    c.get("val_orientation_deg", ""),
+                    c["worse_than_best_mm"],
+                    c["noise_mm"],
+                ]
+            )
+    for kind, net in nets.items():
+        state = "off: no better than the stage on validation" if net.get("silenced") else "on"
+        rows.append(
+            [f"{kind} net", net.get("arch", ""), state, net.get("best_val_mm", ""), net.get("best_val_deg", ""), "", ""]
+        )
+    head = [
+        "setting",
+        "candidate",
+        "decision",
+        "val. position mean (mm)",
+        "val. orientation mean (deg)",
+        "score above the best (mm)",
+        "noise (mm)",
+    ]
+    return [
+        "<h2>Capacity chosen from the data</h2>",
+        "<p>" + (capacity or {}).get("method", "") + ". The score weighs orientation at 1 m per rad.</p>",
+        _table(head, rows),
+    ]
+
+
 def _stats_rows(report: dict[str, Any], suffix: str = "") -> list[list[Any]]:
     rows = []
     for name in ("analytic", "parametric", "hybrid"):
@@ -306,6 +348,7 @@ def write_report(
         ]
     else:
         parts.append("<p>No parametric stage: the nets correct the URDF model directly.</p>")
+    parts += _capacity_section(m.get("capacity"), m.get("nets", {}))
     if curve:
         parts += [
             "<h2>Accuracy against the amount of data</h2>",

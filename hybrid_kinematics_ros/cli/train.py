@@ -12,7 +12,7 @@ from typing import TextIO
 
 from tqdm import tqdm
 
-from hybrid_kinematics_ros.calibration import train
+from hybrid_kinematics_ros.calibration import capacity, train
 from hybrid_kinematics_ros.calibration.fit import SPLIT_BLOCKS, fit, load_stations, split, split_summary
 from hybrid_kinematics_ros.cli.common import add_robot_args, chain_from_args, payload_from_args
 from hybrid_kinematics_ros.model import approach
@@ -53,6 +53,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         default=True,
         help="identify the elasto-geometric stage before the nets (default on; --no-parametric: nets on the URDF)",
     )
+    stage = p.add_argument_group(
+        "the parametric stage's capacity",
+        "each is chosen by cross-validation over contiguous blocks of the training pairs unless given here; "
+        "model.json and the report record every choice with its validation figures",
+    )
+    stage.add_argument("--elastic", choices=list(capacity.ELASTIC), help="elastic terms beside the geometry")
+    stage.add_argument("--harmonics", type=int, help="harmonics of each joint's cyclic errors (0: none)")
+    stage.add_argument("--harmonic-prior", type=float, help="ridge prior of each cyclic coefficient, in pairs")
+    stage.add_argument("--map-step", type=float, help="rad between the joint error map's knots (0: no map)")
+    stage.add_argument("--map-smoothness", type=float, help="weight of the joint error map's curvature")
     p.add_argument("--payload-mass", type=float, help="kg, with --urdf (a --robot config has its own)")
     p.add_argument("--payload-com", type=float, nargs=3, metavar=("X", "Y", "Z"), help="m, in the tip frame")
     p.add_argument("--val-bag", nargs="+", help="separate validation bag(s); default: 10%% of --bag")
@@ -210,6 +220,13 @@ def run(args: argparse.Namespace) -> int:
             },
             progress=progress,
             parametric=args.parametric,
+            capacity={
+                "elastic": args.elastic,
+                "harmonics": args.harmonics,
+                "harmonic_prior": args.harmonic_prior,
+                "map_step": args.map_step,
+                "map_smoothness": args.map_smoothness,
+            },
             payload=payload_from_args(args),
             log=progress.write,
             shared_targets=[names.split(",") for names in args.shared_target or []],

@@ -1,0 +1,316 @@
+"""The parametric stage's capacity, chosen from the data being calibrated.
+
+How many parameters a stage can carry depends on the robot and on how many poses pin them down: 40
+harmonics per joint and a joint error map on 0.01 rad knots suit 9,500 real UR10 poses and over-fit 600.
+So every size is chosen by cross-validation over **contiguous blocks** of the training pairs (neighbours
+along a recording never sit on both sides), and the simpler candidate wins unless a richer one is better
+by more than the validation noise (the standard error of the per-block differences: the one-standard-
+error rule). The choices are made one after the other, each on top of the ones before:
+
+1. the elastic terms: geometry only, plus joint compliance, plus link bending;
+2. the number of harmonics of the cyclic joint errors (0: none), then their prior;
+3. the joint error map's knot spacing (0: none), then its smoothness.
+
+Each candidate is solved on the problem linearised at the nominal model (:class:`Linearisation`; its
+error is about a micrometre for milliradian parameters), so a candidate on a fold costs one small solve
+instead of an identification: the whole selection takes seconds. The test pairs never enter it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
+from hybrid_kinematics_ros.calibration.parametric import (
+    ORIENTATION_LENGTH,
+    ROBUST_SCALE,
+    STATION_KINDS,
+    Linearisation,
+    map_design,
+    solve_joint_map,
+)
+from hybrid_kinematics_ros.kinematics.elastic import JointMap
+
+BLOCKS = 20  # contiguous blocks of the training pairs; each is validated once
+FOLDS = 5  # block b is held out in fold b % FOLDS
+ELASTIC = {
+    "geometry": ("zero", "translation", "rotation"),
+    "compliance": ("zero", "translation", "rotation", "compliance"),
+    "bending": ("zero", "translation", "rotation", "compliance", "bending"),
+}
+HARMONICS = (0, 2, 5, 10, 20, 40)  # candidates, simplest first
+HARMONIC_PRIORS = (300.0, 30.0, 3.0)  # in pairs; a stronger prior is the simpler model
+MAP_STEPS = (0.0, 0.08, 0.04, 0.02, 0.01)  # rad; 0: no map, then ever finer
+MAP_SMOOTHNESS = (0.3, 0.03, 0.003)  # a smoother map is the simpler model
+START = {"harmonic_prior": 30.0, "map_smoothness": 0.03}  # the value a setting has before its turn comes
+
+
+@dataclass
+class Capacity:
+    """The chosen sizes, as :func:`~calibration.parametric.identify` takes them, and how each was decided."""
+
+    elastic: str
+    harmonics: int
+    harmonic_prior: float
+    map_step: float
+    map_smoothness: float
+    decisions: list[dict[str, Any]] = field(default_factory=list)  # one per setting, with every candidate's figures
+
+    @property
+    def kinds(self) -> tuple[str, ...]:
+        cyclic = ("harmonic",) if self.harmonics > 0 or self.map_step > 0 else ()
+        return ELASTIC[self.elastic] + cyclic
+
+    def identify_options(self) -> dict[str, Any]:
+        return {
+            "kinds": self.kinds,
+            "harmonics": self.harmonics,
+            "harmonic_prior": self.harmonic_prior,
+            "map_step": self.map_step,
+            "map_smoothness": self.map_smoothness,
+        }
+
+    def manifest(self) -> dict[str, Any]:
+        return {
+            "method": f"cross-validation over {BLOCKS} contiguous blocks of the training pairs ({FOLDS} folds); "
+            "the simplest candidate within one standard error of the best",
+            "chosen": {
+                "elastic": self.elastic,
+                "harmonics": self.harmonics,
+                "harmonic_prior": self.harmonic_prior,
+                "map_step": self.map_step,
+                "map_smoothness": self.map_smoothness,
+            },
+            "decisions": self.decisions,
+        }
+
+
+def summary(section: dict[str, Any]) -> str:
+    """One line of a model's ``capacity`` section: each setting, chosen or given."""
+    return ", ".join(
+        f"{d['setting']} {d['chosen']}" + (" (given)" if d.get("given") else "") for d in section["decisions"]
+    )
+
+
+def options_from(given: dict[str, Any]) -> dict[str, Any]:
+    """:func:`~calibration.parametric.identify`'s options for the settings ``given`` (the others left to
+    its defaults), without a selection."""
+    out = {k: given[k] for k in ("harmonics", "harmonic_prior", "map_step", "map_smoothness") if k in given}
+    if "elastic" in given:
+        if given["elastic"] not in ELASTIC:
+            raise CalibrationError(f"elastic terms '{given['elastic']}': choose one of {', '.join(ELASTIC)}")
+        out["kinds"] = ELASTIC[given["elastic"]] + ("harmonic",)
+    return out
+
+
+def _blocks(lin: Linearisation, total: int) -> np.ndarray:
+    """The block of each drawn pair, from its place among the ``total`` training pairs."""
+    return np.minimum(lin.pick * BLOCKS // max(total, 1), BLOCKS - 1)
+
+
+@dataclass
+class _Folds:
+    """Per fold: the robust-weighted normal equations of its training pairs, and its held-out pairs."""
+
+    lin: Linearisation
+    block: np.ndarray
+    normal: list[np.ndarray]
+    gradient: list[np.ndarray]
+    columns: np.ndarray  # identifiable columns (indices into lin.params) the normal equations hold
+
+    @classmethod
+    def build(cls, lin: Linearisation, total: int) -> _Folds:
+        block = _blocks(lin, total)
+        columns = np.flatnonzero(lin.identifiable)
+        jac = lin.jacobian[:, :, columns]
+        res = lin.residual
+        # Robust weights (soft L1, as the identification's loss) from one fit of every column on every pair:
+        # a broken-beam outlier then weighs alike in every candidate.
+        flat = jac.reshape(-1, len(columns))
+        z = _solve(flat.T @ flat, flat.T @ res.ravel())
+        fitted = res + jac @ z
+        weight = 1.0 / np.sqrt(1.0 + (fitted / ROBUST_SCALE) ** 2)
+        normal, gradient = [], []
+        for f in range(FOLDS):
+            train = (block % FOLDS) != f
+            a = jac[train].reshape(-1, len(columns))
+            w = weight[train].reshape(-1)
+            normal.append(a.T @ (w[:, None] * a))
+            gradient.append(a.T @ (w * res[train].reshape(-1)))
+        return cls(lin, block, normal, gradient, columns)
+
+    def held_out(self, f: int) -> np.ndarray:
+        return (self.block % FOLDS) == f
+
+    def solve(self, f: int, use: np.ndarray, prior: np.ndarray) -> np.ndarray:
+        """Scaled parameter values (over ``columns``, zero where not ``use``) fitted on fold ``f``'s training
+        pairs; ``prior`` (over ``columns``): the ridge on each, in normal-equation units."""
+        idx = np.flatnonzero(use)
+        z = np.zeros(len(self.columns))
+        a = self.normal[f][np.ix_(idx, idx)] + np.diag(prior[idx])
+        z[idx] = _solve(a, self.gradient[f][idx])
+        return z
+
+    def residual(self, f: int, z: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """``(M, width)``: the residuals of fold ``f``'s held-out pairs (or ``rows``) after ``z``."""
+        rows = self.held_out(f) if rows is None else rows
+        return self.lin.residual[rows] + self.lin.jacobian[rows][:, :, self.columns] @ z
+
+
+def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a⁻¹ (−b)``: the Gauss-Newton step from zero, with a whisper of ridge for columns that are
+    independent on all pairs but not on a fold's."""
+    if len(b) == 0:
+        return np.zeros(0)
+    jitter = 1e-10 * max(float(np.mean(np.diag(a))), 1e-300)
+    return -cho_solve(cho_factor(a + jitter * np.eye(len(b))), b)
+
+
+def _scores(res: np.ndarray, block: np.ndarray) -> dict[int, float]:
+    """Mean held-out error per block, m (orientation weighed in at 1 m per rad, as in the fit)."""
+    err = np.linalg.norm(res, axis=1)
+    return {int(b): float(np.mean(err[block == b])) for b in np.unique(block)}
+
+
+def _figures(res: np.ndarray) -> dict[str, float]:
+    out = {"val_position_mm": float(1e3 * np.mean(np.linalg.norm(res[:, :3], axis=1)))}
+    if res.shape[1] == 6:
+        out["val_orientation_deg"] = float(np.degrees(np.mean(np.linalg.norm(res[:, 3:], axis=1))) / ORIENTATION_LENGTH)
+    return out
+
+
+def _choose(
+    setting: str, labels: Sequence[Any], residuals: Sequence[np.ndarray], block: np.ndarray
+) -> tuple[int, dict]:
+    """The simplest candidate (``labels`` come simplest first) whose per-block held-out error is within one
+    standard error of the best's; the decision with every candidate's figures."""
+    per_block = np.array([[s for _, s in sorted(_scores(r, block).items())] for r in residuals])
+    mean = per_block.mean(axis=1)
+    best = int(np.argmin(mean))
+    diff = per_block - per_block[best]
+    noise = np.std(diff, axis=1, ddof=1) / np.sqrt(diff.shape[1]) if diff.shape[1] > 1 else np.zeros(len(labels))
+    chosen = int(np.flatnonzero(diff.mean(axis=1) <= noise)[0])  # the best itself qualifies
+    rows = [
+        {
+            "candidate": label,
+            **_figures(r),
+            "val_score_mm": float(1e3 * m),
+            "worse_than_best_mm": float(1e3 * (m - mean[best])),
+            "noise_mm": float(1e3 * se),
+        }
+        for label, r, m, se in zip(labels, residuals, mean, noise, strict=True)
+    ]
+    return chosen, {"setting": setting, "chosen": labels[chosen], "best": labels[best], "candidates": rows}
+
+
+def select_capacity(
+    lin: Linearisation,
+    total: int,
+    fixed: dict[str, Any] | None = None,
+    map_ridge: float | None = None,
+) -> Capacity:
+    """Choose the stage's capacity by cross-validation on ``lin`` (linearised with every elastic term and
+    the most harmonics of :data:`HARMONICS`), drawn from ``total`` training pairs in recording order.
+
+    ``fixed``: settings the user gave (``elastic``, ``harmonics``, ``harmonic_prior``, ``map_step``,
+    ``map_smoothness``); they are not chosen, only recorded.
+    """
+    fixed = {k: v for k, v in (fixed or {}).items() if v is not None}
+    unknown = set(fixed) - {"elastic", "harmonics", "harmonic_prior", "map_step", "map_smoothness"}
+    if unknown:
+        raise CalibrationError(f"unknown capacity settings {sorted(unknown)}")
+    if fixed.get("elastic", "geometry") not in ELASTIC:
+        raise CalibrationError(f"elastic terms '{fixed['elastic']}': choose one of {', '.join(ELASTIC)}")
+    folds = _Folds.build(lin, total)
+    params = [lin.params[c] for c in folds.columns]
+    kind = np.array([p.kind for p in params])
+    freq = np.array([p.component // 2 + 1 if p.kind == "harmonic" else 0 for p in params])
+    scale = lin.scale[folds.columns]
+    if max(freq, default=0) < max(fixed.get("harmonics", 0), 0):
+        raise CalibrationError(f"harmonics {fixed['harmonics']}: the linearisation holds only {max(freq)}")
+    block = folds.block
+    decisions: list[dict[str, Any]] = []
+    settings = {**START, **{k: fixed[k] for k in ("harmonic_prior", "map_smoothness") if k in fixed}}
+
+    def stage_columns(elastic: str, harmonics: int) -> np.ndarray:
+        return np.isin(kind, (*ELASTIC[elastic], *STATION_KINDS)) | ((kind == "harmonic") & (freq <= harmonics))
+
+    def prior(harmonic_prior: float) -> np.ndarray:
+        return np.where(kind == "harmonic", harmonic_prior * scale**2, 0.0)
+
+    def stage_residuals(elastic: str, harmonics: int, harmonic_prior: float) -> np.ndarray:
+        """``(N, width)``: every pair's residual, from the fold that held it out."""
+        use = stage_columns(elastic, harmonics)
+        out = np.zeros_like(lin.residual)
+        for f in range(FOLDS):
+            z = folds.solve(f, use, prior(harmonic_prior))
+            out[folds.held_out(f)] = folds.residual(f, z)
+        return out
+
+    def decide(setting: str, labels: Sequence[Any], evaluate) -> Any:
+        if setting in fixed:
+            decisions.append({"setting": setting, "chosen": fixed[setting], "given": True})
+            return fixed[setting]
+        residuals = [evaluate(label) for label in labels]
+        chosen, decision = _choose(setting, labels, residuals, block)
+        decisions.append(decision)
+        return labels[chosen]
+
+    elastic = decide("elastic", list(ELASTIC), lambda e: stage_residuals(e, 0, settings["harmonic_prior"]))
+    harmonics = decide(
+        "harmonics",
+        [h for h in HARMONICS if h <= max(freq, default=0)],
+        lambda h: stage_residuals(elastic, h, settings["harmonic_prior"]),
+    )
+    if harmonics > 0:
+        settings["harmonic_prior"] = decide(
+            "harmonic_prior", list(HARMONIC_PRIORS), lambda p: stage_residuals(elastic, harmonics, p)
+        )
+
+    # The joint error map, fitted per fold on what that fold's stage leaves of its training pairs.
+    use = stage_columns(elastic, harmonics)
+    stage = [folds.solve(f, use, prior(settings["harmonic_prior"])) for f in range(FOLDS)]
+    ridge = {} if map_ridge is None else {"ridge": map_ridge}
+
+    def mapped(step: float, smoothness: float) -> np.ndarray:
+        out = np.zeros_like(lin.residual)
+        for f in range(FOLDS):
+            held = folds.held_out(f)
+            res_val = folds.residual(f, stage[f])
+            if step > 0:
+                train = ~held
+                res_train = folds.residual(f, stage[f], train)
+                q = lin.q[train]
+                lower = q.min(axis=0) - step
+                knots = int(np.floor((q.max(axis=0) - lower) / step).max()) + 2
+                empty = JointMap(lower, step, np.zeros((q.shape[1], knots)))
+                values = solve_joint_map(
+                    map_design(empty, q, lin.joint_rows[train]),
+                    res_train.ravel(),
+                    len(q),
+                    q.shape[1],
+                    knots,
+                    smoothness,
+                    **ridge,
+                )
+                design = map_design(empty, lin.q[held], lin.joint_rows[held])
+                res_val = res_val - (design @ values.ravel()).reshape(res_val.shape)
+            out[held] = res_val
+        return out
+
+    map_step = decide("map_step", list(MAP_STEPS), lambda s: mapped(s, settings["map_smoothness"]))
+    if map_step > 0:
+        settings["map_smoothness"] = decide("map_smoothness", list(MAP_SMOOTHNESS), lambda m: mapped(map_step, m))
+    return Capacity(
+        elastic,
+        int(harmonics),
+        float(settings["harmonic_prior"]),
+        float(map_step),
+        float(settings["map_smoothness"]),
+        decisions,
+    )
