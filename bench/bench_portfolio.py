@@ -1,0 +1,195 @@
+"""The portfolio: every virtual cell of ``simulation.portfolio`` and the real UR10, each against its floor.
+
+Each cell is trained twice, side by side in one run: with the capacity chosen from its training pairs
+(``train``'s default) and with the stage's former fixed constants (40 harmonics, prior 30, a 0.01 rad
+joint error map). Errors are held-out means and p95, at the target in the measuring frame.
+
+Usage: python -m bench.bench_portfolio [--steps S] [--virtual-only] [--only SUBSTRING]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from bench.report import table, write_section
+from hybrid_kinematics_ros.calibration import capacity as capacity_module
+from hybrid_kinematics_ros.calibration import train
+from hybrid_kinematics_ros.calibration.evaluate import error_stats, target_errors
+from hybrid_kinematics_ros.calibration.fit import fit, reference_all, split
+from hybrid_kinematics_ros.io.pairs import Pairs
+from hybrid_kinematics_ros.model import approach
+from hybrid_kinematics_ros.model.parametric import model_from_manifest
+from hybrid_kinematics_ros.model.referencing import to_base_frame
+from hybrid_kinematics_ros.simulation.portfolio import CELLS, build_cell
+
+FORMER = {"elastic": "bending", "harmonics": 40, "harmonic_prior": 30.0, "map_step": 0.01, "map_smoothness": 0.03}
+
+
+def evaluate_cell(config, train_sets: list[Pairs], tests: list[Pairs], approach_inputs: bool, steps: int, fixed):
+    """Fit one model (capacity chosen, or ``fixed``); the errors of each stage on the pooled test pairs."""
+    tr, va = zip(*[split(p, 0, (0.1, 0.0))[:2] for p in train_sets], strict=True)
+    preset = train.PRESETS["fast"]
+    n = sum(len(p) for p in tr)
+    epochs = max(1, steps // max(1, n // min(preset.batch, n)))
+    conditions = approach.channel_names(config.chain.joint_names) if approach_inputs else ()
+    with tempfile.TemporaryDirectory() as tmp:
+        start = time.perf_counter()
+        model, manifest = fit(
+            config.chain,
+            list(tr),
+            list(va),
+            list(va),
+            Path(tmp) / "m",
+            replace(preset, max_epochs=epochs),
+            10.0,
+            parametric=True,
+            payload=(config.payload_mass, config.payload_com),
+            conditions=conditions,
+            capacity=fixed,
+            choose_capacity=fixed is None,
+        )
+        seconds = time.perf_counter() - start
+    nominal = reference_all(config.chain, list(tr))
+    geometry = model_from_manifest(config.chain, manifest["parametric"], rigid=True)
+    errors: dict[str, list] = {}
+    for te in tests:
+        urdf = to_base_frame([te], config.chain, nominal)
+        base = to_base_frame([te], config.chain, model.referencings)
+        cond = model.conditions_of(base.conditions, len(base))
+        for label, pairs, T in (
+            ("URDF", urdf, model.fk(urdf.q, analytic=True)),
+            ("geometry", base, geometry.fk(base.q)),
+            ("stage", base, model.fk(base.q, nets=False)),
+            ("hybrid", base, model.fk(base.q, conditions=cond)),
+        ):
+            pos, rot = target_errors(pairs, T)
+            errors.setdefault(label, []).append((pos, rot))
+    stats = {
+        label: error_stats(np.concatenate([p for p, _ in parts]), np.concatenate([r for _, r in parts]))
+        for label, parts in errors.items()
+    }
+    return stats, manifest, seconds
+
+
+HEAD = [
+    "cell",
+    "poses",
+    "floor pos. mean / p95 (mm)",
+    "URDF pos. (mm)",
+    "geometry pos. (mm)",
+    "stage pos. mean / p95 (mm)",
+    "hybrid pos. mean / p95 (mm)",
+    "hybrid / floor",
+    "floor ori. (deg)",
+    "stage ori. (deg)",
+    "hybrid ori. mean / p95 (deg)",
+    "former constants: stage / hybrid pos. (mm)",
+    "former: hybrid ori. (deg)",
+    "capacity chosen",
+    "train s (chosen / former)",
+]
+
+
+def _pair(s: dict, key: str, digits: int = 4) -> str:
+    mean, p95 = s.get(f"{key}_mean"), s.get(f"{key}_p95")
+    return "—" if mean is None else f"{mean:.{digits}f} / {p95:.{digits}f}"
+
+
+def row(name, poses, floor, chosen, former) -> list:
+    (after, manifest, seconds), (before, _, before_seconds) = chosen, former
+    hyb = after["hybrid"]
+    return [
+        name,
+        poses,
+        _pair(floor, "position_mm"),
+        f"{after['URDF']['position_mm_mean']:.3f}",
+        f"{after['geometry']['position_mm_mean']:.4f}",
+        _pair(after["stage"], "position_mm"),
+        _pair(hyb, "position_mm"),
+        f"{hyb['position_mm_mean'] / floor['position_mm_mean']:.2f}",
+        "—" if "orientation_deg_mean" not in floor else f"{floor['orientation_deg_mean']:.4f}",
+        "—" if "orientation_deg_mean" not in floor else f"{after['stage']['orientation_deg_mean']:.4f}",
+        "—" if "orientation_deg_mean" not in floor else _pair(hyb, "orientation_deg"),
+        f"{before['stage']['position_mm_mean']:.4f} / {before['hybrid']['position_mm_mean']:.4f}",
+        "—" if "orientation_deg_mean" not in floor else f"{before['hybrid']['orientation_deg_mean']:.4f}",
+        capacity_module.summary(manifest["capacity"]).replace(",", ";"),
+        f"{seconds:.0f} / {before_seconds:.0f}",
+    ]
+
+
+def real_cells():
+    """The real UR10 (ipa-robot-accuracy): A and C on block splits, A subsampled, all four stations."""
+    from bench.bench_real import SERIES, load_series, noise_floor
+    from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+
+    config = load_robot_config("ur10")
+    series = {name: load_series(name, config.chain.joint_names) for name in SERIES}
+    held = {name: split(p, 0, (0.0, 0.2)) for name, p in series.items()}
+    floors = {}
+    for name in SERIES:
+        pos, rot, _ = noise_floor(series[name], config.chain)
+        floors[name] = {"position_mm_mean": pos, "position_mm_p95": float("nan"), "orientation_deg_mean": rot}
+    # A's pairs repeat no command (see bench_real floor): B's floor stands for every series
+    floor = floors["B"]
+
+    def sub(p: Pairs, count: int) -> Pairs:
+        return p.subset(np.sort(np.random.default_rng(0).permutation(len(p))[:count]))
+
+    yield "real UR10 A", config, [held["A"][0]], [held["A"][2]], floor
+    yield "real UR10 C", config, [held["C"][0]], [held["C"][2]], floor
+    yield "real UR10 A, 250 poses", config, [sub(held["A"][0], 250)], [held["A"][2]], floor
+    yield "real UR10 A, 1,000 poses", config, [sub(held["A"][0], 1000)], [held["A"][2]], floor
+    yield (
+        "real UR10 A+B+C+D (tested on each)",
+        config,
+        [held[n][0] for n in SERIES],
+        [held[n][2] for n in SERIES],
+        floor,
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--steps", type=int, default=3000, help="optimiser steps per net")
+    parser.add_argument("--virtual-only", action="store_true")
+    parser.add_argument("--only", help="run only the cells whose name holds this")
+    args = parser.parse_args()
+    rows = []
+
+    def run(name, config, trains, tests, floor, approach_inputs):
+        if args.only and args.only not in name:
+            return
+        chosen = evaluate_cell(config, trains, tests, approach_inputs, args.steps, None)
+        former = evaluate_cell(config, trains, tests, approach_inputs, args.steps, FORMER)
+        rows.append(row(name, sum(len(p) for p in trains), floor, chosen, former))
+        print(" | ".join(str(v) for v in rows[-1]), flush=True)
+
+    for spec in CELLS:
+        cell = build_cell(spec)
+        run(spec.name, cell.config, [cell.train], [cell.test], cell.floor, spec.approach)
+    if not args.virtual_only:
+        for name, config, trains, tests, floor in real_cells():
+            run(name, config, trains, tests, floor, True)
+    body = (
+        "Each row is a cell: held-out errors at the target, in the frame it was measured in. The **floor** is "
+        "what a perfect model of the joints (and approach sides) would still score: for a virtual cell the "
+        "noise-free, drift-free truth against the test measurements; for the real UR10, pairs of "
+        "measurements of the same joints (series B; mean only). Virtual cells: separate random walks of the "
+        "joints for training and test (`simulation/portfolio.py` says what each effect is). Real cells: "
+        "the held-out fifth of each series in contiguous blocks, as `bench_real`; the nets take the approach "
+        f"directions there and in the backlash cells. Nets: `fast`, one per residual, {args.steps:,} steps "
+        "each. The **capacity** of the stage is chosen from each cell's training pairs (`train`'s default); "
+        "the *former constants* columns train the same cell with the fixed capacity used before (40 "
+        "harmonics, prior 30, a 0.01 rad joint error map).\n\n" + table(HEAD, rows)
+    )
+    write_section("portfolio", "Portfolio: every cell against its floor", body)
+
+
+if __name__ == "__main__":
+    main()
