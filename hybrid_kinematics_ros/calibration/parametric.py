@@ -10,12 +10,14 @@ Parameters (all small, starting from the nominal URDF):
 - cyclic joint errors: a Fourier series (harmonics 1 … K) in each joint's own angle, the transmission and
   encoder errors of real joints. On a real UR10 (ipa-robot-accuracy) they are most of what the other
   parameters leave: a few arcseconds to an arcminute at 10-40 cycles per turn. Hundreds of coefficients
-  are more than the data pins down where a joint barely moved, so they carry a ridge prior
-  (``HARMONIC_PRIOR``) towards zero;
-- a joint error map: each joint's error against its own angle on a grid of ``MAP_STEP``, for what is
+  are more than the data pins down where a joint barely moved, so they carry a ridge prior towards zero;
+- a joint error map: each joint's error against its own angle on a grid of knots, for what is
   left of shorter period (on the real UR10, harmonics 40 to ~300 per turn, spread too widely for a
   few Fourier terms). It is fitted last, linearly on the other parameters' residuals, with a smoothness
-  prior (``MAP_SMOOTHNESS``) and a small pull to zero where a joint never went.
+  prior and a small pull to zero where a joint never went.
+
+How many harmonics, how strong their prior, the map's step and smoothness, and which elastic terms: the
+data decide (:mod:`calibration.capacity`).
 
 Pairs from several tracker stations come referenced each on its own, with the nominal model, and that
 referencing absorbs a different share of the robot's errors at each station: their base-frame poses
@@ -56,12 +58,14 @@ ORIENTATION_LENGTH = 1.0  # m per rad: weighs orientation residuals against posi
 RANK_TOLERANCE = 1e-6  # pivots below this fraction of the largest are unidentifiable
 ROBUST_SCALE = 1e-3  # m: residuals well above this are down-weighted (soft L1)
 # Scaled unit of each kind of parameter, in SI: what one unit of the optimiser's variable means.
-HARMONICS = 40  # cyclic joint errors: harmonics 1 … HARMONICS of each joint's angle (0: none)
+# The capacity of the cyclic errors and of the joint error map is chosen from the data being calibrated
+# (calibration.capacity, train's default); called on its own, ``identify`` fits neither.
+HARMONICS = 0  # cyclic joint errors: harmonics 1 … HARMONICS of each joint's angle (0: none)
 # Ridge prior of each cyclic coefficient, in pairs: it weighs as much as this many poses seen 1 m from the joint.
 HARMONIC_PRIOR = 30.0
-MAP_STEP = 0.01  # rad between the joint error map's knots (0: no map)
+MAP_STEP = 0.0  # rad between the joint error map's knots (0: no map)
 # Weight of the map's second differences: a curvature of 1 rad per step² costs as much as a pose residual of
-# this many metres in each of the pairs. Chosen on the real UR10 (A and C, held-out blocks): 0.01-0.1 do alike.
+# this many metres in each of the pairs.
 MAP_SMOOTHNESS = 0.03
 MAP_RIDGE = 1e-3  # the same for the map's values themselves: where no data is, the map stays at zero
 MAP_MAX_PAIRS = 50_000  # a random draw of at most this many pairs fits the map (memory and time stay bounded)
@@ -228,7 +232,7 @@ def fit_joint_map(
     T: np.ndarray,
     position_only: bool,
     target: np.ndarray | None = None,
-    step: float = MAP_STEP,
+    step: float = 0.01,
     smoothness: float = MAP_SMOOTHNESS,
     ridge: float = MAP_RIDGE,
     orientation_length: float = ORIENTATION_LENGTH,
