@@ -34,6 +34,8 @@ def test_train_evaluate_fk_workflow(tmp_path, capsys):
         "mlp:32x2",
         "--arch-orientation",
         "mlp:32x2",
+        "--map-step",  # given, so the report's joint error map is exercised; the rest is chosen from the data
+        "0.02",
     )
     assert result.returncode == 0, result.stderr
     summary = json.loads(result.stdout.strip().splitlines()[-1])
@@ -110,6 +112,8 @@ def test_train_evaluate_fk_workflow(tmp_path, capsys):
     assert result.returncode == 0, result.stderr
     page = (tmp_path / "report" / "index.html").read_text()
     assert "joint error map of joint_2" in page and "joint_map.png" in page
+    # and the capacity table: the given map step, the chosen settings with their validation figures
+    assert "Capacity chosen from the data" in page and "given" in page and "harmonics" in page
     assert (tmp_path / "report" / "joint_map.png").stat().st_size > 5000
 
 
