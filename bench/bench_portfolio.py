@@ -10,22 +10,17 @@ Usage: python -m bench.bench_portfolio [--steps S] [--virtual-only] [--only SUBS
 from __future__ import annotations
 
 import argparse
-import tempfile
-import time
-from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 
+from bench.bench_real import SERIES, fit_recipe, load_series, model_errors, noise_floor
 from bench.report import table, write_section
 from hybrid_kinematics_ros.calibration import capacity as capacity_module
 from hybrid_kinematics_ros.calibration import train
-from hybrid_kinematics_ros.calibration.evaluate import error_stats, target_errors
-from hybrid_kinematics_ros.calibration.fit import fit, reference_all, split
+from hybrid_kinematics_ros.calibration.fit import split
 from hybrid_kinematics_ros.io.pairs import Pairs
+from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model import approach
-from hybrid_kinematics_ros.model.parametric import model_from_manifest
-from hybrid_kinematics_ros.model.referencing import to_base_frame
 from hybrid_kinematics_ros.simulation.portfolio import CELLS, build_cell
 
 FORMER = {"elastic": "bending", "harmonics": 40, "harmonic_prior": 30.0, "map_step": 0.01, "map_smoothness": 0.03}
@@ -33,48 +28,18 @@ FORMER = {"elastic": "bending", "harmonics": 40, "harmonic_prior": 30.0, "map_st
 
 def evaluate_cell(config, train_sets: list[Pairs], tests: list[Pairs], approach_inputs: bool, steps: int, fixed):
     """Fit one model (capacity chosen, or ``fixed``); the errors of each stage on the pooled test pairs."""
-    tr, va = zip(*[split(p, 0, (0.1, 0.0))[:2] for p in train_sets], strict=True)
-    preset = train.PRESETS["fast"]
-    n = sum(len(p) for p in tr)
-    epochs = max(1, steps // max(1, n // min(preset.batch, n)))
     conditions = approach.channel_names(config.chain.joint_names) if approach_inputs else ()
-    with tempfile.TemporaryDirectory() as tmp:
-        start = time.perf_counter()
-        model, manifest = fit(
-            config.chain,
-            list(tr),
-            list(va),
-            list(va),
-            Path(tmp) / "m",
-            replace(preset, max_epochs=epochs),
-            10.0,
-            parametric=True,
-            payload=(config.payload_mass, config.payload_com),
-            conditions=conditions,
-            capacity=fixed,
-            choose_capacity=fixed is None,
-        )
-        seconds = time.perf_counter() - start
-    nominal = reference_all(config.chain, list(tr))
-    geometry = model_from_manifest(config.chain, manifest["parametric"], rigid=True)
-    errors: dict[str, list] = {}
-    for te in tests:
-        urdf = to_base_frame([te], config.chain, nominal)
-        base = to_base_frame([te], config.chain, model.referencings)
-        cond = model.conditions_of(base.conditions, len(base))
-        for label, pairs, T in (
-            ("URDF", urdf, model.fk(urdf.q, analytic=True)),
-            ("geometry", base, geometry.fk(base.q)),
-            ("stage", base, model.fk(base.q, nets=False)),
-            ("hybrid", base, model.fk(base.q, conditions=cond)),
-        ):
-            pos, rot = target_errors(pairs, T)
-            errors.setdefault(label, []).append((pos, rot))
-    stats = {
-        label: error_stats(np.concatenate([p for p, _ in parts]), np.concatenate([r for _, r in parts]))
-        for label, parts in errors.items()
-    }
-    return stats, manifest, seconds
+    model, manifest, tr, seconds = fit_recipe(
+        config,
+        train_sets,
+        train.PRESETS["fast"],
+        conditions,
+        10.0,
+        steps,
+        capacity=fixed,
+        choose_capacity=fixed is None,
+    )
+    return model_errors(config, model, manifest, tr, tests), manifest, seconds
 
 
 HEAD = [
@@ -108,15 +73,15 @@ def row(name, poses, floor, chosen, former) -> list:
         name,
         poses,
         _pair(floor, "position_mm"),
-        f"{after['URDF']['position_mm_mean']:.3f}",
-        f"{after['geometry']['position_mm_mean']:.4f}",
-        _pair(after["stage"], "position_mm"),
+        f"{after['URDF model']['position_mm_mean']:.3f}",
+        f"{after['geometry only']['position_mm_mean']:.4f}",
+        _pair(after["parametric stage"], "position_mm"),
         _pair(hyb, "position_mm"),
         f"{hyb['position_mm_mean'] / floor['position_mm_mean']:.2f}",
         "—" if "orientation_deg_mean" not in floor else f"{floor['orientation_deg_mean']:.4f}",
-        "—" if "orientation_deg_mean" not in floor else f"{after['stage']['orientation_deg_mean']:.4f}",
+        "—" if "orientation_deg_mean" not in floor else f"{after['parametric stage']['orientation_deg_mean']:.4f}",
         "—" if "orientation_deg_mean" not in floor else _pair(hyb, "orientation_deg"),
-        f"{before['stage']['position_mm_mean']:.4f} / {before['hybrid']['position_mm_mean']:.4f}",
+        f"{before['parametric stage']['position_mm_mean']:.4f} / {before['hybrid']['position_mm_mean']:.4f}",
         "—" if "orientation_deg_mean" not in floor else f"{before['hybrid']['orientation_deg_mean']:.4f}",
         capacity_module.summary(manifest["capacity"]).replace(",", ";"),
         f"{seconds:.0f} / {before_seconds:.0f}",
@@ -125,9 +90,6 @@ def row(name, poses, floor, chosen, former) -> list:
 
 def real_cells():
     """The real UR10 (ipa-robot-accuracy): A and C on block splits, A subsampled, all four stations."""
-    from bench.bench_real import SERIES, load_series, noise_floor
-    from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
-
     config = load_robot_config("ur10")
     series = {name: load_series(name, config.chain.joint_names) for name in SERIES}
     held = {name: split(p, 0, (0.0, 0.2)) for name, p in series.items()}

@@ -100,47 +100,65 @@ def noise_floor(pairs: Pairs, chain, tolerance_rad: float = 1e-3) -> tuple[float
     return 1e3 * float(np.mean(np.linalg.norm(diff, axis=1))) / root2, float(np.mean(angle_deg)) / root2, len(close)
 
 
+def fit_recipe(cfg, train_sets, preset, conditions, minutes, steps, seed=0, **fit_options):
+    """Fit one recipe on ``train_sets`` (a tenth of each validates); returns the model, its manifest, the
+    training pairs and the seconds. ``steps``: optimiser steps per net, the budget that load does not
+    change (the paper's recipe stops early on validation, or at ``minutes``)."""
+    tr, va = zip(*[split(p, seed, (0.1, 0.0))[:2] for p in train_sets], strict=True)
+    per_epoch = max(1, sum(len(p) for p in tr) // preset.batch)
+    epochs = preset.max_epochs if preset.patience else max(1, steps // per_epoch)
+    with tempfile.TemporaryDirectory() as tmp:
+        start = time.perf_counter()
+        model, manifest = fit(
+            cfg.chain,
+            list(tr),
+            list(va),
+            list(va),
+            Path(tmp) / "m",
+            replace(preset, max_epochs=epochs),
+            minutes * preset.members,
+            seed=seed,
+            parametric=True,
+            payload=(cfg.payload_mass, cfg.payload_com),
+            conditions=conditions,
+            **fit_options,
+        )
+        seconds = time.perf_counter() - start
+    return model, manifest, list(tr), seconds
+
+
+def model_errors(cfg, model, manifest, train_pairs, tests, hybrid_label="hybrid"):
+    """Errors of the URDF model, the geometry alone, the stage and the hybrid model on the pairs of every
+    test set in ``tests`` together, in each one's tracker frame at the probe."""
+    geometry = model_from_manifest(cfg.chain, manifest["parametric"], rigid=True)
+    # the URDF model with its own referencing of each station: the stage's referencings carry its base and
+    # tool corrections (a station seen over a small volume can move them by decimetres)
+    nominal = reference_all(cfg.chain, train_pairs)
+    errors: dict[str, list] = {}
+    for te in tests:
+        urdf = to_base_frame([te], cfg.chain, nominal)
+        base = to_base_frame([te], cfg.chain, model.referencings)
+        for label, pairs, T in (
+            ("URDF model", urdf, model.fk(urdf.q, analytic=True)),
+            ("geometry only", base, geometry.fk(base.q)),
+            ("parametric stage", base, model.fk(base.q, nets=False)),
+            (hybrid_label, base, model.fk(base.q, conditions=model.conditions_of(base.conditions, len(base)))),
+        ):
+            errors.setdefault(label, []).append(target_errors(pairs, T))
+    return {
+        label: error_stats(*(np.concatenate([e[k] for e in parts]) for k in (0, 1))) for label, parts in errors.items()
+    }
+
+
 def rows_for(cfg, train_sets, test_sets, recipes, minutes, steps, seed=0):
     """Fit each recipe (preset, condition channels) once; errors of every model on each test set, in the
-    tracker frame at the probe. ``steps``: optimiser steps per net, the budget that load does not change
-    (the paper's recipe stops early on validation, or at ``minutes``)."""
+    tracker frame at the probe (:func:`fit_recipe`, :func:`model_errors`)."""
     out: dict[str, dict[str, dict]] = {}
     seconds = {}
     for recipe, (preset, conditions) in recipes.items():
-        tr, va = zip(*[split(p, seed, (0.1, 0.0))[:2] for p in train_sets], strict=True)
-        per_epoch = max(1, sum(len(p) for p in tr) // preset.batch)
-        epochs = preset.max_epochs if preset.patience else max(1, steps // per_epoch)
-        with tempfile.TemporaryDirectory() as tmp:
-            start = time.perf_counter()
-            model, manifest = fit(
-                cfg.chain,
-                list(tr),
-                list(va),
-                list(va),
-                Path(tmp) / "m",
-                replace(preset, max_epochs=epochs),
-                minutes * preset.members,
-                seed=seed,
-                parametric=True,
-                payload=(cfg.payload_mass, cfg.payload_com),
-                conditions=conditions,
-            )
-            seconds[recipe] = time.perf_counter() - start
-        geometry = model_from_manifest(cfg.chain, manifest["parametric"], rigid=True)
-        # the URDF model with its own referencing of each station: the stage's referencings carry its base and
-        # tool corrections (a station seen over a small volume can move them by decimetres)
-        nominal = reference_all(cfg.chain, list(tr))
+        model, manifest, tr, seconds[recipe] = fit_recipe(cfg, train_sets, preset, conditions, minutes, steps, seed)
         for name, te in test_sets.items():
-            urdf = to_base_frame([te], cfg.chain, nominal)
-            out.setdefault(name, {})["URDF model"] = error_stats(*target_errors(urdf, model.fk(urdf.q, analytic=True)))
-            base = to_base_frame([te], cfg.chain, model.referencings)
-            models = {
-                "geometry only": geometry.fk(base.q),
-                "parametric stage": model.fk(base.q, nets=False),
-                f"hybrid, {recipe}": model.fk(base.q, conditions=model.conditions_of(base.conditions, len(base))),
-            }
-            for label, T in models.items():
-                out.setdefault(name, {})[label] = error_stats(*target_errors(base, T))
+            out.setdefault(name, {}).update(model_errors(cfg, model, manifest, tr, [te], f"hybrid, {recipe}"))
     return out, seconds
 
 

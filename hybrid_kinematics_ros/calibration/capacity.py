@@ -102,10 +102,14 @@ def options_from(given: dict[str, Any]) -> dict[str, Any]:
     its defaults), without a selection."""
     out = {k: given[k] for k in ("harmonics", "harmonic_prior", "map_step", "map_smoothness") if k in given}
     if "elastic" in given:
-        if given["elastic"] not in ELASTIC:
-            raise CalibrationError(f"elastic terms '{given['elastic']}': choose one of {', '.join(ELASTIC)}")
-        out["kinds"] = ELASTIC[given["elastic"]] + ("harmonic",)
+        out["kinds"] = (*_elastic_kinds(given["elastic"]), "harmonic")
     return out
+
+
+def _elastic_kinds(name: str) -> tuple[str, ...]:
+    if name not in ELASTIC:
+        raise CalibrationError(f"elastic terms '{name}': choose one of {', '.join(ELASTIC)}")
+    return ELASTIC[name]
 
 
 def _blocks(lin: Linearisation, total: int) -> np.ndarray:
@@ -122,6 +126,7 @@ class _Folds:
     normal: list[np.ndarray]
     gradient: list[np.ndarray]
     columns: np.ndarray  # identifiable columns (indices into lin.params) the normal equations hold
+    jacobian: np.ndarray  # (N, width, len(columns)): the linearisation's Jacobian over those columns
 
     @classmethod
     def build(cls, lin: Linearisation, total: int) -> _Folds:
@@ -142,7 +147,7 @@ class _Folds:
             w = weight[train].reshape(-1)
             normal.append(a.T @ (w[:, None] * a))
             gradient.append(a.T @ (w * res[train].reshape(-1)))
-        return cls(lin, block, normal, gradient, columns)
+        return cls(lin, block, normal, gradient, columns, jac)
 
     def held_out(self, f: int) -> np.ndarray:
         return (self.block % FOLDS) == f
@@ -159,7 +164,7 @@ class _Folds:
     def residual(self, f: int, z: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         """``(M, width)``: the residuals of fold ``f``'s held-out pairs (or ``rows``) after ``z``."""
         rows = self.held_out(f) if rows is None else rows
-        return self.lin.residual[rows] + self.lin.jacobian[rows][:, :, self.columns] @ z
+        return self.lin.residual[rows] + self.jacobian[rows] @ z
 
 
 def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -224,8 +229,7 @@ def select_capacity(
     unknown = set(fixed) - {"elastic", "harmonics", "harmonic_prior", "map_step", "map_smoothness"}
     if unknown:
         raise CalibrationError(f"unknown capacity settings {sorted(unknown)}")
-    if fixed.get("elastic", "geometry") not in ELASTIC:
-        raise CalibrationError(f"elastic terms '{fixed['elastic']}': choose one of {', '.join(ELASTIC)}")
+    _elastic_kinds(fixed.get("elastic", "geometry"))
     folds = _Folds.build(lin, total)
     params = [lin.params[c] for c in folds.columns]
     kind = np.array([p.kind for p in params])
