@@ -7,7 +7,7 @@ along a recording never sit on both sides), and the simpler candidate wins unles
 by more than the validation noise (the standard error of the per-block differences: the one-standard-
 error rule). The choices are made one after the other, each on top of the ones before:
 
-1. the elastic terms: geometry only, plus joint compliance, plus link bending;
+1. the elastic terms: geometry only, plus joint compliance, plus its cubic term, plus link bending;
 2. the number of harmonics of the cyclic joint errors (0: none), then their prior;
 3. the joint error map's knot spacing (0: none), then its smoothness.
 
@@ -38,10 +38,11 @@ from hybrid_kinematics_ros.kinematics.elastic import JointMap
 
 BLOCKS = 20  # contiguous blocks of the training pairs; each is validated once
 FOLDS = 5  # block b is held out in fold b % FOLDS
-ELASTIC = {
+ELASTIC = {  # each level adds to the one before
     "geometry": ("zero", "translation", "rotation"),
     "compliance": ("zero", "translation", "rotation", "compliance"),
-    "bending": ("zero", "translation", "rotation", "compliance", "bending"),
+    "cubic": ("zero", "translation", "rotation", "compliance", "cubic"),
+    "bending": ("zero", "translation", "rotation", "compliance", "cubic", "bending"),
 }
 HARMONICS = (0, 2, 5, 10, 20, 40)  # candidates, simplest first
 HARMONIC_PRIORS = (300.0, 30.0, 3.0)  # in pairs; a stronger prior is the simpler model

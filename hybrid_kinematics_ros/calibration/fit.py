@@ -364,5 +364,11 @@ def thinned(q: np.ndarray, spacing: float = COVERAGE_SPACING) -> np.ndarray:
 
 
 def _best(history: list[dict]) -> dict[str, float]:
+    """The net's validation figures, and the epoch its kept weights come from: how long to train is chosen
+    on the validation blocks, like whether to correct at all (``silenced``)."""
     last = history[-1]
-    return {k: v for k, v in last.items() if k.startswith("best_val_") or k == "silenced"}
+    out = {k: v for k, v in last.items() if k.startswith("best_val_") or k == "silenced"}
+    if not last.get("silenced") and "member" not in last:
+        key = next(k for k in last if k.startswith("val_"))
+        out["best_epoch"] = int(min(history, key=lambda e: e[key])["epoch"])
+    return out

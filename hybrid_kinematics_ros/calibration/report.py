@@ -197,6 +197,8 @@ def _capacity_section(capacity: dict[str, Any] | None, nets: dict[str, Any]) -> 
             )
     for kind, net in nets.items():
         state = "off: no better than the stage on validation" if net.get("silenced") else "on"
+        if "best_epoch" in net:
+            state += f", weights of epoch {net['best_epoch']} of {net.get('epochs', '?')} (best on validation)"
         rows.append(
             [f"{kind} net", net.get("arch", ""), state, net.get("best_val_mm", ""), net.get("best_val_deg", ""), "", ""]
         )

@@ -18,7 +18,7 @@ POSE_COLUMNS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 
 def add_robot_args(p: argparse.ArgumentParser, required: bool = True) -> None:
     group = p.add_mutually_exclusive_group(required=required)
-    group.add_argument("--robot", help="robot config YAML, or an embedded robot: ur10, rx160")
+    group.add_argument("--robot", help="robot config YAML, or an embedded robot: ur10, rx160, kr16")
     group.add_argument("--urdf", help="URDF file (with --base-link and --tip-link)")
     p.add_argument("--base-link", help="base link of the chain (with --urdf)")
     p.add_argument("--tip-link", help="tip link of the chain (with --urdf)")

@@ -20,7 +20,7 @@ STAMP_STEP_NS = 10_000_000  # one static sample every 10 ms of simulated time
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("simulate", help="write calibration pairs from the virtual cell into a bag")
-    p.add_argument("--robot", required=True, help="robot config YAML, or an embedded robot: ur10, rx160")
+    p.add_argument("--robot", required=True, help="robot config YAML, or an embedded robot: ur10, rx160, kr16")
     p.add_argument("--samples", type=int, required=True, help="number of pairs")
     p.add_argument("--out", required=True, type=Path, help="output bag directory (with --split: a folder of bags)")
     p.add_argument("--seed", type=int, default=0, help="seed of the joint samples and the tracker noise")

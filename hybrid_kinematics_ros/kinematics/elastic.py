@@ -86,6 +86,7 @@ class ElasticChain:
     torque_ref: float = 100.0
     joint_error: np.ndarray | None = None  # (n, K, 2) rad: sin and cos coefficients of harmonics 1 … K
     joint_map: JointMap | None = None
+    cubic_compliance: np.ndarray | None = None  # (n,) rad/Nm³: the deflection's term in τ³ (load-dependent stiffness)
 
     def corrected_joints(self, q: np.ndarray) -> np.ndarray:
         """Commanded joints ``(B, n)`` plus zero offsets and cyclic joint errors: what the rigid links reach."""
@@ -134,7 +135,8 @@ class ElasticChain:
 
     @cached_property
     def is_elastic(self) -> bool:
-        return bool(np.any(self.compliance) or np.any(self.bending))
+        cubic = self.cubic_compliance is not None and bool(np.any(self.cubic_compliance))
+        return bool(np.any(self.compliance) or np.any(self.bending) or cubic)
 
     def gravity_torques(self, q: np.ndarray) -> np.ndarray:
         """Torques ``(B, n)`` (Nm) that gravity exerts about each joint axis (force along prismatic axes)."""
@@ -162,8 +164,16 @@ class ElasticChain:
         if not self.is_elastic:
             return q_eff, np.zeros_like(q_eff)
         torque = self.gravity_torques(q_eff)
-        stiffening = 1.0 + self.cubic_ratio * (torque / self.torque_ref) ** 2
-        return q_eff + self.compliance * torque / stiffening, torque
+        return q_eff + self.deflection(torque), torque
+
+    def deflection(self, torque: np.ndarray) -> np.ndarray:
+        """Joint deflections ``(..., n)`` under the gravity torques ``(..., n)``: a spring that stiffens with
+        load, ``c τ / (1 + r (τ/τ_ref)²)`` (the simulator's truth), plus the identified stage's ``c₃ τ³``
+        (the same stiffening to first order; harmonic drives and cycloidal gears are softer near zero load)."""
+        out = self.compliance * torque / (1.0 + self.cubic_ratio * (torque / self.torque_ref) ** 2)
+        if self.cubic_compliance is not None:
+            out = out + self.cubic_compliance * torque**3
+        return out
 
     def fk(self, q: np.ndarray) -> np.ndarray:
         """Tip poses ``(B, 4, 4)`` for commanded joints ``(B, n)``."""
@@ -243,7 +253,7 @@ class ElasticChain:
         torque = g * (first[:, 0] * axes[:, 1] - first[:, 1] * axes[:, 0])
         if not chain.revolute.all():
             torque = np.where(chain.revolute, torque, -g * beyond * axes[:, 2])
-        q_eff = q_eff + self.compliance * torque / (1.0 + self.cubic_ratio * (torque / self.torque_ref) ** 2)
+        q_eff = q_eff + self.deflection(torque)
         bend = exp_so3(torque[:, None] * self.bending)
         frames = self._rigid_frames(q_eff, bend)
         return frames, frames[-1] @ chain.post, bend

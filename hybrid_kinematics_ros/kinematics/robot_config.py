@@ -50,14 +50,14 @@ class RobotConfig:
 
 
 def resolve_robot(spec: str | Path) -> Path:
-    """A config path (``package://`` too), or the name of an embedded robot (``ur10``, ``rx160``)."""
+    """A config path (``package://`` too), or the name of an embedded robot (``ur10``, ``rx160``, ``kr16``)."""
     path = resolve_path(spec)
     if path.is_file():
         return path
     embedded = config_dir() / f"{spec}.yaml"
     if embedded.is_file():
         return embedded
-    raise KinematicsError(f"robot config {spec} does not exist (embedded robots: ur10, rx160)")
+    raise KinematicsError(f"robot config {spec} does not exist (embedded robots: ur10, rx160, kr16)")
 
 
 def load_robot_config(spec: str | Path) -> RobotConfig:

@@ -19,7 +19,7 @@ from hybrid_kinematics_ros.model.errors import ModelError
 class Parameter:
     name: str
     kind: str
-    index: int  # joint (zero, compliance, bending, harmonic) or frame (translation, rotation; n is the flange)
+    index: int  # joint (zero, compliance, cubic, bending, harmonic) or frame (translation, rotation; n is the flange)
     component: int  # harmonic: 2 (f - 1) for sin(f q), 2 (f - 1) + 1 for cos(f q)
 
 
@@ -34,7 +34,7 @@ def build_model(
     """The elastic chain for parameter ``values`` in SI units (one per entry of ``params``), and the joint
     error map if there is one."""
     n = chain.dof
-    zero, compliance, bend_uv = np.zeros(n), np.zeros(n), np.zeros((n, 2))
+    zero, compliance, cubic, bend_uv = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((n, 2))
     delta = np.zeros((n + 1, 6))
     k_max = max((p.component // 2 + 1 for p in params if p.kind == "harmonic"), default=0)
     cyclic = np.zeros((n, k_max, 2))
@@ -45,6 +45,8 @@ def build_model(
             zero[p.index] = v
         elif p.kind == "compliance":
             compliance[p.index] = v
+        elif p.kind == "cubic":
+            cubic[p.index] = v
         elif p.kind == "bending":
             bend_uv[p.index, p.component] = v
         else:
@@ -61,6 +63,7 @@ def build_model(
         np.asarray(payload_com, float),
         joint_error=cyclic if np.any(cyclic) else None,
         joint_map=joint_map,
+        cubic_compliance=cubic if np.any(cubic) else None,
     )
 
 

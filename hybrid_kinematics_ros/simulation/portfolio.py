@@ -158,6 +158,7 @@ CELLS = (
     CellSpec("UR10: plain reflector (position only)", tracker=TRACKER_FAR, plain_reflector=True),
     CellSpec("RX160: every effect", robot="rx160"),
     CellSpec("RX160: realistic, 300 poses", robot="rx160", poses=300, **REALISTIC),
+    CellSpec("KR16-type (shoulder and elbow offsets): realistic, 4,800 poses", robot="kr16", poses=4800, **REALISTIC),
     CellSpec("UR10: realistic, 300 poses", poses=300, **REALISTIC),
     CellSpec("UR10: realistic, 1,000 poses", poses=1000, **REALISTIC),
     CellSpec("UR10: realistic, 4,800 poses", poses=4800, **REALISTIC),
