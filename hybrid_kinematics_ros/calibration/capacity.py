@@ -8,7 +8,8 @@ by more than the validation noise (the standard error of the per-block differenc
 error rule). The choices are made one after the other, each on top of the ones before:
 
 1. the elastic terms: geometry only, plus joint compliance, plus its cubic term, plus link bending;
-2. the number of harmonics of the cyclic joint errors (0: none), then their prior;
+2. the number of harmonics of the cyclic joint errors (0: none), then their prior; 1 and 2 again, each
+   given the other, until neither changes (bending judged without the gears' errors hides in them);
 3. the joint error map's knot spacing (0: none), then its smoothness.
 
 Each candidate is solved on the problem linearised at the nominal model (:class:`Linearisation`; its
@@ -48,7 +49,8 @@ HARMONICS = (0, 2, 5, 10, 20, 40)  # candidates, simplest first
 HARMONIC_PRIORS = (300.0, 30.0, 3.0)  # in pairs; a stronger prior is the simpler model
 MAP_STEPS = (0.0, 0.08, 0.04, 0.02, 0.01)  # rad; 0: no map, then ever finer
 MAP_SMOOTHNESS = (0.3, 0.03, 0.003)  # a smoother map is the simpler model
-START = {"harmonic_prior": 30.0, "map_smoothness": 0.03}  # the value a setting has before its turn comes
+START = {"harmonic_prior": 30.0, "map_smoothness": 0.03}
+ROUNDS = 3  # turns of choosing the elastic terms and the cyclic errors, each given the other  # the value a setting has before its turn comes
 
 
 @dataclass
@@ -239,7 +241,6 @@ def select_capacity(
     if max(freq, default=0) < max(fixed.get("harmonics", 0), 0):
         raise CalibrationError(f"harmonics {fixed['harmonics']}: the linearisation holds only {max(freq)}")
     block = folds.block
-    decisions: list[dict[str, Any]] = []
     settings = {**START, **{k: fixed[k] for k in ("harmonic_prior", "map_smoothness") if k in fixed}}
 
     def stage_columns(elastic: str, harmonics: int) -> np.ndarray:
@@ -257,25 +258,39 @@ def select_capacity(
             out[folds.held_out(f)] = folds.residual(f, z)
         return out
 
-    def decide(setting: str, labels: Sequence[Any], evaluate) -> Any:
+    made: dict[str, dict[str, Any]] = {}  # the latest decision of each setting, in the order first made
+
+    def decide(setting: str, labels: Sequence[Any], evaluate, round_: int = 1) -> Any:
         if setting in fixed:
-            decisions.append({"setting": setting, "chosen": fixed[setting], "given": True})
+            made[setting] = {"setting": setting, "chosen": fixed[setting], "given": True}
             return fixed[setting]
         residuals = [evaluate(label) for label in labels]
         chosen, decision = _choose(setting, labels, residuals, block)
-        decisions.append(decision)
+        made[setting] = {**decision, "round": round_}
         return labels[chosen]
 
-    elastic = decide("elastic", list(ELASTIC), lambda e: stage_residuals(e, 0, settings["harmonic_prior"]))
-    harmonics = decide(
-        "harmonics",
-        [h for h in HARMONICS if h <= max(freq, default=0)],
-        lambda h: stage_residuals(elastic, h, settings["harmonic_prior"]),
-    )
-    if harmonics > 0:
-        settings["harmonic_prior"] = decide(
-            "harmonic_prior", list(HARMONIC_PRIORS), lambda p: stage_residuals(elastic, harmonics, p)
+    # The elastic terms and the cyclic errors are chosen in turn until neither changes (at most ROUNDS):
+    # judged without cyclic errors, a geared robot's bending hides in what the gears leave.
+    elastic, harmonics = "geometry", 0
+    for round_ in range(1, ROUNDS + 1):
+        before = (elastic, harmonics, settings["harmonic_prior"])
+        elastic = decide(
+            "elastic", list(ELASTIC), lambda e: stage_residuals(e, harmonics, settings["harmonic_prior"]), round_
         )
+        harmonics = decide(
+            "harmonics",
+            [h for h in HARMONICS if h <= max(freq, default=0)],
+            lambda h: stage_residuals(elastic, h, settings["harmonic_prior"]),
+            round_,
+        )
+        if harmonics > 0:
+            settings["harmonic_prior"] = decide(
+                "harmonic_prior", list(HARMONIC_PRIORS), lambda p: stage_residuals(elastic, harmonics, p), round_
+            )
+        elif "harmonic_prior" not in fixed:
+            made.pop("harmonic_prior", None)  # an earlier round's, for harmonics no longer fitted
+        if (elastic, harmonics, settings["harmonic_prior"]) == before:
+            break
 
     # The joint error map, fitted per fold on what that fold's stage leaves of its training pairs.
     use = stage_columns(elastic, harmonics)
@@ -311,6 +326,7 @@ def select_capacity(
     map_step = decide("map_step", list(MAP_STEPS), lambda s: mapped(s, settings["map_smoothness"]))
     if map_step > 0:
         settings["map_smoothness"] = decide("map_smoothness", list(MAP_SMOOTHNESS), lambda m: mapped(map_step, m))
+    decisions = list(made.values())
     return Capacity(
         elastic,
         int(harmonics),

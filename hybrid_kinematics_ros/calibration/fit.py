@@ -49,7 +49,7 @@ def align_raw(
     joints_topic: str = RAW_JOINTS_TOPIC,
     tracker_topic: str = RAW_POSE_TOPIC,
 ) -> tuple[AlignResult, RawRecording]:
-    rec = read_raw(bag, joints_topic, tracker_topic)
+    rec = read_raw(bag, joints_topic, tracker_topic, chain.joint_names)
     return align(chain, rec, options, frame_id), rec
 
 

@@ -24,8 +24,8 @@ import yaml
 
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.io.pairs import CONDITION_TYPES
+from hybrid_kinematics_ros.kinematics.paths import config_dir
 
-SPEC_DIR = Path(__file__).resolve().parents[2] / "config" / "import"
 ORIENTATIONS = ("quaternion", "euler", "none", "points")
 LENGTH_UNITS = {"mm": 1e-3, "m": 1.0}
 ANGLE_UNITS = ("rad", "deg")
@@ -103,14 +103,16 @@ class ImportSpec:
 
 
 def resolve_spec(spec: str | Path) -> Path:
-    """A spec file, or the name of a shipped one (``config/import/<name>.yaml``)."""
+    """A spec file, or the name of a shipped one (``config/import/<name>.yaml``, in the installed share
+    directory after a plain ``colcon build``: see :mod:`kinematics.paths`)."""
     path = Path(spec)
     if path.is_file():
         return path
-    shipped = SPEC_DIR / f"{spec}.yaml"
+    shipped_dir = config_dir() / "import"
+    shipped = shipped_dir / f"{spec}.yaml"
     if shipped.is_file():
         return shipped
-    names = ", ".join(sorted(p.stem for p in SPEC_DIR.glob("*.yaml")))
+    names = ", ".join(sorted(p.stem for p in shipped_dir.glob("*.yaml")))
     raise DataError(f"import spec {spec} does not exist (shipped specs: {names})")
 
 

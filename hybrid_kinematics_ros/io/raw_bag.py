@@ -17,6 +17,7 @@ import errno
 import os
 import struct
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -357,8 +358,16 @@ def iter_messages(path: str | Path):
                 yield "__truncated__", str(exc), 0, b""
 
 
-def read_raw(path: str | Path, joints_topic: str, pose_topic: str) -> RawRecording:
-    joint_t, q, names = [], [], None
+def read_raw(
+    path: str | Path, joints_topic: str, pose_topic: str, joint_names: Sequence[str] | None = None
+) -> RawRecording:
+    """The raw streams of a recording. ``joint_names`` (the chain's): those joints are taken by name from
+    every joint state that carries them all, whatever else it carries (a gripper joint, say) and in
+    whatever order; a message without all of them is counted under ``joint_state_other_joints``, so a
+    driver that publishes the arm in two messages loses nothing silently. Without ``joint_names``, the
+    first message's joints are the recording's."""
+    joint_t, q = [], []
+    names = None if joint_names is None else tuple(joint_names)
     pose_t, pose, frames = [], [], set()
     counts: Counter = Counter()
     truncated = False
@@ -373,7 +382,7 @@ def read_raw(path: str | Path, joints_topic: str, pose_topic: str) -> RawRecordi
                 names = tuple(msg.name)
             if tuple(msg.name) != names:
                 index = {n: i for i, n in enumerate(msg.name)}
-                if any(n not in index for n in names):
+                if any(n not in index for n in names) or len(msg.position) != len(msg.name):
                     counts["joint_state_other_joints"] += 1
                     continue
                 position = [msg.position[index[n]] for n in names]
@@ -387,8 +396,9 @@ def read_raw(path: str | Path, joints_topic: str, pose_topic: str) -> RawRecordi
             pose.append(values)
             frames.add(frame)
     if not joint_t or not pose_t:
+        wanted = "" if joint_names is None else f" (joint states with all of {', '.join(names)})"
         raise DataError(
-            f"bag {path}: needs messages on {joints_topic} and {pose_topic}; found {dict(counts) or 'none'}"
+            f"bag {path}: needs messages on {joints_topic}{wanted} and {pose_topic}; found {dict(counts) or 'none'}"
         )
     if len(frames) > 1:
         raise DataError(f"bag {path}: {pose_topic} comes in several frames {sorted(frames)}")

@@ -96,6 +96,9 @@ class RecorderNode(Node):
         self.reliability = reliability
         self.max_beam_breaks = declare("max_beam_breaks_per_min", 6.0, "more tracker gaps a minute: WARN")
         self.offset_warn_s = declare("offset_warn_s", 1e-3, "running clock estimates further apart: WARN")
+        self.no_joints_warn_s = declare(
+            "no_joints_warn_s", 3.0, "recording this long without a joint state that has the robot's joints: WARN"
+        )
         self.lost: Counter = Counter()  # what the middleware reports as lost before it reached us
         self.subscriptions_: dict[str, tuple] = {}  # topic -> (subscription, reliability, type, callback)
         for msgtype, topic, callback in (
@@ -130,6 +133,20 @@ class RecorderNode(Node):
         qos = QoSProfile(depth=10000, reliability=reliability)
         sub = self.create_subscription(msgtype, topic, callback, qos, raw=True, event_callbacks=events)
         self.subscriptions_[topic] = (sub, reliability, msgtype, callback)
+
+    def _no_joints_message(self, elapsed: float) -> str:
+        """Why no pair can come of this recording yet, logged once as a warning: the whole session would
+        otherwise end with zero pairs (a driver naming its joints otherwise, say)."""
+        without = self.received["joint_states_without_robot_joints"]
+        text = f"no joint state with the robot's joints ({', '.join(self.chain.joint_names)}) in {elapsed:.0f} s"
+        if without:
+            text += f": {without} on {self.joints_topic} carried {', '.join(self.other_joint_names)} instead"
+        else:
+            text += f": nothing on {self.joints_topic}"
+        if not self._warned_no_joints:
+            self._warned_no_joints = True
+            self.get_logger().warning(text)
+        return text
 
     def _adapt_qos(self) -> None:
         """``reliability: auto``: best-effort as soon as a publisher is best-effort (a reliable subscription
@@ -167,6 +184,8 @@ class RecorderNode(Node):
         )
         self._aligned, self._align_error = deque(), ""
         self.received = Counter()
+        self.other_joint_names: tuple[str, ...] = ()  # of the last joint state without the robot's joints
+        self._warned_no_joints = False
         self.beam_breaks = 0
         self.last_pose_stamp: int | None = None
         self.offsets = []
@@ -291,8 +310,12 @@ class RecorderNode(Node):
             return False
         return True
 
+    def _now_ns(self) -> int:
+        """The bag's log time: the node's clock, so a recording under ``use_sim_time`` is on the sim clock."""
+        return self.get_clock().now().nanoseconds
+
     def _on_joints(self, raw: bytes) -> None:
-        now = time.time_ns()
+        now = self._now_ns()
         if not self._write(self.joints_topic, now, raw):
             return
         msg = deserialize_message(raw, JointState)
@@ -300,6 +323,7 @@ class RecorderNode(Node):
         index = {n: i for i, n in enumerate(msg.name)}
         if len(msg.name) != len(msg.position) or any(n not in index for n in self.chain.joint_names):
             self.received["joint_states_without_robot_joints"] += 1
+            self.other_joint_names = tuple(msg.name)
             return
         self.aligner.add_joints(
             msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec,
@@ -308,7 +332,7 @@ class RecorderNode(Node):
         )
 
     def _on_pose(self, raw: bytes) -> None:
-        if not self._write(self.pose_topic, time.time_ns(), raw):
+        if not self._write(self.pose_topic, self._now_ns(), raw):
             return
         self.received["tracker_poses"] += 1
         try:
@@ -415,6 +439,8 @@ class RecorderNode(Node):
         lost = sum(self.lost.values())
         if lost:
             out.append((DiagnosticStatus.WARN, f"{lost} messages lost before they reached the recorder"))
+        if self.aligner.joints.n == 0 and elapsed >= self.no_joints_warn_s:
+            out.append((DiagnosticStatus.WARN, self._no_joints_message(elapsed)))
         per_min = 60.0 * self.beam_breaks / max(elapsed, 1.0)
         if self.beam_breaks >= 3 and per_min > self.max_beam_breaks:
             out.append((DiagnosticStatus.WARN, f"beam breaks {per_min:.1f}/min (more than {self.max_beam_breaks:g})"))

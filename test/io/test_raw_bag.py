@@ -110,3 +110,31 @@ def test_pairs_added_mid_chunk_keep_every_raw_message(tmp_path):
     reader.open()
     assert reader.message_count == sum(1 for _ in reader.messages()) == 3012
     reader.close()
+
+
+def test_joints_are_taken_by_name_from_any_message_that_has_them_all(tmp_path):
+    """A gripper joint first in every message, the arm's joints in another order, and a driver that also
+    publishes a message with the gripper alone: the chain's joints come out by name, the partial messages
+    are counted, none is read as the arm (the first message's names used to define the recording)."""
+    from hybrid_kinematics_ros.io.pairs import JOINT_STATE, POSE_STAMPED, joint_state_msg
+
+    writer = BagWriter(tmp_path / "gripper")
+    writer.add_topic("/joint_states", JOINT_STATE)
+    writer.add_topic("/tracker/pose", POSE_STAMPED)
+    arm = ("j1", "j2", "j3")
+    for i in range(50):
+        ns = 1_700_000_000_000_000_000 + i * 10_000_000
+        writer.write_msg("/joint_states", ns, joint_state_msg(ns, ["finger"], np.array([0.04])))
+        q = np.array([0.1 * i, -0.2 * i, 0.3])
+        writer.write_msg(
+            "/joint_states", ns, joint_state_msg(ns, ["finger", "j3", "j1", "j2"], np.r_[0.04, q[[2, 0, 1]]])
+        )
+        writer.write_msg("/tracker/pose", ns, pose_stamped_msg(ns, "tracker", np.zeros(3), np.array([0, 0, 0, 1.0])))
+    writer.close()
+    raw = read_raw(tmp_path / "gripper", "/joint_states", "/tracker/pose", arm)
+    assert raw.joint_names == arm and raw.q.shape == (50, 3)
+    np.testing.assert_array_equal(raw.q[:, 0], 0.1 * np.arange(50))
+    np.testing.assert_array_equal(raw.q[:, 1], -0.2 * np.arange(50))
+    assert raw.counts["joint_state_other_joints"] == 50
+    with pytest.raises(DataError, match="joint states with all of j1, j2, j9"):
+        read_raw(tmp_path / "gripper", "/joint_states", "/tracker/pose", ("j1", "j2", "j9"))

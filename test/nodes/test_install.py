@@ -105,6 +105,19 @@ def test_installed_package_finds_its_files_in_share(workspace):
     assert rx160 == "rx160"
 
 
+def test_installed_cli_imports_with_a_shipped_spec(workspace, tmp_path):
+    """``import --spec <shipped name>`` from the plain install: the spec is found in share, not next to
+    the installed modules (it was looked up through ``__file__`` and found nothing)."""
+    ws, _ = workspace
+    excerpt = Path(__file__).resolve().parents[1] / "fixtures" / "ipa-robot-accuracy"
+    csv = excerpt / "Series_A_measurements_grid_head40.csv"
+    command = [str(ws / LIB / "hybrid-kinematics"), "import", "--spec", "ipa_robot_accuracy_a"]
+    command += ["--robot", "ur10", "--csv", str(csv), "--out", str(tmp_path / "a")]
+    out = subprocess.run(in_workspace(ws, *command), cwd=ws, env=clean_env(), capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert "imported 40 of 40 rows" in out.stderr
+
+
 def test_kinematics_node_with_the_readme_params_file(workspace):
     """The README's run from ``~/ws``: the params file gives the URDF as a package:// path."""
     ws, client = workspace

@@ -14,6 +14,7 @@ import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from hybrid_kinematics_ros.calibration.alignment import AlignOptions, align
@@ -129,6 +130,37 @@ def test_start_stop_services_split_recordings(cell, tmp_path):
     assert [len(read_pairs(bag)) for bag in bags] == counts and min(counts) > 100, counts
     first, second = (read_pairs(bag).stamps for bag in bags)
     assert first[-1] < second[0]  # split, not copied
+
+
+def test_joint_states_without_the_robots_joints_warn_within_seconds(cell, tmp_path):
+    """A driver that names its joints otherwise (ur_robot_driver's ``shoulder_pan_joint``…) against a
+    config with ``joint_1``…: the recording WARNs in /diagnostics and in its log, naming both sets of names,
+    instead of reporting OK for an hour and ending with zero pairs."""
+    client, _ = cell
+    driver = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint"]
+    topic = "/driver_named/joint_states"
+    pub = client.node.create_publisher(JointState, topic, 10)
+    proc, _ = recorder(client, tmp_path, "names", "-p", f"joint_states_topic:={topic}", "-p", "no_joints_warn_s:=1.0")
+    warnings = []
+
+    def seen(msg) -> None:
+        warnings.extend(s.message for s in msg.status if s.name == "recorder_names" and s.level == s.WARN)
+
+    sub = client.node.create_subscription(DiagnosticArray, "/diagnostics", seen, 10)
+    try:
+        deadline = time.monotonic() + 60.0
+        while not warnings and time.monotonic() < deadline:
+            msg = JointState(name=[*driver, "wrist_3_joint"], position=[0.0] * 6)
+            msg.header.stamp = client.node.get_clock().now().to_msg()
+            pub.publish(msg)
+            client.spin_for(0.05)
+    finally:
+        client.node.destroy_subscription(sub)
+        client.node.destroy_publisher(pub)
+        stop(proc, signal.SIGINT, timeout=60)
+    assert warnings, "no WARN in /diagnostics"
+    assert "no joint state with the robot's joints (joint_1" in warnings[0] and "shoulder_pan_joint" in warnings[0]
+    assert "shoulder_pan_joint" in (tmp_path / "names.log").read_text()
 
 
 def test_unwritable_output_is_one_clear_line(tmp_path):
