@@ -49,8 +49,8 @@ HARMONICS = (0, 2, 5, 10, 20, 40)  # candidates, simplest first
 HARMONIC_PRIORS = (300.0, 30.0, 3.0)  # in pairs; a stronger prior is the simpler model
 MAP_STEPS = (0.0, 0.08, 0.04, 0.02, 0.01)  # rad; 0: no map, then ever finer
 MAP_SMOOTHNESS = (0.3, 0.03, 0.003)  # a smoother map is the simpler model
-START = {"harmonic_prior": 30.0, "map_smoothness": 0.03}
-ROUNDS = 3  # turns of choosing the elastic terms and the cyclic errors, each given the other  # the value a setting has before its turn comes
+START = {"harmonic_prior": 30.0, "map_smoothness": 0.03}  # the value a setting has before its turn comes
+ROUNDS = 3  # turns of choosing the elastic terms and the cyclic errors, each given the other
 
 
 @dataclass
@@ -275,17 +275,20 @@ def select_capacity(
     for round_ in range(1, ROUNDS + 1):
         before = (elastic, harmonics, settings["harmonic_prior"])
         elastic = decide(
-            "elastic", list(ELASTIC), lambda e: stage_residuals(e, harmonics, settings["harmonic_prior"]), round_
+            "elastic", list(ELASTIC), lambda e, h=harmonics: stage_residuals(e, h, settings["harmonic_prior"]), round_
         )
         harmonics = decide(
             "harmonics",
             [h for h in HARMONICS if h <= max(freq, default=0)],
-            lambda h: stage_residuals(elastic, h, settings["harmonic_prior"]),
+            lambda h, e=elastic: stage_residuals(e, h, settings["harmonic_prior"]),
             round_,
         )
         if harmonics > 0:
             settings["harmonic_prior"] = decide(
-                "harmonic_prior", list(HARMONIC_PRIORS), lambda p: stage_residuals(elastic, harmonics, p), round_
+                "harmonic_prior",
+                list(HARMONIC_PRIORS),
+                lambda p, e=elastic, h=harmonics: stage_residuals(e, h, p),
+                round_,
             )
         elif "harmonic_prior" not in fixed:
             made.pop("harmonic_prior", None)  # an earlier round's, for harmonics no longer fitted
