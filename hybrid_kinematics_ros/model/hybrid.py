@@ -73,6 +73,10 @@ class HybridModel:
         self.trained_lower = np.asarray(rng["lower"], dtype=float) if rng else chain.lower
         self.trained_upper = np.asarray(rng["upper"], dtype=float) if rng else chain.upper
         self._range = (self.trained_lower - 1e-9, self.trained_upper + 1e-9)
+        # A revolute joint's q and q ± 2π are one pose: such joints are taken to the turn of the trained range
+        # (where it spans at most a turn) before anything reads them, so both get one correction.
+        self._periodic = chain.revolute & (self.trained_upper - self.trained_lower <= 2 * np.pi)
+        self._turn_centre = 0.5 * (self.trained_lower + self.trained_upper)
         self._range_lists = (self._range[0].tolist(), self._range[1].tolist())
         section = self.manifest.get("parametric")
         self.base = model_from_manifest(chain, section) if section else ElasticChain.rigid(chain)
@@ -158,6 +162,7 @@ class HybridModel:
     def describe_outside(self, q: np.ndarray) -> str:
         """Why one configuration lies outside the calibrated range (the joints outside the trained range,
         or its distance to the training data), for messages."""
+        q = self.same_turn(np.asarray(q, dtype=float))
         if self.coverage_radius is not None:
             return (
                 f"{float(self.coverage_distance(q)[0]):.3f} rad from the nearest training configuration "
@@ -220,10 +225,22 @@ class HybridModel:
     def has_orientation(self) -> bool:
         return "orientation" in self.nets
 
+    def same_turn(self, q: np.ndarray) -> np.ndarray:
+        """``q (…, n)`` with each revolute joint outside the trained range moved by whole turns to the
+        equivalent angle nearest it (within π of its centre); joints inside are returned unchanged, bit for
+        bit. The URDF pose is the same; the nets, the joint error map and the range checks then see the
+        angles they were trained on, so q and q ± 2π get one correction."""
+        q = np.asarray(q, dtype=float)
+        outside = self._periodic & ((q < self._range[0]) | (q > self._range[1]))
+        if not outside.any():
+            return q
+        turns = np.where(outside, np.floor((q - self._turn_centre + np.pi) / (2 * np.pi)), 0.0)
+        return np.where(turns != 0, q - 2 * np.pi * turns, q)
+
     def in_calibrated_range(self, q: np.ndarray) -> np.ndarray:
         """``(B,)`` True where every joint lies inside the range the nets were trained on; with a coverage
         radius, True where a training configuration lies within it instead (the finer test of the two)."""
-        q = np.atleast_2d(q)
+        q = self.same_turn(np.atleast_2d(q))
         if self._coverage_radius is not None:
             return self.coverage_distance(q) <= self._coverage_radius
         lower, upper = self._range
@@ -236,7 +253,9 @@ class HybridModel:
             return bool(self.in_calibrated_range(q)[0])
         lower, upper = self._range_lists
         values = q if isinstance(q, list) else q.tolist()
-        return all(lo <= v <= hi for lo, v, hi in zip(lower, values, upper, strict=True))
+        if all(lo <= v <= hi for lo, v, hi in zip(lower, values, upper, strict=True)):
+            return True
+        return bool(self.in_calibrated_range(np.array(values))[0])  # another turn of a revolute joint
 
     def set_condition(self, name: str, value: float) -> None:
         """The current value of a condition channel (e.g. the cell's temperature), used from now on."""
@@ -329,6 +348,7 @@ class HybridModel:
         q = fk.check_joints(self.chain, q)
         if analytic:
             return fk.fk(self.chain, q)
+        q = self.same_turn(q)
         T = self.base.fk(q)
         if not nets or not self.nets:
             return T
@@ -341,6 +361,7 @@ class HybridModel:
         q = np.asarray(q, dtype=float)
         if analytic:
             return fk.fk_single(self.chain, q)
+        q = self.same_turn(q)
         T = self.base.fk_single(q) if self._rigid_base is None else fk.fk_single(self._rigid_base, q)
         if not self.nets or not self._nets_apply(q[None]):
             return T
@@ -370,6 +391,7 @@ class HybridModel:
         q = fk.check_joints(self.chain, q)
         if analytic:
             return fk.fk_and_jacobian(self.chain, q)
+        q = self.same_turn(q)
         T, J = self.base.fk_and_jacobian(q)
         if not self.nets:
             return T, J
@@ -400,6 +422,7 @@ class HybridModel:
         q = np.asarray(q, dtype=float)
         if analytic:
             return fk.fk_and_jacobian_single(self.chain, q)
+        q = self.same_turn(q)
         T, J = self.base.fk_and_jacobian_single(q)
         if not self.nets or not self._nets_apply(q[None]):
             return T, J
