@@ -9,10 +9,16 @@ callers flag it), ``parametric`` (drop the nets there) or ``refuse`` (callers fa
 :meth:`HybridModel.check_range`). A trajectory covers a thin part of that box, and away from it the nets
 extrapolate; with ``coverage_radius`` set, the calibrated range is the configurations within that
 distance of a training configuration instead.
+
+Condition channels (temperature, the joints' approach directions) are per thread: a caller that serves
+several threads (the kinematics node) keeps the current values itself and computes each answer inside
+:meth:`HybridModel.using` with a snapshot of them; :meth:`HybridModel.approaching` (IK's trial directions)
+changes only its own thread's. Without either, every thread reads the model's own values.
 """
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -93,7 +99,8 @@ class HybridModel:
         self.referencing = refs[0] if refs else None  # the first station's
         conditions = self.manifest.get("conditions") or {}
         self.condition_names = tuple(conditions)  # condition channels the nets take after the joints
-        self.condition_values = np.array([float(conditions[c]["default"]) for c in self.condition_names])
+        self._shared = np.array([float(conditions[c]["default"]) for c in self.condition_names])
+        self._local = threading.local()  # a thread's own condition values (see the module text)
         # where the joints' approach directions sit among them, in joint order (None: the nets take none)
         names = approach.channel_names(chain.joint_names)
         self.approach_index = (
@@ -278,17 +285,42 @@ class HybridModel:
         """The joints' current approach directions ``(n,)``, or None for a model whose nets do not take them."""
         return None if self.approach_index is None else self.condition_values[self.approach_index].copy()
 
+    @property
+    def condition_values(self) -> np.ndarray:
+        """``(k,)``: the condition channels this thread computes with (its own inside :meth:`using` or
+        :meth:`approaching`, else the model's)."""
+        values = getattr(self._local, "values", None)
+        return self._shared if values is None else values
+
+    @property
+    def condition_defaults(self) -> dict[str, float]:
+        """What each condition channel is when nobody sets it: the training mean (an approach direction: 0)."""
+        conditions = self.manifest.get("conditions") or {}
+        return {name: float(conditions[name]["default"]) for name in self.condition_names}
+
     @contextmanager
-    def approaching(self, directions: np.ndarray | None) -> Iterator[None]:
-        """Within the block, the model computes with these approach directions (None: the current ones);
-        then the current ones return. IK uses it for the directions a solution is reached in."""
-        saved = self.condition_values.copy()
-        if directions is not None:
-            self.set_approach(directions)
+    def using(self, values: np.ndarray) -> Iterator[None]:
+        """Within the block, this thread computes with these condition values ``(k,)`` (a copy is taken);
+        other threads, and this one afterwards, are unaffected."""
+        values = np.array(values, dtype=float)
+        if values.shape != self._shared.shape:
+            raise ModelError(f"{len(values)} condition values given; the model takes {len(self._shared)}")
+        saved = getattr(self._local, "values", None)
+        self._local.values = values
         try:
             yield
         finally:
-            self.condition_values = saved
+            self._local.values = saved
+
+    @contextmanager
+    def approaching(self, directions: np.ndarray | None) -> Iterator[None]:
+        """Within the block, this thread computes with these approach directions (None: the current ones);
+        then the current ones return. IK uses it for the directions a solution is reached in."""
+        values = self.condition_values.copy()
+        if directions is not None and self.approach_index is not None:
+            values[self.approach_index] = directions
+        with self.using(values):
+            yield
 
     def conditions_with_approach(self, directions: np.ndarray) -> np.ndarray | None:
         """``(N, k)``: the current condition values, with the approach directions ``(N, n)`` per row; None

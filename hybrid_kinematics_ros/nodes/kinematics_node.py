@@ -36,6 +36,7 @@ from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 from hybrid_kinematics_ros.kinematics.paths import resolve_path
+from hybrid_kinematics_ros.model import approach
 from hybrid_kinematics_ros.model.approach import ApproachTracker
 from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -121,10 +122,13 @@ class KinematicsNode(Node):
         self._lock = threading.Lock()
         self.model, self.solver = self._load()
         # A model trained with condition channels (hybrid-kinematics train --condition temperature) needs
-        # their current values: parameters conditions.NAME, settable at run time; unset: the training mean.
+        # their current values: parameters conditions.NAME, settable at run time; unset: the training mean,
+        # which a WARN, the diagnostics and every answer's message say. The node keeps the values (with the
+        # joints' approach directions) here, and every answer computes with a snapshot of them taken under
+        # the lock (HybridModel.using): the served model itself is never changed.
         for name in self.model.condition_names:
             self.declare_parameter(f"conditions.{name}", float("nan"))
-        self._apply_conditions(self.model)
+        self._conditions, self._unset = self._conditions_of(self.model)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.compensator = self._compensator(self.model)
         self._latest: np.ndarray | None = None
@@ -193,23 +197,53 @@ class KinematicsNode(Node):
             raise StartupError(str(exc)) from exc
         return model, self._solver(model)
 
-    def _apply_conditions(self, model: HybridModel) -> None:
-        for name in model.condition_names:
-            key = f"conditions.{name}"
-            value = self.get_parameter(key).value if self.has_parameter(key) else float("nan")
-            if value is not None and np.isfinite(value):
-                model.set_condition(name, float(value))
+    def _conditions_of(self, model: HybridModel) -> tuple[np.ndarray, list[str]]:
+        """The condition values ``model`` serves with (its defaults, then the conditions.* parameters), and
+        the channels no parameter sets (approach directions aside: the joint states set those)."""
+        unset = []
+        with model.using(model.condition_values):
+            for name in model.condition_names:
+                key = f"conditions.{name}"
+                value = self.get_parameter(key).value if self.has_parameter(key) else float("nan")
+                if value is not None and np.isfinite(value):
+                    model.set_condition(name, float(value))
+                elif not approach.is_channel(name):
+                    unset.append(name)
+            values = model.condition_values.copy()
+        for name in unset:
+            self.get_logger().warning(
+                f"parameter conditions.{name} is not set: the model uses its training mean "
+                f"{model.condition_defaults[name]:g}; set it to the cell's current value"
+            )
+        return values, unset
+
+    def _unset_note(self) -> str:
+        """What every answer's message says while a condition channel is unset."""
+        defaults = self.model.condition_defaults
+        return "".join(
+            f"; conditions.{name} is not set, its training mean {defaults[name]:g} is used" for name in self._unset
+        )
 
     def _on_set_parameters(self, params: list) -> SetParametersResult:
         for p in params:
             if not p.name.startswith("conditions."):
                 continue
+            name = p.name.removeprefix("conditions.")
             try:
                 with self._lock:
-                    self.model.set_condition(p.name.removeprefix("conditions."), float(p.value))
+                    model = self.model
+                    with model.using(self._conditions):  # checked by the model, applied to a copy
+                        model.set_condition(name, float(p.value))
+                        self._conditions = model.condition_values.copy()
+                    self._unset = [n for n in self._unset if n != name]
             except (ModelError, TypeError, ValueError) as exc:
                 return SetParametersResult(successful=False, reason=f"{p.name}: {exc}")
         return SetParametersResult(successful=True)
+
+    def _snapshot(self) -> tuple[HybridModel, IKSolver, IKSolver, np.ndarray]:
+        """The served model, its solvers and a copy of the condition values, taken together under the lock."""
+        with self._lock:
+            return self.model, self.solver, self.compensator, self._conditions.copy()
 
     def _solver(self, model: HybridModel) -> IKSolver:
         options = IKOptions(timeout_s=self.ik_timeout_ms / 1e3, require_calibrated_range=self.range_policy == "refuse")
@@ -245,26 +279,37 @@ class KinematicsNode(Node):
             )
             return
         self._latest = q
-        # a model with approach inputs follows the joints' directions of motion (a reload starts afresh)
-        if model.approach_index is not None:
-            if self._approach is None or self._approach[0] is not model:
-                self._approach = (model, ApproachTracker(len(q)))
-            model.set_approach(self._approach[1].update(q))
+        with self._lock:
+            model, values = self.model, self._conditions
+            # a model with approach inputs follows the joints' directions of motion (a reload starts afresh)
+            if model.approach_index is not None:
+                if self._approach is None or self._approach[0] is not model:
+                    self._approach = (model, ApproachTracker(len(q)))
+                values[model.approach_index] = self._approach[1].update(q)
+            values = values.copy()
         if self.pose_pub is not None:
-            if model.range_policy == "refuse" and model.nets and not model.in_calibrated_range(q)[0]:
-                self.get_logger().warn(
-                    f"no corrected pose outside the calibrated range ({model.describe_outside(q)})",
-                    throttle_duration_sec=5.0,
-                )
-                return
-            rows = model.fk_rows(q.tolist())
-            self.pose_pub.publish(pose_msg_of_rows(rows, model.chain.base_link, msg.header.stamp))
+            with model.using(values):
+                self._publish_corrected_pose(model, q, msg)
+
+    def _publish_corrected_pose(self, model: HybridModel, q: np.ndarray, msg: JointState) -> None:
+        if model.range_policy == "refuse" and model.nets and not model.in_calibrated_range(q)[0]:
+            self.get_logger().warn(
+                f"no corrected pose outside the calibrated range ({model.describe_outside(q)})",
+                throttle_duration_sec=5.0,
+            )
+            return
+        rows = model.fk_rows(q.tolist())
+        self.pose_pub.publish(pose_msg_of_rows(rows, model.chain.base_link, msg.header.stamp))
 
     def _on_fk(self, request: ComputeFK.Request, response: ComputeFK.Response) -> ComputeFK.Response:
         """The round trip costs a few hundred µs in rclpy alone and the process wakes up with cold caches,
         where each numpy call costs microseconds: one configuration takes a path of few numpy calls."""
         start = time.perf_counter()
-        model = self.model
+        model, _, _, values = self._snapshot()
+        with model.using(values):
+            return self._fk(request, response, model, start)
+
+    def _fk(self, request: ComputeFK.Request, response: ComputeFK.Response, model: HybridModel, start: float):
         try:
             states, names = request.joint_states, model.joint_names
             if not states:
@@ -295,7 +340,7 @@ class KinematicsNode(Node):
                 "ok"
                 if not model.nets or all(response.in_calibrated_range)
                 else f"some configurations lie outside the calibrated joint range; {OUTSIDE[model.range_policy]}"
-            )
+            ) + self._unset_note()
         except (RequestError, KinematicsError, ModelError) as exc:
             response.success, response.message = False, str(exc)
         except Exception as exc:  # a bug must cost one answer, never the service
@@ -321,7 +366,18 @@ class KinematicsNode(Node):
 
     def _on_ik(self, request: ComputeIK.Request, response: ComputeIK.Response) -> ComputeIK.Response:
         start = time.perf_counter()
-        model, solver = self.model, self.solver
+        model, solver, _, values = self._snapshot()
+        with model.using(values):
+            return self._ik(request, response, model, solver, start)
+
+    def _ik(
+        self,
+        request: ComputeIK.Request,
+        response: ComputeIK.Response,
+        model: HybridModel,
+        solver: IKSolver,
+        start: float,
+    ) -> ComputeIK.Response:
         try:
             target = matrix_from_msg(request.target, model.chain.base_link)
             if request.seed.position or request.seed.name:
@@ -346,7 +402,7 @@ class KinematicsNode(Node):
             response.in_calibrated_range = [bool(r.in_calibrated_range) for r in good]
             response.success = bool(good)
             if good:
-                response.message = f"{len(good)} solution(s)"
+                response.message = f"{len(good)} solution(s)" + self._unset_note()
             else:
                 response.message = (
                     results[0].message if results else "no solution found from any seed within the time budget"
@@ -366,7 +422,17 @@ class KinematicsNode(Node):
         self, request: CompensateTrajectory.Request, response: CompensateTrajectory.Response
     ) -> CompensateTrajectory.Response:
         """The corrected trajectory; on failure, the points before ``failed_index``."""
-        model, solver = self.model, self.compensator
+        model, _, solver, values = self._snapshot()
+        with model.using(values):
+            return self._compensate(request, response, model, solver)
+
+    def _compensate(
+        self,
+        request: CompensateTrajectory.Request,
+        response: CompensateTrajectory.Response,
+        model: HybridModel,
+        solver: IKSolver,
+    ) -> CompensateTrajectory.Response:
         response.failed_index = -1
         try:
             q, t, qd, qdd = trajectory_arrays(request.trajectory, model.joint_names)
@@ -414,9 +480,10 @@ class KinematicsNode(Node):
             self.get_logger().error(response.message)
             return response
         compensator = self._compensator(model)
-        self._apply_conditions(model)
+        conditions, unset = self._conditions_of(model)
         with self._lock:
             self.model, self.solver, self.compensator = model, solver, compensator
+            self._conditions, self._unset = conditions, unset
         response.success, response.message = True, f"reloaded {self.model_dir or 'the URDF model'}"
         self.get_logger().info(response.message)
         return response
@@ -430,11 +497,14 @@ class KinematicsNode(Node):
             "coverage_radius_rad": str(model.coverage_radius or 0.0),
             **self.stats.snapshot(),
         }
+        note = self._unset_note()
+        if self._unset:
+            values["conditions_unset"] = ", ".join(self._unset)
         status = DiagnosticStatus(
-            level=DiagnosticStatus.OK,
+            level=DiagnosticStatus.WARN if note else DiagnosticStatus.OK,
             name=f"{self.get_name()}: hybrid kinematics",
             hardware_id=model.chain.base_link,
-            message="calibrated model" if model.is_corrected else "analytic URDF model",
+            message=("calibrated model" if model.is_corrected else "analytic URDF model") + note,
             values=[KeyValue(key=k, value=v) for k, v in values.items()],
         )
         msg = DiagnosticArray(status=[status])

@@ -248,6 +248,80 @@ def test_condition_channels_come_from_parameters_settable_at_run_time(ros, therm
         node.destroy_node()
 
 
+def test_a_condition_set_during_an_ik_call_is_kept_and_the_ik_answers_for_its_own(ros, thermal_models, monkeypatch):
+    """The node's threads share no mutable model: a temperature set while an IK runs (here from inside
+    the solver, so the interleaving is certain) serves every later answer, and the IK itself answers for
+    the temperature it was asked with. The IK used to put the old value back when it ended, while the
+    parameter read the new one. An unset condition is named in every answer and in /diagnostics."""
+    from hybrid_kinematics_ros.model.hybrid import HybridModel
+
+    path = thermal_models[0]["thermal"].path
+    core = HybridModel.load(path)
+    q = np.array([0.3, -1.2, 1.3, -0.9, 1.1, 0.2])
+    node, client = in_process("midway", path, publish_corrected_pose=False)
+    try:
+        fk = client.service(ComputeFK, "/midway/compute_fk")
+        answer = client.call(fk, fk_request([q], core.joint_names))
+        assert answer.success and "conditions.temperature is not set, its training mean" in answer.message
+        node.set_parameters([rclpy.parameter.Parameter("conditions.temperature", value=27.0)])
+        solve = node.solver.solve
+
+        def solve_while_the_temperature_changes(*args, **kwargs):
+            node.set_parameters([rclpy.parameter.Parameter("conditions.temperature", value=19.0)])
+            return solve(*args, **kwargs)
+
+        monkeypatch.setattr(node.solver, "solve", solve_while_the_temperature_changes)
+        with core.using([27.0]):
+            target = core.fk(q + 0.02)[0]
+        answer = client.call(client.service(ComputeIK, "/midway/compute_ik"), ik_request(target, q, core.joint_names))
+        assert answer.success and "not set" not in answer.message, answer.message
+        with core.using([27.0]):  # the IK answers for the 27 °C it was asked at
+            reached = core.fk(np.array(answer.solutions[0].position))[0]
+        assert np.linalg.norm(reached[:3, 3] - target[:3, 3]) < 1e-6
+        answer = client.call(fk, fk_request([q], core.joint_names))
+        with core.using([19.0]):  # and the temperature set meanwhile serves from then on
+            np.testing.assert_allclose(poses_of(answer)[0], core.fk(q)[0], atol=1e-9)
+        with core.using([27.0]):
+            assert np.abs(poses_of(answer)[0] - core.fk(q)[0]).max() > 1e-6  # the two temperatures differ
+    finally:
+        client.close()
+        node.destroy_node()
+
+
+def test_concurrent_callers_each_get_the_answer_for_their_own_conditions(thermal_models):
+    """Threads computing with different temperatures, and one trying approach directions over and over,
+    on one model: each answer equals the one computed alone for its temperature."""
+    import threading
+
+    model = thermal_models[0]["thermal"]
+    q = np.random.default_rng(3).uniform(-1.0, 0.0, (50, 6))
+    expected = {}
+    for t in (15.0, 30.0):
+        with model.using([t]):
+            expected[t] = model.fk(q)
+    wrong: list[float] = []
+    stop_at = time.monotonic() + 2.0
+
+    def caller(t: float) -> None:
+        while time.monotonic() < stop_at:
+            with model.using([t]):
+                if not np.array_equal(model.fk(q), expected[t]):
+                    wrong.append(t)
+
+    def trier() -> None:
+        while time.monotonic() < stop_at:
+            with model.approaching(np.ones(6)):
+                model.fk(q[:1])
+
+    threads = [threading.Thread(target=caller, args=(t,)) for t in (15.0, 30.0)] + [threading.Thread(target=trier)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert not wrong
+    assert not np.allclose(expected[15.0], expected[30.0])
+
+
 def test_approach_directions_follow_the_joint_states(ros, backlash_models):
     """A model trained with approach directions serves with the directions the joints last moved in."""
     from sensor_msgs.msg import JointState
@@ -300,7 +374,7 @@ def test_approach_directions_follow_the_joint_states(ros, backlash_models):
         with core.approaching(np.ones(6)):
             assert se3.pose_errors(core.fk_single(solution), target)[0] < 1e-3  # mm
         assert se3.pose_errors(core.fk_single(solution), target)[0] > 0.1  # with the falling directions
-        np.testing.assert_array_equal(node.model.approach, -np.ones(6))  # and the node still follows the joints
+        np.testing.assert_array_equal(served(), falling)  # and the node still serves the joints' own directions
     finally:
         client.close()
         node.destroy_node()
