@@ -116,6 +116,7 @@ def identify_stations(
     seed: int = 0,
     capacity: Mapping[str, Any] | None = None,
     choose: bool = True,
+    gravity: np.ndarray | None = None,
 ) -> tuple[dict[str, Referencing], ParametricResult]:
     """The parametric stage from the pairs of every station, each referenced (``refs``, from
     :func:`reference_all`): identified with a correction of each station's placement and target mount
@@ -135,6 +136,7 @@ def identify_stations(
     common = {
         "payload_mass": payload[0],
         "payload_com": payload[1],
+        "gravity": gravity,
         "position_only": base.position_only,
         "seed": seed,
         "target": _target_offsets(base),
@@ -220,6 +222,7 @@ def fit(
     conditions: Sequence[str] = (),
     capacity: Mapping[str, Any] | None = None,
     choose_capacity: bool = True,
+    gravity: np.ndarray | None = None,
 ) -> tuple[HybridModel, dict[str, Any]]:
     """Reference, identify, train both nets within ``max_minutes`` (side by side), write the model directory.
 
@@ -229,6 +232,7 @@ def fit(
     Position-only pairs train the position net alone. ``conditions`` names condition channels of the
     pairs (``temperature``, say) that the nets take as inputs beside the joints. ``capacity`` and
     ``choose_capacity``: the stage's size, given or chosen from the training pairs (:func:`identify_stations`).
+    ``gravity``: m/s² in the base frame (None: a floor mount), for the stage's joint torques.
     """
     manifest: dict[str, Any] = {}
     raw = [[p] if isinstance(p, Pairs) else list(p) for p in (train_pairs, val_pairs, test_pairs)]
@@ -240,7 +244,7 @@ def fit(
     base = ElasticChain.rigid(chain)
     if parametric:
         start = time.perf_counter()
-        refs, result = identify_stations(chain, raw[0], refs, payload, seed, capacity, choose_capacity)
+        refs, result = identify_stations(chain, raw[0], refs, payload, seed, capacity, choose_capacity, gravity)
         if result.capacity is not None:
             manifest["capacity"] = result.capacity
             log("parametric stage capacity (cross-validated): " + capacity_module.summary(result.capacity))

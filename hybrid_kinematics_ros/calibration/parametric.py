@@ -322,12 +322,14 @@ class ParametricResult:
         if self.nominal is None:
             raise CalibrationError("this result does not know its nominal chain")
         m = self.model
-        return build_model(self.nominal, self.params, self.rigid_values, m.payload_mass, m.payload_com)
+        return build_model(
+            self.nominal, self.params, self.rigid_values, m.payload_mass, m.payload_com, gravity=m.gravity
+        )
 
     def manifest(self) -> dict[str, Any]:
         m = self.model
         return {
-            "payload": {"mass": m.payload_mass, "com": m.payload_com.tolist()},
+            "payload": {"mass": m.payload_mass, "com": m.payload_com.tolist(), "gravity": m.gravity.tolist()},
             "position_only": self.position_only,
             "rms_before": self.rms_before,
             "rms_after": self.rms_after,
@@ -406,12 +408,14 @@ def _identify(
     mount: np.ndarray | None = None,
     map_smoothness: float = MAP_SMOOTHNESS,
     linear: bool = False,
+    gravity: np.ndarray | None = None,
 ) -> ParametricResult | Linearisation:
     """Identify the elasto-geometric parameters from joints ``q (N, n)`` and measured base-frame poses ``T``
     (``linear``: only linearise the problem, see :class:`Linearisation`).
 
     Position-only: ``T`` holds the measured target points and ``target`` (m, ``(3,)`` or ``(N, 3)``) their
-    offset in the tip frame, which makes the flange's rotation observable.
+    offset in the tip frame, which makes the flange's rotation observable. ``gravity``: m/s² in the base
+    frame (None: −9.81 along z, a floor mount; a wall or ceiling mount needs its own).
 
     At most ``max_pairs`` pairs (drawn reproducibly, evenly from each ``placement``) enter the fit: a few
     thousand pin down the parameters far below the tracker noise, and the cost grows with the count.
@@ -463,7 +467,7 @@ def _identify(
         return values
 
     def chain_model(values: np.ndarray, joint_map: JointMap | None = None) -> ElasticChain:
-        return build_model(chain, chain_params, values[~movable], payload_mass, com, joint_map)
+        return build_model(chain, chain_params, values[~movable], payload_mass, com, joint_map, gravity)
 
     def measurements(values: np.ndarray, rows: np.ndarray | slice = pick) -> tuple[np.ndarray, np.ndarray | None]:
         """The measured poses of pairs ``rows`` and their target offsets, moved by the station corrections."""

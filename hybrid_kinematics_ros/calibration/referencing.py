@@ -130,7 +130,7 @@ def anchor_stations(
     values[first] = 0.0
     rigid = result.rigid_values.copy()
     rigid[first] -= result.values[first]  # first order: the URDF fit's first joint, relative to the new base
-    anchored = build_model(chain, result.params, values, m.payload_mass, m.payload_com, result.joint_map)
+    anchored = build_model(chain, result.params, values, m.payload_mass, m.payload_com, result.joint_map, m.gravity)
     moved = [replace(ref, base_to_tracker=se3.inverse(x) @ ref.base_to_tracker) for ref in refs]
     return moved, replace(result, model=anchored, values=values, rigid_values=rigid)
 

@@ -58,6 +58,14 @@ def chain_from_args(args: argparse.Namespace) -> Chain:
     return chain_from_urdf(Path(args.urdf), args.base_link, args.tip_link)
 
 
+def gravity_from_args(args: argparse.Namespace) -> np.ndarray | None:
+    """Gravity in the base frame (m/s²): the robot config's (a wall or ceiling mount says so there), else
+    ``--gravity``, else None (a floor mount)."""
+    if args.robot:
+        return load_robot_config(args.robot).gravity
+    return None if getattr(args, "gravity", None) is None else np.asarray(args.gravity, dtype=float)
+
+
 def payload_from_args(args: argparse.Namespace) -> tuple[float, np.ndarray]:
     """Payload mass (kg) and centre of mass (m, tip frame): the robot config's, else ``--payload-*``."""
     if args.robot:

@@ -27,7 +27,7 @@ from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.kinematics.se3 import exp_so3
 
-GRAVITY = np.array([0.0, 0.0, -9.81])
+GRAVITY = np.array([0.0, 0.0, -9.81])  # m/s², in the base frame: a floor-mounted robot's
 CHUNK = 4096
 
 
@@ -87,6 +87,7 @@ class ElasticChain:
     joint_error: np.ndarray | None = None  # (n, K, 2) rad: sin and cos coefficients of harmonics 1 … K
     joint_map: JointMap | None = None
     cubic_compliance: np.ndarray | None = None  # (n,) rad/Nm³: the deflection's term in τ³ (load-dependent stiffness)
+    gravity: np.ndarray = field(default_factory=lambda: GRAVITY.copy())  # m/s², base frame (wall, ceiling, tilt)
 
     def corrected_joints(self, q: np.ndarray) -> np.ndarray:
         """Commanded joints ``(B, n)`` plus zero offsets and cyclic joint errors: what the rigid links reach."""
@@ -146,7 +147,7 @@ class ElasticChain:
         tip = frames[:, n]
         payload = tip[:, :3, :3] @ self.payload_com + tip[:, :3, 3]
         com = np.concatenate([com, payload[:, None]], axis=1)
-        force = np.append(self.chain.segment_mass, self.payload_mass)[:, None] * GRAVITY  # (n + 1, 3)
+        force = np.append(self.chain.segment_mass, self.payload_mass)[:, None] * self.gravity  # (n + 1, 3)
         axes = np.einsum("bkij,kj->bki", frames[:, :n, :3, :3], self.chain.axes)
         # Moment about joint j of the loads beyond it: Σ_i≥j (c_i − o_j) × f_i = Σ c_i × f_i − o_j × Σ f_i
         moments = np.cross(com, force)[:, ::-1].cumsum(axis=1)[:, ::-1][:, :n]
@@ -233,8 +234,8 @@ class ElasticChain:
     def _single(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Frames after bending ``(n, 4, 4)``, the tip and the bends ``(n, 3, 3)`` of one configuration.
 
-        The batch code with a batch of one costs ~300 µs in numpy overhead. Here gravity along −z turns
-        the moments' cross products into two sums, and the constant loads are cached.
+        The batch code with a batch of one costs ~300 µs in numpy overhead. Here the moments come from one
+        cumulative sum of first moments, and the constant loads are cached.
         """
         chain = self.chain
         q_eff = self.corrected_joints(q)
@@ -245,14 +246,12 @@ class ElasticChain:
         com[:-1] = (rot @ chain.segment_com[:, :, None])[:, :, 0] + origins
         com[-1] = tip[:3, :3] @ self.payload_com + tip[:3, 3]
         mass, beyond = self._loads
-        # moment about joint j of the loads beyond it, for g = (0, 0, −g): g · (−Σ m_i y_i, Σ m_i x_i, 0)
-        # taken about the joint origin: Σ_i≥j m_i (c_i − o_j)
-        first = np.cumsum((mass[:, None] * com[:, :2])[::-1], axis=0)[::-1][:-1] - beyond[:, None] * origins[:, :2]
+        # moment about joint j of the loads beyond it, taken about the joint origin: (Σ_i≥j m_i (c_i − o_j)) × g
+        first = np.cumsum((mass[:, None] * com)[::-1], axis=0)[::-1][:-1] - beyond[:, None] * origins
         axes = (rot @ chain.axes[:, :, None])[:, :, 0]
-        g = -GRAVITY[2]
-        torque = g * (first[:, 0] * axes[:, 1] - first[:, 1] * axes[:, 0])
+        torque = np.einsum("ki,ki->k", axes, np.cross(first, self.gravity))
         if not chain.revolute.all():
-            torque = np.where(chain.revolute, torque, -g * beyond * axes[:, 2])
+            torque = np.where(chain.revolute, torque, beyond * (axes @ self.gravity))
         q_eff = q_eff + self.deflection(torque)
         bend = exp_so3(torque[:, None] * self.bending)
         frames = self._rigid_frames(q_eff, bend)

@@ -15,6 +15,7 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
+from hybrid_kinematics_ros.kinematics.elastic import GRAVITY
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 from hybrid_kinematics_ros.kinematics.paths import config_dir, resolve_path
 
@@ -45,6 +46,7 @@ class RobotConfig:
     chain: Chain
     payload_mass: float = 0.0
     payload_com: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    gravity: np.ndarray = field(default_factory=lambda: GRAVITY.copy())  # m/s², base frame
     truth: dict[str, Any] = field(default_factory=dict)
     tracker: dict[str, Any] = field(default_factory=dict)
 
@@ -86,6 +88,9 @@ def load_robot_config(spec: str | Path) -> RobotConfig:
             )
         chain = chain.with_limits(np.maximum(lower, chain.lower), np.minimum(upper, chain.upper))
     payload = raw.get("payload") or {}
+    gravity = np.asarray(raw.get("gravity", GRAVITY), dtype=float)
+    if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
+        raise KinematicsError(f"{path}: field 'gravity' needs three numbers (m/s², in the base frame)")
     return RobotConfig(
         name=str(raw.get("name", path.stem)),
         path=path,
@@ -95,6 +100,7 @@ def load_robot_config(spec: str | Path) -> RobotConfig:
         chain=chain,
         payload_mass=float(payload.get("mass", 0.0)),
         payload_com=np.asarray(payload.get("com", [0.0, 0.0, 0.0]), dtype=float),
+        gravity=gravity,
         truth=dict(raw.get("truth") or {}),
         tracker=dict(raw.get("tracker") or {}),
     )

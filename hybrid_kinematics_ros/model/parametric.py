@@ -11,7 +11,7 @@ import numpy as np
 
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.chain import Chain
-from hybrid_kinematics_ros.kinematics.elastic import ElasticChain, JointMap, bending_basis
+from hybrid_kinematics_ros.kinematics.elastic import GRAVITY, ElasticChain, JointMap, bending_basis
 from hybrid_kinematics_ros.model.errors import ModelError
 
 
@@ -30,9 +30,10 @@ def build_model(
     payload_mass: float,
     payload_com: np.ndarray,
     joint_map: JointMap | None = None,
+    gravity: np.ndarray | None = None,
 ) -> ElasticChain:
     """The elastic chain for parameter ``values`` in SI units (one per entry of ``params``), and the joint
-    error map if there is one."""
+    error map if there is one. ``gravity``: m/s² in the base frame (None: −9.81 along z)."""
     n = chain.dof
     zero, compliance, cubic, bend_uv = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((n, 2))
     delta = np.zeros((n + 1, 6))
@@ -64,6 +65,7 @@ def build_model(
         joint_error=cyclic if np.any(cyclic) else None,
         joint_map=joint_map,
         cubic_compliance=cubic if np.any(cubic) else None,
+        gravity=GRAVITY.copy() if gravity is None else np.asarray(gravity, dtype=float),
     )
 
 
@@ -80,6 +82,9 @@ def model_from_manifest(chain: Chain, section: dict[str, Any], rigid: bool = Fal
         joint_map = None if rigid or "joint_map" not in section else JointMap.from_manifest(section["joint_map"])
         if joint_map is not None and len(joint_map.lower) != chain.dof:
             raise ValueError(f"joint_map has {len(joint_map.lower)} joints, the chain {chain.dof}")
-        return build_model(chain, params, values, float(payload["mass"]), np.asarray(payload["com"], float), joint_map)
+        gravity = payload.get("gravity")  # models before the gravity vector: a floor mount
+        return build_model(
+            chain, params, values, float(payload["mass"]), np.asarray(payload["com"], float), joint_map, gravity
+        )
     except (KeyError, TypeError, ValueError) as exc:
         raise ModelError(f"model.json: the parametric section is malformed ({exc!r})") from exc

@@ -16,6 +16,7 @@ import signal
 import sys
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import rclpy
@@ -119,6 +120,12 @@ class KinematicsNode(Node):
             "space, rad), instead of the trained joint ranges (hybrid-kinematics evaluate suggests one); 0: off",
         )
 
+        self.gravity = declare(
+            "gravity",
+            [0.0, 0.0, 0.0],
+            "m/s² in the base frame, for the parametric stage's joint torques (a wall or ceiling mount); "
+            "0 0 0: the model's own (model.json, from the robot config it was trained with)",
+        )
         self._lock = threading.Lock()
         self.model, self.solver = self._load()
         # A model trained with condition channels (hybrid-kinematics train --condition temperature) needs
@@ -193,6 +200,11 @@ class KinematicsNode(Node):
                 model = HybridModel.analytic_only(chain_from_urdf(urdf, self.base_link, self.tip_link))
             model.range_policy = self.range_policy
             model.coverage_radius = self.coverage_radius if self.coverage_radius > 0 else None
+            gravity = np.asarray(self.gravity, dtype=float)
+            if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
+                raise StartupError(f"parameter gravity: {list(self.gravity)} is not three finite numbers (m/s²)")
+            if np.any(gravity):
+                model.base = replace(model.base, gravity=gravity)
         except LOAD_ERRORS as exc:
             raise StartupError(str(exc)) from exc
         return model, self._solver(model)

@@ -113,6 +113,7 @@ class TrueRobot:
             cfg.payload_com,
             cubic_ratio=float(comp.get("cubic_ratio", 0.0)),
             torque_ref=float(comp.get("torque_ref_nm", 100.0)),
+            gravity=cfg.gravity,
         )
         return cls(nominal=chain, elastic=elastic, gear_amplitude=gear_amplitude, gear_phase=gear_phase)
 

@@ -211,3 +211,28 @@ def test_joint_error_map_learns_errors_too_short_for_the_harmonics():
     assert after.mean() < before.mean() / 10
     # the map is the error itself: joint 2's at held-out angles, to a tenth of its amplitude
     np.testing.assert_allclose(joint_map(qt)[0][:, 1], 3e-5 * np.sin(70 * qt[:, 1]), atol=3e-6)
+
+
+def test_a_wall_mounted_robot_is_identified_with_its_own_gravity(cell, tmp_path):
+    """Gravity along the base's −x (a wall mount): the stage identified with the robot config's gravity
+    vector matches the truth, and it round-trips through model.json; with the floor's −z it cannot
+    (gravity used to be −z of the base, whatever the mount)."""
+    cfg, _, q, _ = cell
+    wall = tmp_path / "wall.yaml"
+    (tmp_path / "ur10.urdf").write_text(cfg.urdf_path.read_text())
+    wall.write_text(cfg.path.read_text() + "\ngravity: [-9.81, 0.0, 0.0]\n")
+    wall_cfg = replace(load_robot_config(wall), truth=cfg.truth)
+    np.testing.assert_array_equal(wall_cfg.gravity, [-9.81, 0.0, 0.0])
+    robot = TrueRobot.from_config(wall_cfg, enabled={"gear": False})
+    T = robot.fk(q)
+    test_q = np.random.default_rng(1).uniform(cfg.chain.lower, cfg.chain.upper, (300, cfg.chain.dof))
+    result = identify(cfg.chain, q, T, cfg.payload_mass, cfg.payload_com, max_pairs=1500, gravity=wall_cfg.gravity)
+    pos, _ = se3.pose_errors(robot.fk(test_q), result.model.fk(test_q))
+    assert pos.max() < 2e-3  # mm
+    served = model_from_manifest(cfg.chain, result.manifest())
+    np.testing.assert_array_equal(served.gravity, wall_cfg.gravity)
+    np.testing.assert_allclose(served.fk(test_q), result.model.fk(test_q), atol=1e-12)
+    single = np.array([served.fk_single(x) for x in test_q[:5]])
+    np.testing.assert_allclose(single, served.fk(test_q[:5]), atol=1e-12)
+    floor = identify(cfg.chain, q, T, cfg.payload_mass, cfg.payload_com, max_pairs=1500)
+    assert se3.pose_errors(robot.fk(test_q), floor.model.fk(test_q))[0].mean() > 20 * pos.mean()

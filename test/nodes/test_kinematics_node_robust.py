@@ -288,6 +288,31 @@ def test_a_condition_set_during_an_ik_call_is_kept_and_the_ik_answers_for_its_ow
         node.destroy_node()
 
 
+def test_gravity_parameter_serves_the_stage_for_another_mount(ros, thermal_models):
+    """``gravity`` (m/s², base frame) replaces the model's for the stage's joint torques; a malformed one
+    stops the node with one line naming the parameter."""
+    from dataclasses import replace
+
+    from hybrid_kinematics_ros.model.hybrid import HybridModel
+    from hybrid_kinematics_ros.nodes.runtime import StartupError
+
+    path = thermal_models[0]["thermal"].path
+    core = HybridModel.load(path)
+    wall = np.array([-9.81, 0.0, 0.0])
+    q = np.array([0.3, -1.2, 1.3, -0.9, 1.1, 0.2])
+    node, client = in_process("wall", path, publish_corrected_pose=False, gravity=wall.tolist())
+    try:
+        answer = client.call(client.service(ComputeFK, "/wall/compute_fk"), fk_request([q], core.joint_names))
+        core.base = replace(core.base, gravity=wall)
+        np.testing.assert_allclose(poses_of(answer)[0], core.fk(q)[0], atol=1e-9)
+        assert np.abs(poses_of(answer)[0] - HybridModel.load(path).fk(q)[0]).max() > 1e-5  # the mount matters
+    finally:
+        client.close()
+        node.destroy_node()
+    with pytest.raises(StartupError, match="parameter gravity"):
+        in_process("badgravity", path, gravity=[0.0, float("nan"), 1.0])
+
+
 def test_concurrent_callers_each_get_the_answer_for_their_own_conditions(thermal_models):
     """Threads computing with different temperatures, and one trying approach directions over and over,
     on one model: each answer equals the one computed alone for its temperature."""

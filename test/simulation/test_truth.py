@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-from hybrid_kinematics_ros.kinematics import elastic, fk, se3
+from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from hybrid_kinematics_ros.simulation.tracker import Tracker
@@ -60,12 +62,8 @@ def test_compliance_deflection_changes_sign_with_gravity(cfg):
     deflection = robot.effective_joints(q)[0] - q
     torques = robot.gravity_torques(q)
     assert np.all(np.sign(deflection[np.abs(torques) > 1e-3]) == np.sign(torques[np.abs(torques) > 1e-3]))
-    old = elastic.GRAVITY
-    try:
-        elastic.GRAVITY = -old
-        flipped = robot.effective_joints(q)[0] - q
-    finally:
-        elastic.GRAVITY = old
+    upside_down = replace(robot, elastic=replace(robot.elastic, gravity=-robot.elastic.gravity))
+    flipped = upside_down.effective_joints(q)[0] - q
     np.testing.assert_allclose(flipped, -deflection, rtol=1e-9, atol=1e-15)
 
 
