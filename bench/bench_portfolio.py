@@ -1,8 +1,8 @@
 """The portfolio: every virtual cell of ``simulation.portfolio`` and the real UR10, each against its floor.
 
 Each cell is trained twice, side by side in one run: with the capacity chosen from its training pairs
-(``train``'s default) and with the stage's former fixed constants (40 harmonics, prior 30, a 0.01 rad
-joint error map). Errors are held-out means and p95, at the target in the measuring frame.
+(``train``'s default) and with the stage's former fixed constants (every elastic term, 40 harmonics,
+prior 30, a 0.01 rad joint error map). Errors are held-out means and p95, at the target in the measuring frame.
 
 Usage: python -m bench.bench_portfolio [--steps S] [--virtual-only] [--only SUBSTRING]
 """
@@ -147,8 +147,9 @@ def main() -> None:
         "the held-out fifth of each series in contiguous blocks, as `bench_real`; the nets take the approach "
         f"directions there and in the backlash cells. Nets: `fast`, one per residual, {args.steps:,} steps "
         "each. The **capacity** of the stage is chosen from each cell's training pairs (`train`'s default); "
-        "the *former constants* columns train the same cell with the fixed capacity used before (40 "
-        "harmonics, prior 30, a 0.01 rad joint error map).\n\n" + table(HEAD, rows)
+        "the *former constants* columns train the same cell with the fixed capacity used before (every elastic "
+        "term, 40 harmonics, prior 30, a 0.01 rad joint error map; the elastic terms now include the cubic and "
+        "signed compliances, so the column isolates the capacity's choice).\n\n" + table(HEAD, rows)
     )
     write_section("portfolio", "Portfolio: every cell against its floor", body)
 

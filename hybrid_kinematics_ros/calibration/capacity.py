@@ -7,7 +7,8 @@ along a recording never sit on both sides), and the simpler candidate wins unles
 by more than the validation noise (the standard error of the per-block differences: the one-standard-
 error rule). The choices are made one after the other, each on top of the ones before:
 
-1. the elastic terms: geometry only, plus joint compliance, plus its cubic term, plus link bending;
+1. the elastic terms: geometry only, plus joint compliance, plus its cubic term, plus a term in the
+   torque's size (stiffer one way than the other), plus link bending;
 2. the number of harmonics of the cyclic joint errors (0: none), then their prior; 1 and 2 again, each
    given the other, until neither changes (bending judged without the gears' errors hides in them);
 3. the joint error map's knot spacing (0: none), then its smoothness.
@@ -43,7 +44,8 @@ ELASTIC = {  # each level adds to the one before
     "geometry": ("zero", "translation", "rotation"),
     "compliance": ("zero", "translation", "rotation", "compliance"),
     "cubic": ("zero", "translation", "rotation", "compliance", "cubic"),
-    "bending": ("zero", "translation", "rotation", "compliance", "cubic", "bending"),
+    "signed": ("zero", "translation", "rotation", "compliance", "cubic", "signed"),
+    "bending": ("zero", "translation", "rotation", "compliance", "cubic", "signed", "bending"),
 }
 HARMONICS = (0, 2, 5, 10, 20, 40)  # candidates, simplest first
 HARMONIC_PRIORS = (300.0, 30.0, 3.0)  # in pairs; a stronger prior is the simpler model

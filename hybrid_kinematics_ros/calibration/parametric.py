@@ -5,7 +5,8 @@ Parameters (all small, starting from the nominal URDF):
 - zero offsets of every joint;
 - joint compliances against the gravity torques computed from the URDF inertials and the payload, and a
   cubic term of each (``c₃ τ³``): gears stiffen with load (a spring with ``1 + r (τ/τ_ref)²`` stiffening,
-  the simulator's, left 0.056 mm where a linear compliance alone fits, 0.023 mm with it, on a 0.023 mm floor);
+  the simulator's, left 0.056 mm where a linear compliance alone fits, 0.023 mm with it, on a 0.023 mm floor),
+  and a term in ``|τ|`` (``c±``: a joint stiffer under one sign of torque than under the other);
 - link bending: a rotation per Nm of joint torque about the two axes perpendicular to each joint axis;
 - a small rigid transform (x, y, z, rx, ry, rz) of every joint origin and of the flange (its rotation
   also tilts the joint's axis: axis misalignment needs no parameters of its own);
@@ -75,6 +76,7 @@ SCALE = {
     "zero": 1e-3,
     "compliance": 1e-4,
     "cubic": 1e-10,
+    "signed": 1e-5,
     "bending": 1e-6,
     "translation": 1e-3,
     "rotation": 1e-3,
@@ -84,6 +86,7 @@ UNITS = {
     "zero": "rad",
     "compliance": "rad/Nm",
     "cubic": "rad/Nm³",
+    "signed": "rad/Nm",
     "bending": "rad/Nm",
     "translation": "m",
     "rotation": "rad",
@@ -105,6 +108,7 @@ def parameter_list(chain: Chain, harmonics: int = 0) -> list[Parameter]:
     out = [Parameter(f"zero offset {j}", "zero", k, 0) for k, j in enumerate(names)]
     out += [Parameter(f"compliance {j}", "compliance", k, 0) for k, j in enumerate(names)]
     out += [Parameter(f"cubic compliance {j}", "cubic", k, 0) for k, j in enumerate(names)]
+    out += [Parameter(f"signed compliance {j}", "signed", k, 0) for k, j in enumerate(names)]
     out += [Parameter(f"bending {j} {c}", "bending", k, i) for k, j in enumerate(names) for i, c in enumerate("uv")]
     frames = [f"origin {j}" for j in names] + ["flange"]
     for k, frame in enumerate(frames):

@@ -87,6 +87,7 @@ class ElasticChain:
     joint_error: np.ndarray | None = None  # (n, K, 2) rad: sin and cos coefficients of harmonics 1 … K
     joint_map: JointMap | None = None
     cubic_compliance: np.ndarray | None = None  # (n,) rad/Nm³: the deflection's term in τ³ (load-dependent stiffness)
+    signed_compliance: np.ndarray | None = None  # (n,) rad/Nm: the term in |τ| (stiffer one way than the other)
     gravity: np.ndarray = field(default_factory=lambda: GRAVITY.copy())  # m/s², base frame (wall, ceiling, tilt)
 
     def corrected_joints(self, q: np.ndarray) -> np.ndarray:
@@ -136,8 +137,8 @@ class ElasticChain:
 
     @cached_property
     def is_elastic(self) -> bool:
-        cubic = self.cubic_compliance is not None and bool(np.any(self.cubic_compliance))
-        return bool(np.any(self.compliance) or np.any(self.bending) or cubic)
+        extra = (self.cubic_compliance, self.signed_compliance)
+        return bool(np.any(self.compliance) or np.any(self.bending) or any(e is not None and np.any(e) for e in extra))
 
     def gravity_torques(self, q: np.ndarray) -> np.ndarray:
         """Torques ``(B, n)`` (Nm) that gravity exerts about each joint axis (force along prismatic axes)."""
@@ -170,10 +171,14 @@ class ElasticChain:
     def deflection(self, torque: np.ndarray) -> np.ndarray:
         """Joint deflections ``(..., n)`` under the gravity torques ``(..., n)``: a spring that stiffens with
         load, ``c τ / (1 + r (τ/τ_ref)²)`` (the simulator's truth), plus the identified stage's ``c₃ τ³``
-        (the same stiffening to first order; harmonic drives and cycloidal gears are softer near zero load)."""
+        (the same stiffening to first order; harmonic drives and cycloidal gears are softer near zero load)
+        and ``c± |τ|`` (a joint stiffer under one sign of torque than the other: ``c + c±`` one way,
+        ``c − c±`` the other)."""
         out = self.compliance * torque / (1.0 + self.cubic_ratio * (torque / self.torque_ref) ** 2)
         if self.cubic_compliance is not None:
             out = out + self.cubic_compliance * torque**3
+        if self.signed_compliance is not None:
+            out = out + self.signed_compliance * np.abs(torque)
         return out
 
     def fk(self, q: np.ndarray) -> np.ndarray:

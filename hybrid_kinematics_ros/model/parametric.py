@@ -19,7 +19,7 @@ from hybrid_kinematics_ros.model.errors import ModelError
 class Parameter:
     name: str
     kind: str
-    index: int  # joint (zero, compliance, cubic, bending, harmonic) or frame (translation, rotation; n is the flange)
+    index: int  # joint (elastic kinds, zero, harmonic) or frame (translation, rotation; n is the flange)
     component: int  # harmonic: 2 (f - 1) for sin(f q), 2 (f - 1) + 1 for cos(f q)
 
 
@@ -35,7 +35,7 @@ def build_model(
     """The elastic chain for parameter ``values`` in SI units (one per entry of ``params``), and the joint
     error map if there is one. ``gravity``: m/s² in the base frame (None: −9.81 along z)."""
     n = chain.dof
-    zero, compliance, cubic, bend_uv = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((n, 2))
+    zero, compliance, cubic, signed, bend_uv = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((n, 2))
     delta = np.zeros((n + 1, 6))
     k_max = max((p.component // 2 + 1 for p in params if p.kind == "harmonic"), default=0)
     cyclic = np.zeros((n, k_max, 2))
@@ -48,6 +48,8 @@ def build_model(
             compliance[p.index] = v
         elif p.kind == "cubic":
             cubic[p.index] = v
+        elif p.kind == "signed":
+            signed[p.index] = v
         elif p.kind == "bending":
             bend_uv[p.index, p.component] = v
         else:
@@ -65,6 +67,7 @@ def build_model(
         joint_error=cyclic if np.any(cyclic) else None,
         joint_map=joint_map,
         cubic_compliance=cubic if np.any(cubic) else None,
+        signed_compliance=signed if np.any(signed) else None,
         gravity=GRAVITY.copy() if gravity is None else np.asarray(gravity, dtype=float),
     )
 
