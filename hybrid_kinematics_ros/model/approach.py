@@ -6,7 +6,10 @@ data set (series A) the residual of the parametric stage depends on that directi
 input predict held-out poses 10 % better in position and 14 % in orientation than nets on the joints alone.
 ISO 9283 measures the same effect as multi-directional pose accuracy.
 
-The direction is +1 or -1 per joint, the sign of the joint's last move larger than ``still`` (rad);
+The direction is +1 or -1 per joint: the way the joint last went by more than ``still`` (rad) from its
+last turning point, with hysteresis, so the label does not depend on how often the motion was sampled.
+A slow final approach of 0.5 mrad is a move whether it arrives as one row of a tracker export or as
+thousands of 500 Hz joint states a few microradians apart (judged step by step, it was no move at all).
 0 where no move is known yet (the first pose, or a joint that has not moved), which the nets take as
 halfway between the two sides. It comes from the order of the poses: the rows of a tracker export, the
 pairs of a bag in stamp order, the joint states a node receives.
@@ -32,17 +35,17 @@ def is_channel(name: str) -> bool:
 
 
 def approach_directions(q: np.ndarray, still: float = STILL_RAD, start: np.ndarray | None = None) -> np.ndarray:
-    """``(N, n)`` in {-1, 0, +1}: for each pose of the sequence ``q (N, n)`` and each joint, the sign of
-    the joint's last move (larger than ``still``) up to that pose; ``start (n,)`` the directions before
-    the first pose (default 0: unknown)."""
+    """``(N, n)`` in {-1, 0, +1}: for each pose of the sequence ``q (N, n)`` and each joint, the way it last
+    went by more than ``still`` from its last turning point (see the module text); ``start (n,)`` the
+    directions before the first pose (default 0: unknown)."""
     q = np.asarray(q, dtype=float)
-    step = np.diff(q, axis=0, prepend=q[:1])
-    moved = np.abs(step) > still
-    sign = np.where(moved, np.sign(step), 0.0)
-    rows = np.arange(len(q))[:, None]
-    last = np.maximum.accumulate(np.where(moved, rows, -1), axis=0)  # index of the last move, -1: none
-    before = np.zeros(q.shape[1]) if start is None else np.asarray(start, dtype=float)
-    return np.where(last >= 0, np.take_along_axis(sign, np.maximum(last, 0), axis=0), before)
+    out = np.empty_like(q)
+    if not len(q):
+        return out
+    tracker = ApproachTracker(q.shape[1], still, start)
+    for i, row in enumerate(q):
+        out[i] = tracker.update(row)
+    return out
 
 
 def arrival_directions(start: np.ndarray, end: np.ndarray, current: np.ndarray, still: float = STILL_RAD) -> np.ndarray:
@@ -54,16 +57,23 @@ def arrival_directions(start: np.ndarray, end: np.ndarray, current: np.ndarray, 
 
 
 class ApproachTracker:
-    """The same directions from a stream of joint positions, one at a time (a node's joint states)."""
+    """The directions from a stream of joint positions, one at a time (a node's joint states, or the rows
+    of a sequence): a Schmitt trigger on each joint's travel since its last turning point."""
 
-    def __init__(self, dof: int, still: float = STILL_RAD) -> None:
+    def __init__(self, dof: int, still: float = STILL_RAD, start: np.ndarray | None = None) -> None:
         self.still = still
-        self.previous: np.ndarray | None = None
-        self.directions = np.zeros(dof)
+        self.directions = np.zeros(dof) if start is None else np.array(start, dtype=float)
+        self.extreme: np.ndarray | None = None  # furthest point of the current direction (the start, at first)
 
     def update(self, q: np.ndarray) -> np.ndarray:
         q = np.asarray(q, dtype=float)
-        if self.previous is not None:
-            self.directions = arrival_directions(self.previous, q, self.directions, self.still)
-        self.previous = q
+        if self.extreme is None:
+            self.extreme = q.copy()
+            return self.directions
+        d, e = self.directions, self.extreme
+        up = (q > e + self.still) & (d <= 0)  # turned (or first moved) upwards by more than still
+        down = (q < e - self.still) & (d >= 0)
+        further = ((d > 0) & (q > e)) | ((d < 0) & (q < e))  # still going the same way: a new extreme
+        self.directions = np.where(up, 1.0, np.where(down, -1.0, d))
+        self.extreme = np.where(up | down | further, q, e)
         return self.directions

@@ -6,7 +6,8 @@ poses, one pose every ``seconds_per_pose``; training and test pairs are separate
 ground-truth robot (:mod:`simulation.truth`) a cell can add what real cells show and the simulator's robot
 does not:
 
-- backlash: each joint stops on the side of its play it arrived from (``half_backlash_rad``);
+- backlash: each joint stops on the side of its play it arrived from (``half_backlash_rad``; the
+  physical play of ``simulation.backlash``, not the approach labels the nets get);
 - stiffness that depends on the torque's sign: the spring is ``asymmetry`` softer one way than the other
   (an extra deflection ``asymmetry · c · |τ|``, which a symmetric compliance cannot carry);
 - thermal drift of the arm: its reach grows by ``thermal_ppm`` (10⁻⁶) over the session as it warms,
@@ -28,7 +29,7 @@ import numpy as np
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.robot_config import RobotConfig, load_robot_config
-from hybrid_kinematics_ros.model.approach import approach_directions
+from hybrid_kinematics_ros.simulation.backlash import play
 from hybrid_kinematics_ros.simulation.sampling import joint_range
 from hybrid_kinematics_ros.simulation.tracker import Tracker
 from hybrid_kinematics_ros.simulation.truth import TrueRobot
@@ -108,7 +109,7 @@ def build_cell(spec: CellSpec) -> Cell:
 
     def truth(q: np.ndarray) -> np.ndarray:
         """True tip poses at commanded ``q`` along a walk: backlash sides, the torque-sign spring."""
-        reached = q + half * approach_directions(q)
+        reached = play(q, half)  # the walk's straight moves: its poses alone give the play exactly
         if spec.asymmetry:
             reached = reached + spec.asymmetry * c * np.abs(robot.gravity_torques(reached))
         return robot.fk(reached)

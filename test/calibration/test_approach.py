@@ -3,12 +3,15 @@ direction it came from), trained with and without the directions, judged on a he
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
 from hybrid_kinematics_ros.calibration.fit import load_stations
 from hybrid_kinematics_ros.io.pairs import write_pairs
 from hybrid_kinematics_ros.model.approach import ApproachTracker, approach_directions, channel_names
+from hybrid_kinematics_ros.simulation.backlash import play
 from test.conftest import backlash_pairs
 
 
@@ -24,6 +27,28 @@ def test_streaming_tracker_agrees_with_the_sequence():
     tracker = ApproachTracker(6)
     streamed = np.array([tracker.update(row).copy() for row in q])
     np.testing.assert_array_equal(streamed, approach_directions(q))
+
+
+def test_a_slow_approach_is_labelled_alike_at_any_sampling_rate_and_as_the_play_stops():
+    """Moves of 2-20 mrad at 10 mrad/s, as 500 Hz joint states (20 µrad apart) and as one row per pose
+    (a tracker export): the same directions at every pose, and the side the physical play stops on. Judged
+    step by step, the joint states showed no move at all and the export did."""
+    rng = np.random.default_rng(7)
+    poses = np.cumsum(rng.choice([-1.0, 1.0], (30, 6)) * rng.uniform(2e-3, 2e-2, (30, 6)), axis=0)
+    segments, at_pose = [poses[:1]], [0]
+    for a, b in itertools.pairwise(poses):
+        samples = int(np.ceil(np.abs(b - a).max() / 2e-5))  # 10 mrad/s at 500 Hz
+        segments.append(a + (b - a) * np.linspace(0.0, 1.0, samples + 1)[1:, None])
+        at_pose.append(at_pose[-1] + samples)
+    dense = np.concatenate(segments)
+    assert np.abs(np.diff(dense, axis=0)).max() <= 2.01e-5
+    from_stream = approach_directions(dense)[at_pose]
+    from_rows = approach_directions(poses)
+    np.testing.assert_array_equal(from_stream[1:], from_rows[1:])
+    assert np.all(from_rows[1:] != 0)
+    half = np.full(6, 3e-4)
+    stops = play(dense, half)[at_pose] - poses  # every move is longer than the play: a full side
+    np.testing.assert_allclose(stops[1:], -half * from_rows[1:], atol=1e-12)
 
 
 def test_the_directions_learn_what_the_joints_cannot(backlash_models):
