@@ -61,6 +61,8 @@ class Chain:
     urdf_text: str = field(default="", repr=False)
     tool: np.ndarray = field(default_factory=lambda: np.eye(4))  # the part of ``post`` added by a robot config
     inertial_warnings: tuple[str, ...] = ()  # links whose implausible inertials were left out (see chain_from_urdf)
+    # every link on the path: (k, F), its pose being joint k's frame after its motion times F (k = -1: the base)
+    link_frames: dict[str, tuple[int, np.ndarray]] = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         for name in (
@@ -273,6 +275,7 @@ def chain_from_urdf(source: str | Path, base_link: str, tip_link: str) -> Chain:
     implausible: list[str] = []
     fixed = np.eye(4)  # transform accumulated since the last actuated joint frame
     mass, moment = 0.0, np.zeros(3)  # of the segment since the last actuated joint, in its frame
+    link_frames = {base_link: (-1, np.eye(4))}
 
     def add_inertial(link_name: str, frame: np.ndarray) -> None:
         nonlocal mass, moment
@@ -295,6 +298,7 @@ def chain_from_urdf(source: str | Path, base_link: str, tip_link: str) -> Chain:
         if joint.type == "fixed":
             fixed = fixed @ origin
             add_inertial(joint.child, fixed)
+            link_frames[joint.child] = (len(names) - 1, fixed.copy())
             continue
         if joint.type not in ACTUATED:
             raise KinematicsError(
@@ -323,6 +327,7 @@ def chain_from_urdf(source: str | Path, base_link: str, tip_link: str) -> Chain:
         upper.append(hi)
         fixed = np.eye(4)
         add_inertial(joint.child, fixed)
+        link_frames[joint.child] = (len(names) - 1, np.eye(4))
     if not names:
         raise KinematicsError(f"the path from '{base_link}' to '{tip_link}' has no actuated joint")
     seg_mass.append(mass)
@@ -343,6 +348,7 @@ def chain_from_urdf(source: str | Path, base_link: str, tip_link: str) -> Chain:
         segment_com=np.array(seg_com),
         urdf_sha256=hashlib.sha256(text.encode()).hexdigest(),
         urdf_text=text,
+        link_frames=link_frames,
         inertial_warnings=tuple(implausible),
     )
     for message in implausible:

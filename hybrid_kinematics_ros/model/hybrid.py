@@ -406,6 +406,21 @@ class HybridModel:
             T[:3, :3] = exp_so3(self._fast["orientation"](x)) @ T[:3, :3]
         return T
 
+    def link_pose(self, link: str, q: np.ndarray) -> np.ndarray:
+        """``(4, 4)``: where ``link`` of the chain is at joints ``q (n,)``, in the base frame. The tip link, and
+        every link fixed to it, come from this model's tip pose (what the robot really does there); links
+        between the joints from the URDF (the stage and the nets correct the tip only)."""
+        frames = self.chain.link_frames
+        if link not in frames:
+            raise ModelError(f"'{link}' is not a link of the chain (its links: {', '.join(frames)})")
+        k, offset = frames[link]
+        q = np.asarray(q, dtype=float)
+        if k == self.chain.dof - 1:
+            return self.fk_single(q) @ np.linalg.inv(self.chain.post) @ offset
+        if k < 0:
+            return offset.copy()
+        return fk.joint_frames(self.chain, q[None])[0, k] @ offset
+
     def fk_rows(self, q: list[float], analytic: bool = False) -> Rows:
         """:meth:`fk_single` as the top three rows of the 4x4 in Python floats, for ``n`` finite joint
         values: without numpy (see ``unrolled.py``) when the pose needs none, i.e. no nets and no

@@ -67,9 +67,13 @@ def joints_from_msg_lenient(msg: JointState, names: Sequence[str]) -> np.ndarray
     return q if np.all(np.isfinite(q)) else None
 
 
-def matrix_from_msg(msg: PoseStamped, base_link: str) -> np.ndarray:
-    if msg.header.frame_id not in ("", base_link):
-        raise RequestError(f"target is in frame '{msg.header.frame_id}'; give it in '{base_link}' (or leave it empty)")
+def matrix_from_msg(msg: PoseStamped, frames: Sequence[str]) -> np.ndarray:
+    """The pose as a 4x4 in its own frame, which must be ``''`` or one of ``frames`` (the first is the base)."""
+    if msg.header.frame_id not in ("", *frames):
+        raise RequestError(
+            f"target is in frame '{msg.header.frame_id}', which is not a link of the chain; give it in "
+            f"'{frames[0]}' (or leave it empty) or in one of {', '.join(frames[1:])}"
+        )
     p, o = msg.pose.position, msg.pose.orientation
     position = np.array([p.x, p.y, p.z])
     quat = np.array([o.x, o.y, o.z, o.w])

@@ -391,11 +391,20 @@ class KinematicsNode(Node):
         start: float,
     ) -> ComputeIK.Response:
         try:
-            target = matrix_from_msg(request.target, model.chain.base_link)
+            frames = [model.chain.base_link, *(f for f in model.chain.link_frames if f != model.chain.base_link)]
+            target = matrix_from_msg(request.target, frames)
             if request.seed.position or request.seed.name:
                 seed = joints_from_msg(request.seed, model.joint_names, "seed")
             else:
                 seed = self._latest
+            frame = request.target.header.frame_id
+            if frame not in ("", model.chain.base_link):  # a link's pose at the seed (where the robot is)
+                if seed is None:
+                    raise RequestError(
+                        f"a target in frame '{frame}' is relative to where that link is: give a seed, or "
+                        "publish joint states"
+                    )
+                target = model.link_pose(frame, seed) @ target
             k = max(1, int(request.max_solutions))
             if k > MAX_SOLUTIONS:
                 raise RequestError(f"max_solutions {k} is above the limit of {MAX_SOLUTIONS}")

@@ -13,7 +13,7 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from hybrid_kinematics_interfaces.srv import ComputeFK, ComputeIK
-from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR
 from hybrid_kinematics_ros.nodes.convert import joint_state_msg, pose_msg
 from test.nodes.rosutil import Client, start, stop
@@ -111,6 +111,32 @@ def test_ik_single_and_several_solutions(served):
     assert dists == sorted(dists)
 
 
+def test_ik_targets_in_the_chains_links_are_relative_to_where_they_are(served):
+    """A target in ``tool0`` (1 cm along the tool's z, turned 0.1 rad about it) or in a link between the
+    joints, taken at the seed; a target in another frame is refused, naming the chain's links. The
+    frame used to be refused unless it was the base."""
+    client, _, ik, _, model, _, _ = served
+    q = np.array([0.3, -1.2, 1.3, -0.9, 1.1, 0.2])
+    step = se3.from_rotvec([0.0, 0.0, 0.1], [0.0, 0.0, 0.01])[0]
+    req = ik_request(step, q, model.joint_names)
+    req.target.header.frame_id = "tool0"
+    resp = client.call(ik, req)
+    assert resp.success, resp.message
+    pos, rot = se3.pose_errors(model.fk_single(np.array(resp.solutions[0].position)), model.fk_single(q) @ step)
+    assert pos < 1e-4 and rot < 1e-4
+    link_3 = fk.joint_frames(model.chain, q[None])[0, 2]  # link_3 moves with joint 3
+    goal = model.fk_single(q + 0.02)
+    req = ik_request(np.linalg.inv(link_3) @ goal, q, model.joint_names)
+    req.target.header.frame_id = "link_3"
+    resp = client.call(ik, req)
+    assert resp.success, resp.message
+    assert se3.pose_errors(model.fk_single(np.array(resp.solutions[0].position)), goal)[0] < 1e-4
+    req.target.header.frame_id = "world"
+    resp = client.call(ik, req)
+    assert not resp.success and "'world', which is not a link of the chain" in resp.message
+    assert "tool0" in resp.message
+
+
 BAD_FK = {
     "NaN": (lambda names: fk_request([[np.nan, 0, 0, 0, 0, 0]], names), "NaN"),
     "count": (lambda names: fk_request([[0, 0, 0]], []), "3 positions and no names"),
@@ -143,7 +169,7 @@ def test_bad_ik_requests_and_the_node_keeps_serving(served):
     cases.append((req, "not a unit quaternion (norm 0)"))
     req = ik_request(T)
     req.target.header.frame_id = "world"
-    cases.append((req, "in frame 'world'"))
+    cases.append((req, "in frame 'world', which is not a link"))
     req = ik_request(T)
     req.target.pose.position.x = float("nan")
     cases.append((req, "NaN"))
