@@ -18,9 +18,11 @@ changes only its own thread's. Without either, every thread reads the model's ow
 
 from __future__ import annotations
 
+import copy
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -101,6 +103,7 @@ class HybridModel:
         self.condition_names = tuple(conditions)  # condition channels the nets take after the joints
         self._shared = np.array([float(conditions[c]["default"]) for c in self.condition_names])
         self._local = threading.local()  # a thread's own condition values (see the module text)
+        self.payload_changed = False  # serving another payload than the nets were trained with (with_payload)
         # where the joints' approach directions sit among them, in joint order (None: the nets take none)
         names = approach.channel_names(chain.joint_names)
         self.approach_index = (
@@ -170,6 +173,8 @@ class HybridModel:
         """Why one configuration lies outside the calibrated range (the joints outside the trained range,
         or its distance to the training data), for messages."""
         q = self.same_turn(np.asarray(q, dtype=float))
+        if self.payload_changed and self.nets:
+            return f"the payload is {self.base.payload_mass:g} kg, not the one the nets were trained with"
         if self.coverage_radius is not None:
             return (
                 f"{float(self.coverage_distance(q)[0]):.3f} rad from the nearest training configuration "
@@ -232,6 +237,25 @@ class HybridModel:
     def has_orientation(self) -> bool:
         return "orientation" in self.nets
 
+    def with_payload(self, mass: float, com: np.ndarray) -> HybridModel:
+        """This model serving another payload (kg; centre of mass in the tip frame, m): the parametric
+        stage's deflections follow it (its gravity torques are recomputed), the nets stay as trained. Their
+        correction is then extrapolated, so with nets no configuration counts as inside the calibrated
+        range (``parametric`` policy: the stage alone serves; ``refuse``: nothing does)."""
+        com = np.asarray(com, dtype=float)
+        if not (np.isfinite(mass) and mass >= 0.0) or com.shape != (3,) or not np.all(np.isfinite(com)):
+            raise ModelError(f"payload {mass} kg at {com.tolist()} m: give a mass >= 0 and three finite numbers")
+        clone = copy.copy(self)
+        clone.base = replace(self.base, payload_mass=float(mass), payload_com=com)
+        clone._local = threading.local()
+        section = (self.manifest.get("parametric") or {}).get("payload") or {}
+        trained = (
+            float(section.get("mass", self.base.payload_mass)),
+            np.asarray(section.get("com", self.base.payload_com)),
+        )
+        clone.payload_changed = not (mass == trained[0] and np.array_equal(com, trained[1]))
+        return clone
+
     def same_turn(self, q: np.ndarray) -> np.ndarray:
         """``q (…, n)`` with each revolute joint outside the trained range moved by whole turns to the
         equivalent angle nearest it (within π of its centre); joints inside are returned unchanged, bit for
@@ -248,6 +272,8 @@ class HybridModel:
         """``(B,)`` True where every joint lies inside the range the nets were trained on; with a coverage
         radius, True where a training configuration lies within it instead (the finer test of the two)."""
         q = self.same_turn(np.atleast_2d(q))
+        if self.payload_changed and self.nets:
+            return np.zeros(len(q), dtype=bool)
         if self._coverage_radius is not None:
             return self.coverage_distance(q) <= self._coverage_radius
         lower, upper = self._range
@@ -256,7 +282,7 @@ class HybridModel:
     def in_calibrated_range_one(self, q: np.ndarray | list[float]) -> bool:
         """:meth:`in_calibrated_range` of one finite configuration ``(n,)`` (or a list), compared in Python floats (the
         services' path, where each numpy call costs microseconds)."""
-        if self._coverage_radius is not None:
+        if self._coverage_radius is not None or (self.payload_changed and self.nets):
             return bool(self.in_calibrated_range(q)[0])
         lower, upper = self._range_lists
         values = q if isinstance(q, list) else q.tolist()

@@ -126,6 +126,9 @@ class KinematicsNode(Node):
             "m/s² in the base frame, for the parametric stage's joint torques (a wall or ceiling mount); "
             "0 0 0: the model's own (model.json, from the robot config it was trained with)",
         )
+        # the payload the robot carries now, settable at run time (NaN: the model's, from model.json)
+        self.declare_parameter("payload_mass", float("nan"))
+        self.declare_parameter("payload_com", [0.0, 0.0, 0.0])
         self._lock = threading.Lock()
         self.model, self.solver = self._load()
         # A model trained with condition channels (hybrid-kinematics train --condition temperature) needs
@@ -205,6 +208,9 @@ class KinematicsNode(Node):
                 raise StartupError(f"parameter gravity: {list(self.gravity)} is not three finite numbers (m/s²)")
             if np.any(gravity):
                 model.base = replace(model.base, gravity=gravity)
+            model = self._carrying(
+                model, self.get_parameter("payload_mass").value, self.get_parameter("payload_com").value
+            )
         except LOAD_ERRORS as exc:
             raise StartupError(str(exc)) from exc
         return model, self._solver(model)
@@ -236,7 +242,41 @@ class KinematicsNode(Node):
             f"; conditions.{name} is not set, its training mean {defaults[name]:g} is used" for name in self._unset
         )
 
+    def _carrying(self, model: HybridModel, mass: float, com) -> HybridModel:
+        """``model`` with the payload parameters' payload (NaN mass: as trained)."""
+        if mass is None or not np.isfinite(mass):
+            return model
+        carrying = model.with_payload(float(mass), np.asarray(com, dtype=float))
+        if carrying.payload_changed and carrying.nets:
+            self.get_logger().warning(
+                f"payload {mass:g} kg: the parametric stage follows it, the nets were trained with another, so "
+                "every answer is flagged outside the calibrated range"
+            )
+        return carrying
+
+    def _on_payload(self, params: list) -> SetParametersResult:
+        """A new payload serves from the next request on: the model and its solvers are swapped together."""
+        given = {p.name: p.value for p in params if p.name in ("payload_mass", "payload_com")}
+        mass = given.get("payload_mass", self.get_parameter("payload_mass").value)
+        com = given.get("payload_com", self.get_parameter("payload_com").value)
+        if mass is None or not np.isfinite(mass):  # the centre of mass waits for a mass (NaN: as trained)
+            if "payload_mass" in given:
+                return SetParametersResult(successful=False, reason="payload_mass: give a number of kg")
+            return SetParametersResult(successful=True)
+        try:
+            model = self._carrying(self.model, mass, com)
+        except (ModelError, TypeError, ValueError) as exc:
+            return SetParametersResult(successful=False, reason=f"payload: {exc}")
+        solver, compensator = self._solver(model), self._compensator(model)
+        with self._lock:
+            self.model, self.solver, self.compensator = model, solver, compensator
+        return SetParametersResult(successful=True)
+
     def _on_set_parameters(self, params: list) -> SetParametersResult:
+        if any(p.name in ("payload_mass", "payload_com") for p in params):
+            result = self._on_payload(params)
+            if not result.successful:
+                return result
         for p in params:
             if not p.name.startswith("conditions."):
                 continue

@@ -313,6 +313,47 @@ def test_gravity_parameter_serves_the_stage_for_another_mount(ros, thermal_model
         in_process("badgravity", path, gravity=[0.0, float("nan"), 1.0])
 
 
+def test_payload_set_at_run_time_moves_the_stage_and_flags_the_nets(ros, thermal_models):
+    """``payload_mass``/``payload_com`` set while serving: the stage's deflections follow the new payload,
+    and every answer is flagged outside the calibrated range (the nets were trained with another). The
+    payload used to be frozen in model.json."""
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+
+    from hybrid_kinematics_ros.model.hybrid import HybridModel
+
+    path = thermal_models[0]["thermal"].path
+    core = HybridModel.load(path)
+    q = np.array([0.3, -1.2, 1.3, -0.9, 1.1, 0.2])
+    node, client = in_process("payload", path, publish_corrected_pose=False)
+    try:
+        fk = client.service(ComputeFK, "/payload/compute_fk")
+        params = client.service(SetParameters, "/payload/set_parameters")
+        before = client.call(fk, fk_request([q], core.joint_names))
+        assert list(before.in_calibrated_range) == [True]
+        mass = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=12.0)
+        com = ParameterValue(type=ParameterType.PARAMETER_DOUBLE_ARRAY, double_array_value=[0.0, 0.0, 0.1])
+        request = SetParameters.Request(
+            parameters=[Parameter(name="payload_com", value=com), Parameter(name="payload_mass", value=mass)]
+        )
+        results = client.call(params, request).results
+        assert all(r.successful for r in results), [r.reason for r in results]
+        after = client.call(fk, fk_request([q], core.joint_names))
+        assert after.success and list(after.in_calibrated_range) == [False], after.message
+        heavy = core.with_payload(12.0, np.array([0.0, 0.0, 0.1]))
+        np.testing.assert_allclose(poses_of(after)[0], heavy.fk(q)[0], atol=1e-9)
+        assert np.linalg.norm(poses_of(after)[0][:3, 3] - poses_of(before)[0][:3, 3]) > 1e-5  # the arm sags
+        bad = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=-1.0)
+        refused = client.call(params, SetParameters.Request(parameters=[Parameter(name="payload_mass", value=bad)]))
+        assert not refused.results[0].successful and "mass >= 0" in refused.results[0].reason
+        np.testing.assert_array_equal(
+            poses_of(client.call(fk, fk_request([q], core.joint_names)))[0], poses_of(after)[0]
+        )
+    finally:
+        client.close()
+        node.destroy_node()
+
+
 def test_concurrent_callers_each_get_the_answer_for_their_own_conditions(thermal_models):
     """Threads computing with different temperatures, and one trying approach directions over and over,
     on one model: each answer equals the one computed alone for its temperature."""
