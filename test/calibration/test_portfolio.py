@@ -1,7 +1,7 @@
 """The portfolio's guard: small cells of ``simulation.portfolio``, fixed seeds and step budgets, each held to
 a bound set against its own floor, so that a change that makes any of them worse fails here.
 
-The bounds were set from measured figures (in the comments) with about 25 % of headroom.
+The bounds were set from measured figures (in the comments) with about 25 % of headroom over the floor.
 """
 
 from __future__ import annotations
@@ -38,10 +38,10 @@ def stage_errors(cell, **capacity):
 @pytest.mark.parametrize(
     ("spec", "bound"),
     [
-        # the stage alone: the truth's stiffening springs are not in its model (the nets learn them)
-        (CLEAN, 3.2),  # measured 2.57x its floor
-        (GEARS, 3.5),  # measured 2.83x
-        (REFLECTOR, 3.5),  # measured 2.85x
+        # the stage alone: its cubic and signed compliances, cyclic errors and map carry what the truth has
+        (CLEAN, 1.3),  # measured 1.04x its floor (2.57x before the cubic compliance)
+        (GEARS, 1.3),  # measured 1.01x (2.83x)
+        (REFLECTOR, 1.35),  # measured 1.09x (2.85x)
     ],
     ids=["clean", "gears-tracker-outliers", "reflector"],
 )
@@ -50,7 +50,7 @@ def test_stage_lies_near_the_floor_of_each_cell(spec, bound):
     stats, result = stage_errors(cell)
     assert stats["position_mm_mean"] <= bound * cell.floor["position_mm_mean"], (stats, cell.floor, result.capacity)
     if not spec.plain_reflector:
-        assert stats["orientation_deg_mean"] <= 1.5 * bound * cell.floor["orientation_deg_mean"]
+        assert stats["orientation_deg_mean"] <= bound * cell.floor["orientation_deg_mean"]  # measured 1.03x, 1.01x
 
 
 def test_capacity_choices_are_recorded_and_follow_the_rule():
@@ -91,5 +91,5 @@ def test_hybrid_is_no_worse_than_its_stage_and_near_the_floor(tmp_path):
     stage = error_stats(*target_errors(base, model.fk(base.q, nets=False)))
     hybrid = error_stats(*target_errors(base, model.fk(base.q)))
     assert hybrid["position_mm_mean"] <= 1.05 * stage["position_mm_mean"]
-    assert hybrid["position_mm_mean"] <= 2.5 * cell.floor["position_mm_mean"]
+    assert hybrid["position_mm_mean"] <= 1.3 * cell.floor["position_mm_mean"], (hybrid, cell.floor)
     assert np.isfinite(hybrid["orientation_deg_mean"])
