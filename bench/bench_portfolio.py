@@ -27,8 +27,10 @@ FORMER = {"elastic": "bending", "harmonics": 40, "harmonic_prior": 30.0, "map_st
 
 
 def evaluate_cell(config, train_sets: list[Pairs], tests: list[Pairs], approach_inputs: bool, steps: int, fixed):
-    """Fit one model (capacity chosen, or ``fixed``); the errors of each stage on the pooled test pairs."""
-    conditions = approach.channel_names(config.chain.joint_names) if approach_inputs else ()
+    """Fit one model (capacity chosen, or ``fixed``); the errors of each stage on the pooled test pairs.
+    Chosen, the data also decide whether the nets take the approach directions; ``fixed``, they take them
+    where ``approach_inputs`` (as the former recipe was told)."""
+    conditions = approach.channel_names(config.chain.joint_names) if approach_inputs and fixed else ()
     model, manifest, tr, seconds = fit_recipe(
         config,
         train_sets,
@@ -144,8 +146,9 @@ def main() -> None:
         "noise-free, drift-free truth against the test measurements; for the real UR10, pairs of "
         "measurements of the same joints (series B; mean only). Virtual cells: separate random walks of the "
         "joints for training and test (`simulation/portfolio.py` says what each effect is). Real cells: "
-        "the held-out fifth of each series in contiguous blocks, as `bench_real`; the nets take the approach "
-        f"directions there and in the backlash cells. Nets: `fast`, one per residual, {args.steps:,} steps "
+        "the held-out fifth of each series in contiguous blocks, as `bench_real`. Whether the nets take the "
+        "joints' approach directions is chosen from the data too (the former recipe was given them in the real "
+        f"and the backlash cells). Nets: `fast`, one per residual, {args.steps:,} steps "
         "each. The **capacity** of the stage is chosen from each cell's training pairs (`train`'s default); "
         "the *former constants* columns train the same cell with the fixed capacity used before (every elastic "
         "term, 40 harmonics, prior 30, a 0.01 rad joint error map; the elastic terms now include the cubic and "

@@ -9,9 +9,12 @@ error rule). The choices are made one after the other, each on top of the ones b
 
 1. the elastic terms: geometry only, plus joint compliance, plus its cubic term, plus a term in the
    torque's size (stiffer one way than the other), plus link bending;
-2. the number of harmonics of the cyclic joint errors (0: none), then their prior; 1 and 2 again, each
-   given the other, until neither changes (bending judged without the gears' errors hides in them);
-3. the joint error map's knot spacing (0: none), then its smoothness.
+2. the number of harmonics of the cyclic joint errors (0: none), then their prior;
+3. whether the joints' approach directions matter (backlash): a shift of each joint by a constant times
+   its direction, fitted with the stage; if it wins, the nets take the directions as inputs;
+   1 to 3 again, each given the others, until none changes (bending judged without the gears' errors hides
+   in them, and backlash judged without the directions passes for cyclic errors);
+4. the joint error map's knot spacing (0: none), then its smoothness.
 
 Each candidate is solved on the problem linearised at the nominal model (:class:`Linearisation`; its
 error is about a micrometre for milliradian parameters), so a candidate on a fold costs one small solve
@@ -21,7 +24,7 @@ instead of an identification: the whole selection takes seconds. The test pairs 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -37,6 +40,7 @@ from hybrid_kinematics_ros.calibration.parametric import (
     solve_joint_map,
 )
 from hybrid_kinematics_ros.kinematics.elastic import JointMap
+from hybrid_kinematics_ros.model.parametric import Parameter
 
 BLOCKS = 20  # contiguous blocks of the training pairs; each is validated once
 FOLDS = 5  # block b is held out in fold b % FOLDS
@@ -65,6 +69,7 @@ class Capacity:
     map_step: float
     map_smoothness: float
     decisions: list[dict[str, Any]] = field(default_factory=list)  # one per setting, with every candidate's figures
+    approach: bool = False  # the nets take the joints' approach directions
 
     @property
     def kinds(self) -> tuple[str, ...]:
@@ -90,6 +95,7 @@ class Capacity:
                 "harmonic_prior": self.harmonic_prior,
                 "map_step": self.map_step,
                 "map_smoothness": self.map_smoothness,
+                "approach": self.approach,
             },
             "decisions": self.decisions,
         }
@@ -115,6 +121,24 @@ def _elastic_kinds(name: str) -> tuple[str, ...]:
     if name not in ELASTIC:
         raise CalibrationError(f"elastic terms '{name}': choose one of {', '.join(ELASTIC)}")
     return ELASTIC[name]
+
+
+BACKLASH_SCALE = 1e-4  # rad: the scaled unit of a joint's backlash term
+
+
+def _with_backlash(lin: Linearisation, directions: np.ndarray) -> Linearisation:
+    """``lin`` with a backlash column per joint that moves (``b_j`` rad times its approach direction): the
+    joint's column of :attr:`Linearisation.joint_rows` times the direction, as a cyclic error's basis."""
+    moving = np.flatnonzero(np.any(directions > 0, axis=0) & np.any(directions < 0, axis=0))  # both sides seen
+    columns = lin.joint_rows[:, :, moving] * directions[:, None, moving] * BACKLASH_SCALE
+    params = [Parameter(f"backlash {j}", "backlash", int(j), 0) for j in moving]
+    return replace(
+        lin,
+        params=[*lin.params, *params],
+        jacobian=np.concatenate([lin.jacobian, columns], axis=2),
+        identifiable=np.r_[lin.identifiable, np.ones(len(moving), dtype=bool)],
+        scale=np.r_[lin.scale, np.full(len(moving), BACKLASH_SCALE)],
+    )
 
 
 def _blocks(lin: Linearisation, total: int) -> np.ndarray:
@@ -223,15 +247,22 @@ def select_capacity(
     total: int,
     fixed: dict[str, Any] | None = None,
     map_ridge: float | None = None,
+    directions: np.ndarray | None = None,
 ) -> Capacity:
     """Choose the stage's capacity by cross-validation on ``lin`` (linearised with every elastic term and
     the most harmonics of :data:`HARMONICS`), drawn from ``total`` training pairs in recording order.
 
     ``fixed``: settings the user gave (``elastic``, ``harmonics``, ``harmonic_prior``, ``map_step``,
-    ``map_smoothness``); they are not chosen, only recorded.
+    ``map_smoothness``, ``approach``); they are not chosen, only recorded.
+
+    ``directions (N, n)``: the drawn pairs' approach directions (:mod:`model.approach`), if they carry them:
+    then ``approach`` is chosen too, from a backlash term (joint ``j`` shifted by ``b_j`` times its direction)
+    on top of the stage.
     """
     fixed = {k: v for k, v in (fixed or {}).items() if v is not None}
-    unknown = set(fixed) - {"elastic", "harmonics", "harmonic_prior", "map_step", "map_smoothness"}
+    if directions is not None and np.any(directions):
+        lin = _with_backlash(lin, np.asarray(directions, dtype=float))
+    unknown = set(fixed) - {"elastic", "harmonics", "harmonic_prior", "map_step", "map_smoothness", "approach"}
     if unknown:
         raise CalibrationError(f"unknown capacity settings {sorted(unknown)}")
     _elastic_kinds(fixed.get("elastic", "geometry"))
@@ -245,15 +276,16 @@ def select_capacity(
     block = folds.block
     settings = {**START, **{k: fixed[k] for k in ("harmonic_prior", "map_smoothness") if k in fixed}}
 
-    def stage_columns(elastic: str, harmonics: int) -> np.ndarray:
-        return np.isin(kind, (*ELASTIC[elastic], *STATION_KINDS)) | ((kind == "harmonic") & (freq <= harmonics))
+    def stage_columns(elastic: str, harmonics: int, backlash: bool = False) -> np.ndarray:
+        kinds = (*ELASTIC[elastic], *STATION_KINDS, *(("backlash",) if backlash else ()))
+        return np.isin(kind, kinds) | ((kind == "harmonic") & (freq <= harmonics))
 
     def prior(harmonic_prior: float) -> np.ndarray:
         return np.where(kind == "harmonic", harmonic_prior * scale**2, 0.0)
 
-    def stage_residuals(elastic: str, harmonics: int, harmonic_prior: float) -> np.ndarray:
+    def stage_residuals(elastic: str, harmonics: int, harmonic_prior: float, backlash: bool = False) -> np.ndarray:
         """``(N, width)``: every pair's residual, from the fold that held it out."""
-        use = stage_columns(elastic, harmonics)
+        use = stage_columns(elastic, harmonics, backlash)
         out = np.zeros_like(lin.residual)
         for f in range(FOLDS):
             z = folds.solve(f, use, prior(harmonic_prior))
@@ -271,34 +303,48 @@ def select_capacity(
         made[setting] = {**decision, "round": round_}
         return labels[chosen]
 
-    # The elastic terms and the cyclic errors are chosen in turn until neither changes (at most ROUNDS):
-    # judged without cyclic errors, a geared robot's bending hides in what the gears leave.
-    elastic, harmonics = "geometry", 0
+    # The elastic terms, the cyclic errors and the backlash term are chosen in turn, each given the others,
+    # until none changes (at most ROUNDS): judged without the gears' errors, a geared robot's bending hides in
+    # what they leave, and judged without the approach directions, backlash passes for cyclic errors.
+    elastic, harmonics, backlash = "geometry", 0, False
     for round_ in range(1, ROUNDS + 1):
-        before = (elastic, harmonics, settings["harmonic_prior"])
+        before = (elastic, harmonics, settings["harmonic_prior"], backlash)
         elastic = decide(
-            "elastic", list(ELASTIC), lambda e, h=harmonics: stage_residuals(e, h, settings["harmonic_prior"]), round_
+            "elastic",
+            list(ELASTIC),
+            lambda e, h=harmonics, b=backlash: stage_residuals(e, h, settings["harmonic_prior"], b),
+            round_,
         )
         harmonics = decide(
             "harmonics",
             [h for h in HARMONICS if h <= max(freq, default=0)],
-            lambda h, e=elastic: stage_residuals(e, h, settings["harmonic_prior"]),
+            lambda h, e=elastic, b=backlash: stage_residuals(e, h, settings["harmonic_prior"], b),
             round_,
         )
         if harmonics > 0:
             settings["harmonic_prior"] = decide(
                 "harmonic_prior",
                 list(HARMONIC_PRIORS),
-                lambda p, e=elastic, h=harmonics: stage_residuals(e, h, p),
+                lambda p, e=elastic, h=harmonics, b=backlash: stage_residuals(e, h, p, b),
                 round_,
             )
         elif "harmonic_prior" not in fixed:
             made.pop("harmonic_prior", None)  # an earlier round's, for harmonics no longer fitted
-        if (elastic, harmonics, settings["harmonic_prior"]) == before:
+        if "backlash" in kind or "approach" in fixed:
+            backlash = bool(
+                decide(
+                    "approach",
+                    [False, True],
+                    lambda b, e=elastic, h=harmonics: stage_residuals(e, h, settings["harmonic_prior"], b),
+                    round_,
+                )
+            )
+        if (elastic, harmonics, settings["harmonic_prior"], backlash) == before:
             break
 
-    # The joint error map, fitted per fold on what that fold's stage leaves of its training pairs.
-    use = stage_columns(elastic, harmonics)
+    # The joint error map, fitted per fold on what that fold's stage leaves of its training pairs (and, with
+    # approach directions, of the backlash they explain: the nets will carry that part).
+    use = stage_columns(elastic, harmonics, backlash)
     stage = [folds.solve(f, use, prior(settings["harmonic_prior"])) for f in range(FOLDS)]
     ridge = {} if map_ridge is None else {"ridge": map_ridge}
 
@@ -339,4 +385,5 @@ def select_capacity(
         float(map_step),
         float(settings["map_smoothness"]),
         decisions,
+        backlash,
     )

@@ -126,8 +126,9 @@ def identify_stations(
 
     ``choose``: the stage's capacity is chosen from these pairs (:func:`capacity.select_capacity`; the
     result's ``capacity`` says how), except for the settings given in ``capacity`` (``elastic``,
-    ``harmonics``, ``harmonic_prior``, ``map_step``, ``map_smoothness``). Without ``choose``, settings not
-    given take :func:`parametric.identify`'s defaults."""
+    ``harmonics``, ``harmonic_prior``, ``map_step``, ``map_smoothness``, ``approach``). Without ``choose``,
+    settings not given take :func:`parametric.identify`'s defaults. Whether the nets take the joints'
+    approach directions (``approach``) is chosen when the pairs carry them."""
     base = to_base_frame(stations, chain, refs)
     labels = station_labels(refs, any(p.frame_id == chain.base_link for p in stations))
     placement, mount = (
@@ -147,7 +148,11 @@ def identify_stations(
     chosen = None
     if choose:
         linear = linearise(chain, base.q, base.T, harmonics=max(capacity_module.HARMONICS), **common)
-        chosen = capacity_module.select_capacity(linear, len(base), given)
+        channels = approach.channel_names(chain.joint_names)
+        directions = None
+        if all(c in base.conditions for c in channels):
+            directions = np.column_stack([base.conditions[c] for c in channels])[linear.pick]
+        chosen = capacity_module.select_capacity(linear, len(base), given, directions=directions)
         options = chosen.identify_options()
     else:
         options = capacity_module.options_from(given)
@@ -248,6 +253,9 @@ def fit(
         if result.capacity is not None:
             manifest["capacity"] = result.capacity
             log("parametric stage capacity (cross-validated): " + capacity_module.summary(result.capacity))
+            channels = approach.channel_names(chain.joint_names)
+            if result.capacity["chosen"].get("approach") and not set(channels) & set(conditions):
+                conditions = (*conditions, *channels)  # the nets take the directions the data asked for
         if refs:
             train_pairs, val_pairs, test_pairs = (to_base_frame(p, chain, refs) for p in raw)
         base = result.model

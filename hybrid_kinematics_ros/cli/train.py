@@ -83,9 +83,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--approach",
-        action="store_true",
-        help="give the nets each joint's approach direction (the sign of its last move, from the order of the "
-        "pairs) beside the joints: backlash and friction depend on it; the node follows it from /joint_states",
+        action=argparse.BooleanOptionalAction,
+        help="give the nets each joint's approach direction (the way it last moved, from the order of the pairs) "
+        "beside the joints, or not: backlash and friction depend on it; the node follows it from /joint_states. "
+        "Default: chosen from the data with the stage's capacity (always off with --no-parametric)",
     )
     p.add_argument(
         "--shared-target",
@@ -233,12 +234,16 @@ def run(args: argparse.Namespace) -> int:
                 "harmonic_prior": args.harmonic_prior,
                 "map_step": args.map_step,
                 "map_smoothness": args.map_smoothness,
+                "approach": args.approach,
             },
             payload=payload_from_args(args),
             gravity=gravity_from_args(args),
             log=progress.write,
             shared_targets=[names.split(",") for names in args.shared_target or []],
-            conditions=[*(args.condition or ()), *(approach.channel_names(chain.joint_names) if args.approach else ())],
+            conditions=[
+                *(args.condition or ()),
+                *(approach.channel_names(chain.joint_names) if args.approach and not args.parametric else ()),
+            ],
         )
     finally:
         progress.close()

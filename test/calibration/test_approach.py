@@ -86,3 +86,24 @@ def test_directions_are_derived_when_read_not_stored(ur10, tmp_path):
     (read,) = load_stations([tmp_path / "bag"], ur10.chain)
     for name in channel_names(ur10.chain.joint_names):
         np.testing.assert_array_equal(read.conditions[name], pairs.conditions[name])
+
+
+def test_the_data_choose_the_directions_as_inputs(ur10, tmp_path):
+    """Given neither way, ``fit`` gives the nets the approach directions where the joints have play, and
+    not where they have none, and records the choice with its figures."""
+    from dataclasses import replace
+
+    from hybrid_kinematics_ros.calibration import train
+    from hybrid_kinematics_ros.calibration.fit import fit, split
+    from hybrid_kinematics_ros.simulation.portfolio import CellSpec, build_cell
+
+    preset = replace(train.PRESETS["fast"], arch="mlp:32x2:silu", max_epochs=5)
+    chosen = {}
+    for name, half in (("play", (3e-4, 2e-4, 2e-4)), ("none", ())):
+        cell = build_cell(CellSpec(name, poses=1200, test_poses=100, half_backlash_rad=half))
+        tr, va, _ = split(cell.train, 0, (0.1, 0.0))
+        model, manifest = fit(ur10.chain, tr, va, va, tmp_path / name, preset, 1.0, parametric=True)
+        decision = next(d for d in manifest["capacity"]["decisions"] if d["setting"] == "approach")
+        assert [c["candidate"] for c in decision["candidates"]] == [False, True]
+        chosen[name] = (decision["chosen"], model.approach_index is not None)
+    assert chosen == {"play": (True, True), "none": (False, False)}
