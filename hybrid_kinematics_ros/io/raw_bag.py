@@ -380,9 +380,12 @@ def read_raw(
             msg = TYPESTORE.deserialize_cdr(data, msgtype)
             if names is None:
                 names = tuple(msg.name)
+            if len(msg.position) != len(msg.name):
+                counts["joint_state_length_mismatch"] += 1
+                continue
             if tuple(msg.name) != names:
                 index = {n: i for i, n in enumerate(msg.name)}
-                if any(n not in index for n in names) or len(msg.position) != len(msg.name):
+                if any(n not in index for n in names):
                     counts["joint_state_other_joints"] += 1
                     continue
                 position = [msg.position[index[n]] for n in names]

@@ -245,16 +245,23 @@ class HybridModel:
         com = np.asarray(com, dtype=float)
         if not (np.isfinite(mass) and mass >= 0.0) or com.shape != (3,) or not np.all(np.isfinite(com)):
             raise ModelError(f"payload {mass} kg at {com.tolist()} m: give a mass >= 0 and three finite numbers")
+        if not self.base.is_elastic:
+            raise ModelError(
+                "the model has no elastic parametric stage (no compliance) to follow a payload; retrain it with "
+                "the payload the robot carries"
+            )
         clone = copy.copy(self)
         clone.base = replace(self.base, payload_mass=float(mass), payload_com=com)
         clone._local = threading.local()
-        section = (self.manifest.get("parametric") or {}).get("payload") or {}
-        trained = (
-            float(section.get("mass", self.base.payload_mass)),
-            np.asarray(section.get("com", self.base.payload_com)),
-        )
-        clone.payload_changed = not (mass == trained[0] and np.array_equal(com, trained[1]))
+        trained_mass, trained_com = self.trained_payload
+        clone.payload_changed = not (mass == trained_mass and np.allclose(com, trained_com, rtol=0.0, atol=1e-9))
         return clone
+
+    @property
+    def trained_payload(self) -> tuple[float, np.ndarray]:
+        """The payload the stage was identified and the nets trained with (kg; m in the tip frame)."""
+        section = (self.manifest.get("parametric") or {}).get("payload") or {}
+        return float(section.get("mass", 0.0)), np.asarray(section.get("com", np.zeros(3)), dtype=float)
 
     def same_turn(self, q: np.ndarray) -> np.ndarray:
         """``q (…, n)`` with each revolute joint outside the trained range moved by whole turns to the

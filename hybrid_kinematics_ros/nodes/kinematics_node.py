@@ -128,7 +128,7 @@ class KinematicsNode(Node):
         )
         # the payload the robot carries now, settable at run time (NaN: the model's, from model.json)
         self.declare_parameter("payload_mass", float("nan"))
-        self.declare_parameter("payload_com", [0.0, 0.0, 0.0])
+        self.declare_parameter("payload_com", [float("nan")] * 3)
         self._lock = threading.Lock()
         self.model, self.solver = self._load()
         # A model trained with condition channels (hybrid-kinematics train --condition temperature) needs
@@ -142,7 +142,8 @@ class KinematicsNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.compensator = self._compensator(self.model)
         self._latest: np.ndarray | None = None
-        self._approach: tuple[HybridModel, ApproachTracker] | None = None
+        self._approach: tuple[int, ApproachTracker] | None = None  # (the load it follows, its tracker)
+        self._loads = 0  # models loaded: a reload starts the approach directions afresh, a new payload does not
         self._reply = threading.local()  # see _fk_pose
         self.stats = RequestStats()
 
@@ -206,6 +207,12 @@ class KinematicsNode(Node):
             gravity = np.asarray(self.gravity, dtype=float)
             if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
                 raise StartupError(f"parameter gravity: {list(self.gravity)} is not three finite numbers (m/s²)")
+            identified = ((model.manifest.get("parametric") or {}).get("payload") or {}).get("gravity")
+            if np.any(gravity) and identified is not None and not np.allclose(gravity, identified):
+                raise StartupError(
+                    f"parameter gravity: {gravity.tolist()} differs from the {identified} m/s² the model's stage "
+                    "was identified with; retrain with the robot config's gravity, or leave the parameter unset"
+                )
             if np.any(gravity):
                 model.base = replace(model.base, gravity=gravity)
             model = self._carrying(
@@ -243,10 +250,14 @@ class KinematicsNode(Node):
         )
 
     def _carrying(self, model: HybridModel, mass: float, com) -> HybridModel:
-        """``model`` with the payload parameters' payload (NaN mass: as trained)."""
+        """``model`` with the payload parameters' payload (NaN mass: as trained; a NaN in the centre of mass:
+        the trained one)."""
         if mass is None or not np.isfinite(mass):
             return model
-        carrying = model.with_payload(float(mass), np.asarray(com, dtype=float))
+        com = np.asarray(com, dtype=float)
+        if com.shape == (3,) and np.any(np.isnan(com)):
+            com = model.trained_payload[1]
+        carrying = model.with_payload(float(mass), com)
         if carrying.payload_changed and carrying.nets:
             self.get_logger().warning(
                 f"payload {mass:g} kg: the parametric stage follows it, the nets were trained with another, so "
@@ -254,42 +265,36 @@ class KinematicsNode(Node):
             )
         return carrying
 
-    def _on_payload(self, params: list) -> SetParametersResult:
-        """A new payload serves from the next request on: the model and its solvers are swapped together."""
-        given = {p.name: p.value for p in params if p.name in ("payload_mass", "payload_com")}
-        mass = given.get("payload_mass", self.get_parameter("payload_mass").value)
-        com = given.get("payload_com", self.get_parameter("payload_com").value)
-        if mass is None or not np.isfinite(mass):  # the centre of mass waits for a mass (NaN: as trained)
-            if "payload_mass" in given:
-                return SetParametersResult(successful=False, reason="payload_mass: give a number of kg")
-            return SetParametersResult(successful=True)
-        try:
-            model = self._carrying(self.model, mass, com)
-        except (ModelError, TypeError, ValueError) as exc:
-            return SetParametersResult(successful=False, reason=f"payload: {exc}")
-        solver, compensator = self._solver(model), self._compensator(model)
-        with self._lock:
-            self.model, self.solver, self.compensator = model, solver, compensator
-        return SetParametersResult(successful=True)
-
     def _on_set_parameters(self, params: list) -> SetParametersResult:
-        if any(p.name in ("payload_mass", "payload_com") for p in params):
-            result = self._on_payload(params)
-            if not result.successful:
-                return result
-        for p in params:
-            if not p.name.startswith("conditions."):
-                continue
-            name = p.name.removeprefix("conditions.")
-            try:
-                with self._lock:
-                    model = self.model
-                    with model.using(self._conditions):  # checked by the model, applied to a copy
-                        model.set_condition(name, float(p.value))
-                        self._conditions = model.condition_values.copy()
-                    self._unset = [n for n in self._unset if n != name]
-            except (ModelError, TypeError, ValueError) as exc:
-                return SetParametersResult(successful=False, reason=f"{p.name}: {exc}")
+        """Every change is checked before any is applied; then the model (a new payload), its solvers and
+        the condition values are swapped together, under the lock, unless a reload came in between."""
+        given = {p.name: p.value for p in params}
+        model = self.model
+        try:
+            serving = model
+            if "payload_mass" in given or "payload_com" in given:
+                mass = given.get("payload_mass", self.get_parameter("payload_mass").value)
+                com = given.get("payload_com", self.get_parameter("payload_com").value)
+                if "payload_mass" in given and (mass is None or not np.isfinite(mass)):
+                    raise ModelError("give a number of kg (reload the node to serve the trained payload again)")
+                serving = self._carrying(model, mass, com)
+            conditions = {n.removeprefix("conditions."): v for n, v in given.items() if n.startswith("conditions.")}
+            with self._lock:
+                values = self._conditions.copy()
+            with serving.using(values):  # checked by the model, applied to this copy
+                for name, value in conditions.items():
+                    serving.set_condition(name, float(value))
+                values = serving.condition_values.copy()
+        except (ModelError, TypeError, ValueError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        solvers = (self._solver(serving), self._compensator(serving)) if serving is not model else None
+        with self._lock:
+            if self.model is not model:
+                return SetParametersResult(successful=False, reason="the model was reloaded meanwhile; set it again")
+            if solvers is not None:
+                self.model, (self.solver, self.compensator) = serving, solvers
+            self._conditions = values
+            self._unset = [n for n in self._unset if n not in conditions]
         return SetParametersResult(successful=True)
 
     def _snapshot(self) -> tuple[HybridModel, IKSolver, IKSolver, np.ndarray]:
@@ -335,8 +340,8 @@ class KinematicsNode(Node):
             model, values = self.model, self._conditions
             # a model with approach inputs follows the joints' directions of motion (a reload starts afresh)
             if model.approach_index is not None:
-                if self._approach is None or self._approach[0] is not model:
-                    self._approach = (model, ApproachTracker(len(q)))
+                if self._approach is None or self._approach[0] != self._loads:
+                    self._approach = (self._loads, ApproachTracker(len(q)))
                 values[model.approach_index] = self._approach[1].update(q)
             values = values.copy()
         if self.pose_pub is not None:
@@ -545,6 +550,7 @@ class KinematicsNode(Node):
         with self._lock:
             self.model, self.solver, self.compensator = model, solver, compensator
             self._conditions, self._unset = conditions, unset
+            self._loads += 1
         response.success, response.message = True, f"reloaded {self.model_dir or 'the URDF model'}"
         self.get_logger().info(response.message)
         return response

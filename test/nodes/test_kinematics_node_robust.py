@@ -288,27 +288,38 @@ def test_a_condition_set_during_an_ik_call_is_kept_and_the_ik_answers_for_its_ow
         node.destroy_node()
 
 
-def test_gravity_parameter_serves_the_stage_for_another_mount(ros, thermal_models):
-    """``gravity`` (m/s², base frame) replaces the model's for the stage's joint torques; a malformed one
-    stops the node with one line naming the parameter."""
+def test_gravity_parameter_serves_the_stage_for_another_mount(ros, thermal_models, tmp_path):
+    """``gravity`` (m/s², base frame) serves a model whose model.json predates the gravity vector on a wall
+    mount; one identified with another gravity, or a malformed value, stops the node with one line naming
+    the parameter."""
+    import json
+    import shutil
     from dataclasses import replace
 
     from hybrid_kinematics_ros.model.hybrid import HybridModel
     from hybrid_kinematics_ros.nodes.runtime import StartupError
 
     path = thermal_models[0]["thermal"].path
-    core = HybridModel.load(path)
+    old = tmp_path / "before_gravity"
+    shutil.copytree(path, old)
+    manifest = json.loads((old / "model.json").read_text())
+    del manifest["parametric"]["payload"]["gravity"]
+    (old / "model.json").write_text(json.dumps(manifest))
+    core = HybridModel.load(old)
+    np.testing.assert_array_equal(core.base.gravity, [0.0, 0.0, -9.81])  # an older model: a floor mount
     wall = np.array([-9.81, 0.0, 0.0])
     q = np.array([0.3, -1.2, 1.3, -0.9, 1.1, 0.2])
-    node, client = in_process("wall", path, publish_corrected_pose=False, gravity=wall.tolist())
+    node, client = in_process("wall", old, publish_corrected_pose=False, gravity=wall.tolist())
     try:
         answer = client.call(client.service(ComputeFK, "/wall/compute_fk"), fk_request([q], core.joint_names))
         core.base = replace(core.base, gravity=wall)
         np.testing.assert_allclose(poses_of(answer)[0], core.fk(q)[0], atol=1e-9)
-        assert np.abs(poses_of(answer)[0] - HybridModel.load(path).fk(q)[0]).max() > 1e-5  # the mount matters
+        assert np.abs(poses_of(answer)[0] - HybridModel.load(old).fk(q)[0]).max() > 1e-5  # the mount matters
     finally:
         client.close()
         node.destroy_node()
+    with pytest.raises(StartupError, match=r"parameter gravity.*differs from the .* the model.s stage was identified"):
+        in_process("othergravity", path, gravity=wall.tolist())
     with pytest.raises(StartupError, match="parameter gravity"):
         in_process("badgravity", path, gravity=[0.0, float("nan"), 1.0])
 
@@ -346,6 +357,20 @@ def test_payload_set_at_run_time_moves_the_stage_and_flags_the_nets(ros, thermal
         bad = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=-1.0)
         refused = client.call(params, SetParameters.Request(parameters=[Parameter(name="payload_mass", value=bad)]))
         assert not refused.results[0].successful and "mass >= 0" in refused.results[0].reason
+        # a mass alone keeps the trained centre of mass; the trained payload again: inside the range again
+        trained_mass, _ = core.trained_payload
+        back = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=trained_mass)
+        nan_com = ParameterValue(type=ParameterType.PARAMETER_DOUBLE_ARRAY, double_array_value=[float("nan")] * 3)
+        request = SetParameters.Request(
+            parameters=[Parameter(name="payload_com", value=nan_com), Parameter(name="payload_mass", value=back)]
+        )
+        assert all(r.successful for r in client.call(params, request).results)
+        assert list(client.call(fk, fk_request([q], core.joint_names)).in_calibrated_range) == [True]
+        # and a heavy payload again for what follows
+        request = SetParameters.Request(
+            parameters=[Parameter(name="payload_com", value=com), Parameter(name="payload_mass", value=mass)]
+        )
+        assert all(r.successful for r in client.call(params, request).results)
         np.testing.assert_array_equal(
             poses_of(client.call(fk, fk_request([q], core.joint_names)))[0], poses_of(after)[0]
         )
