@@ -141,7 +141,11 @@ def model_errors(cfg, model, manifest, train_pairs, tests, hybrid_label="hybrid"
         for label, pairs, T in (
             ("URDF model", urdf, model.fk(urdf.q, analytic=True)),
             ("geometry only", base, geometry.fk(base.q)),
-            ("parametric stage", base, model.fk(base.q, nets=False)),
+            (
+                "parametric stage",
+                base,
+                model.fk(base.q, nets=False, conditions=model.conditions_of(base.conditions, len(base))),
+            ),
             (hybrid_label, base, model.fk(base.q, conditions=model.conditions_of(base.conditions, len(base)))),
         ):
             errors.setdefault(label, []).append(target_errors(pairs, T))

@@ -74,7 +74,7 @@ class Capacity:
     @property
     def kinds(self) -> tuple[str, ...]:
         cyclic = ("harmonic",) if self.harmonics > 0 or self.map_step > 0 else ()
-        return ELASTIC[self.elastic] + cyclic
+        return ELASTIC[self.elastic] + cyclic + (("backlash",) if self.approach else ())
 
     def identify_options(self) -> dict[str, Any]:
         return {
@@ -112,8 +112,8 @@ def options_from(given: dict[str, Any]) -> dict[str, Any]:
     """:func:`~calibration.parametric.identify`'s options for the settings ``given`` (the others left to
     its defaults), without a selection."""
     out = {k: given[k] for k in ("harmonics", "harmonic_prior", "map_step", "map_smoothness") if k in given}
-    if "elastic" in given:
-        out["kinds"] = (*_elastic_kinds(given["elastic"]), "harmonic")
+    elastic = _elastic_kinds(given["elastic"]) if "elastic" in given else ELASTIC["bending"]
+    out["kinds"] = (*elastic, "harmonic", *(("backlash",) if given.get("approach") else ()))
     return out
 
 

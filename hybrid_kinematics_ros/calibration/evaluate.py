@@ -61,9 +61,10 @@ def pose_errors_of(model: HybridModel, pairs: Pairs) -> dict[str, tuple[np.ndarr
     """
     pairs = in_base_frame(model, pairs)
     models = {"analytic": model.fk(pairs.q, analytic=True)}
+    conditions = model.conditions_of(pairs.conditions, len(pairs))
     if model.has_parametric:
-        models["parametric"] = model.fk(pairs.q, nets=False)
-    models["hybrid"] = model.fk(pairs.q, conditions=model.conditions_of(pairs.conditions, len(pairs)))
+        models["parametric"] = model.fk(pairs.q, nets=False, conditions=conditions)
+    models["hybrid"] = model.fk(pairs.q, conditions=conditions)
     return {name: target_errors(pairs, T) for name, T in models.items()}
 
 

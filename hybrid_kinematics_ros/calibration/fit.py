@@ -148,15 +148,13 @@ def identify_stations(
     chosen = None
     if choose:
         linear = linearise(chain, base.q, base.T, harmonics=max(capacity_module.HARMONICS), **common)
-        channels = approach.channel_names(chain.joint_names)
-        directions = None
-        if all(c in base.conditions for c in channels):
-            directions = np.column_stack([base.conditions[c] for c in channels])[linear.pick]
-        chosen = capacity_module.select_capacity(linear, len(base), given, directions=directions)
+        directions = approach_of(base)
+        drawn = None if directions is None else directions[linear.pick]
+        chosen = capacity_module.select_capacity(linear, len(base), given, directions=drawn)
         options = chosen.identify_options()
     else:
         options = capacity_module.options_from(given)
-    result = identify(chain, base.q, base.T, **common, **options)
+    result = identify(chain, base.q, base.T, **common, **options, directions=approach_of(base))
     result.capacity = None if chosen is None else chosen.manifest()
     if not refs:
         return refs, result
@@ -165,6 +163,14 @@ def identify_stations(
 
 
 SPLIT_BLOCKS = 100  # time blocks a split cuts the pairs into, by default
+
+
+def approach_of(pairs: Pairs) -> np.ndarray | None:
+    """``(N, n)``: the pairs' approach directions (:meth:`Pairs.with_approach`), or None if they carry none."""
+    channels = approach.channel_names(pairs.joint_names)
+    if not all(c in pairs.conditions for c in channels):
+        return None
+    return np.column_stack([pairs.conditions[c] for c in channels])
 
 
 def split(
@@ -253,12 +259,13 @@ def fit(
         if result.capacity is not None:
             manifest["capacity"] = result.capacity
             log("parametric stage capacity (cross-validated): " + capacity_module.summary(result.capacity))
-            channels = approach.channel_names(chain.joint_names)
-            if result.capacity["chosen"].get("approach") and not set(channels) & set(conditions):
-                conditions = (*conditions, *channels)  # the nets take the directions the data asked for
+
         if refs:
             train_pairs, val_pairs, test_pairs = (to_base_frame(p, chain, refs) for p in raw)
         base = result.model
+        channels = approach.channel_names(chain.joint_names)
+        if base.backlash is not None and not set(channels) & set(conditions):
+            conditions = (*conditions, *channels)  # the stage's backlash terms and the nets take the directions
         manifest["parametric"] = {**result.manifest(), "seconds": round(time.perf_counter() - start, 1)}
         log(
             f"parametric stage: {int(result.identifiable.sum())} of {len(result.params)} parameters identifiable; "
@@ -278,8 +285,13 @@ def fit(
         directions = np.array([approach.is_channel(name) for name in conditions])  # always over -1 … +1
         low, high = np.where(directions, -1.0, c.min(axis=0)), np.where(directions, 1.0, c.max(axis=0))
         norm_lower, norm_upper = np.r_[norm_lower, low], np.r_[norm_upper, high]
-    y_train = train.residual_targets(base, train_pairs.q, train_pairs.T, target)
-    y_val = train.residual_targets(base, val_pairs.q, val_pairs.T, _target_offsets(val_pairs))
+    # what the stage leaves, with its backlash terms shifting the joints the way each pair arrived
+    y_train = train.residual_targets(
+        base, base.approached(train_pairs.q, approach_of(train_pairs)), train_pairs.T, target
+    )
+    y_val = train.residual_targets(
+        base, base.approached(val_pairs.q, approach_of(val_pairs)), val_pairs.T, _target_offsets(val_pairs)
+    )
     arch = arch or {}
     kinds = ("position",) if position_only else train.KINDS
     jobs = {}

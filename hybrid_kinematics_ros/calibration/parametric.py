@@ -81,6 +81,7 @@ SCALE = {
     "translation": 1e-3,
     "rotation": 1e-3,
     "harmonic": 1e-4,
+    "backlash": 1e-4,
 }
 UNITS = {
     "zero": "rad",
@@ -91,6 +92,7 @@ UNITS = {
     "translation": "m",
     "rotation": "rad",
     "harmonic": "rad",
+    "backlash": "rad",
 }
 KINDS = tuple(SCALE)
 STATION_KINDS = ("placement", "mount")  # per-station corrections of the referencing (see the module text)
@@ -413,13 +415,17 @@ def _identify(
     map_smoothness: float = MAP_SMOOTHNESS,
     linear: bool = False,
     gravity: np.ndarray | None = None,
+    directions: np.ndarray | None = None,
 ) -> ParametricResult | Linearisation:
     """Identify the elasto-geometric parameters from joints ``q (N, n)`` and measured base-frame poses ``T``
     (``linear``: only linearise the problem, see :class:`Linearisation`).
 
     Position-only: ``T`` holds the measured target points and ``target`` (m, ``(3,)`` or ``(N, 3)``) their
     offset in the tip frame, which makes the flange's rotation observable. ``gravity``: m/s² in the base
-    frame (None: −9.81 along z, a floor mount; a wall or ceiling mount needs its own).
+    frame (None: −9.81 along z, a floor mount; a wall or ceiling mount needs its own). ``directions (N, n)``:
+    the joints' approach directions (:mod:`model.approach`); with the ``backlash`` kind, each joint seen
+    arriving both ways gets a backlash term (its angle shifted by ``b`` times its direction), which the served
+    model applies with the directions it is given.
 
     At most ``max_pairs`` pairs (drawn reproducibly, evenly from each ``placement``) enter the fit: a few
     thousand pin down the parameters far below the tracker noise, and the cost grows with the count.
@@ -451,18 +457,26 @@ def _identify(
     counts = (int(placement.max()) + 1, int(mount.max()) + 1)
     geometric_params = parameter_list(chain, 0)
     params = geometric_params + _station_parameters(*counts) + parameter_list(chain, harmonics)[len(geometric_params) :]
+    if directions is not None and "backlash" in chosen:
+        d_fit = np.asarray(directions, dtype=float)[pick]
+        both = np.flatnonzero(np.any(d_fit > 0, axis=0) & np.any(d_fit < 0, axis=0))
+        params += [Parameter(f"backlash {chain.joint_names[j]}", "backlash", int(j), 0) for j in both]
     scale = np.array([SCALE.get(p.kind, STATION_SCALE) for p in params])
     movable = np.array([p.kind in STATION_KINDS for p in params])
     chain_params = [p for p, m in zip(params, movable, strict=True) if not m]
-    cyclic = np.array([p.kind == "harmonic" for p in params])
+    cyclic = np.array([p.kind in ("harmonic", "backlash") for p in params])  # shifts of the joints, fitted so
+    harmonic = np.array([p.kind == "harmonic" for p in params])
     joints = np.array([p.index for p in params])
     components = np.array([p.component for p in params])
-    prior = np.where(cyclic, np.sqrt(harmonic_prior), 0.0) * scale  # residual (m) per scaled unit, × 1 m
+    prior = np.where(harmonic, np.sqrt(harmonic_prior), 0.0) * scale  # residual (m) per scaled unit, × 1 m
     held_back = prior > 0
     # Each cyclic coefficient's basis function at the fitted joints, (N, m): computed once, not per evaluation.
     f = components[cyclic] // 2 + 1
     phase = q_fit[:, joints[cyclic]] * f
     basis = np.where(components[cyclic] % 2 == 0, np.sin(phase), np.cos(phase))
+    shifting = np.array([p.kind == "backlash" for p in params])[cyclic]
+    if shifting.any():  # a backlash term shifts its joint by its value times the direction
+        basis[:, shifting] = d_fit[:, joints[cyclic][shifting]]
     position = np.cumsum(cyclic) - 1  # column of a cyclic parameter in ``basis``
 
     def values_at(z: np.ndarray, active: np.ndarray, fixed: np.ndarray) -> np.ndarray:
@@ -576,13 +590,19 @@ def _identify(
     start_jac = full_jac[np.ix_(start_rows, np.flatnonzero(active))]
     values = values_at(solve(active, np.zeros(int(active.sum())), first_jac=start_jac), active, nothing)
     model = chain_model(values)
+    every_direction = None if directions is None else np.asarray(directions, dtype=float)
+
+    def reached(rows: np.ndarray | slice) -> np.ndarray:
+        """The pairs' joints shifted by the backlash terms (the joint error map is fitted on top of them)."""
+        return model.approached(q[rows], None if every_direction is None else every_direction[rows])
+
     joint_map = None
     if map_step > 0 and "harmonic" in chosen:
         draw = np.sort(np.random.default_rng(seed).permutation(len(q))[:MAP_MAX_PAIRS])
         measured, offsets = measurements(values, draw)
         joint_map = fit_joint_map(
             model,
-            q[draw],
+            reached(draw),
             measured,
             position_only,
             offsets,
@@ -609,7 +629,7 @@ def _identify(
         identifiable=active[keep],
         reasons={name: why for name, why in reasons.items() if not name.startswith(("placement ", "mount "))},
         rms_before=_rms(r0.reshape(-1, width)),
-        rms_after=_rms(pose_residuals(model, q_fit, measured, position_only, offsets, orientation_length)),
+        rms_after=_rms(pose_residuals(model, reached(pick), measured, position_only, offsets, orientation_length)),
         position_only=position_only,
         nominal=chain,
         joint_map=joint_map,

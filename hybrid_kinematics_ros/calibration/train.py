@@ -116,13 +116,31 @@ def _validation_error(net: ResidualNet, q: torch.Tensor, y: torch.Tensor) -> flo
     return err
 
 
-def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tuple[ResidualNet, list[dict]]:
+def _beats_nothing(net: ResidualNet, q: torch.Tensor, y: torch.Tensor) -> bool:
+    """Whether ``net`` corrects the validation pairs better than correcting nothing by more than the
+    validation noise (one standard error of the per-pair differences): the simpler model, the stage alone,
+    wins a tie, as in the stage's own capacity choice."""
+    if not len(y):
+        return True
+    net.eval()
+    with torch.no_grad():
+        diff = (torch.linalg.vector_norm(net(q) - y, dim=1) - torch.linalg.vector_norm(y, dim=1)).numpy()
+    net.train()
+    noise = float(np.std(diff, ddof=1) / np.sqrt(len(diff))) if len(diff) > 1 else 0.0
+    return float(np.mean(diff)) < -noise
+
+
+def train_net(
+    job: NetJob, report: Callable[[dict], None] | None = None, gate: bool = True
+) -> tuple[ResidualNet, list[dict]]:
     """Train one residual net; returns the best net on validation and the per-epoch history.
 
     The net must beat correcting nothing: if no epoch's validation error is below that of the stage
-    before it (the targets' own size), the net is silenced (outputs zero), so the nets never make the
-    model worse on validation. With little or unstructured data this happens (real UR10, 1k pairs).
-    An ensemble's members train one after the other (:func:`_train_members`).
+    before it (the targets' own size) by more than the validation noise (:func:`_beats_nothing`), the net
+    is silenced (outputs zero), so the nets never make the model worse on validation. With little or
+    unstructured data this happens (real UR10, 1k pairs; 300 poses of a virtual cell).
+    An ensemble's members train one after the other (:func:`_train_members`); ``gate=False`` (a member)
+    leaves the noise test to the ensemble.
     """
     if job.preset.members > 1:
         return _train_members(job, report)
@@ -202,11 +220,11 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
             break
     if not history:
         raise CalibrationError(f"{job.kind} net: no training step fitted in the time budget; give more time")
-    if best[1] is None:
+    if best[1] is not None:
+        net.load_state_dict(best[1])
+    if best[1] is None or (gate and not _beats_nothing(net, q_val, y_val)):
         net.silence()
         history[-1]["silenced"] = True
-    else:
-        net.load_state_dict(best[1])
     net.eval()
     return net, history
 
@@ -234,7 +252,7 @@ def _train_members(job: NetJob, report: Callable[[dict], None] | None) -> tuple[
     for i in range(k):
         epochs, seconds = (history[-1]["epoch"], history[-1]["seconds"]) if history else (0, 0.0)
         relay = None if report is None else (lambda e, a=epochs, b=seconds, m=i: report(counted_on(e, a, b, m)))
-        member, member_history = train_net(replace(single, seed=job.seed + i * MEMBER_SEED_STRIDE), relay)
+        member, member_history = train_net(replace(single, seed=job.seed + i * MEMBER_SEED_STRIDE), relay, gate=False)
         history += [counted_on(e, epochs, seconds, i) for e in member_history]
         bodies.append(member.body)
     net = build_net(job)
@@ -246,7 +264,7 @@ def _train_members(job: NetJob, report: Callable[[dict], None] | None) -> tuple[
     val = _validation_error(net, q_val, y_val)
     last = {k: v for k, v in history[-1].items() if k != "silenced"}
     history[-1] = {**last, f"val_{unit}": val * factor, f"best_val_{unit}": min(val, nothing) * factor}
-    if val >= nothing:
+    if val >= nothing or not _beats_nothing(net, q_val, y_val):
         net.silence()
         history[-1]["silenced"] = True
     net.eval()

@@ -89,6 +89,15 @@ class ElasticChain:
     cubic_compliance: np.ndarray | None = None  # (n,) rad/Nm³: the deflection's term in τ³ (load-dependent stiffness)
     signed_compliance: np.ndarray | None = None  # (n,) rad/Nm: the term in |τ| (stiffer one way than the other)
     gravity: np.ndarray = field(default_factory=lambda: GRAVITY.copy())  # m/s², base frame (wall, ceiling, tilt)
+    backlash: np.ndarray | None = None  # (n,) rad: each joint's shift per unit of approach direction (approached)
+
+    def approached(self, q: np.ndarray, directions: np.ndarray | None) -> np.ndarray:
+        """Commanded joints ``(…, n)`` as the backlash leaves them, given the joints' approach directions
+        ``(…, n)`` (:mod:`model.approach`; None: unknown, no shift). The FK methods take joints shifted so: the
+        directions are not a function of the joints, so the caller, who knows them, applies them."""
+        if self.backlash is None or directions is None:
+            return q
+        return np.asarray(q, dtype=float) + self.backlash * np.asarray(directions, dtype=float)
 
     def corrected_joints(self, q: np.ndarray) -> np.ndarray:
         """Commanded joints ``(B, n)`` plus zero offsets and cyclic joint errors: what the rigid links reach."""

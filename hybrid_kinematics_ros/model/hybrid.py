@@ -263,6 +263,14 @@ class HybridModel:
         section = (self.manifest.get("parametric") or {}).get("payload") or {}
         return float(section.get("mass", 0.0)), np.asarray(section.get("com", np.zeros(3)), dtype=float)
 
+    def _approached(self, q: np.ndarray, conditions: np.ndarray | None = None) -> np.ndarray:
+        """The joints as the stage's backlash terms leave them, for the approach directions in ``conditions``
+        (per row) or the current ones; unchanged for a stage without backlash terms."""
+        if self.base.backlash is None or self.approach_index is None:
+            return q
+        values = self.condition_values if conditions is None else np.asarray(conditions, dtype=float)
+        return self.base.approached(q, values[..., self.approach_index])
+
     def same_turn(self, q: np.ndarray) -> np.ndarray:
         """``q (…, n)`` with each revolute joint outside the trained range moved by whole turns to the
         equivalent angle nearest it (within π of its centre); joints inside are returned unchanged, bit for
@@ -414,7 +422,7 @@ class HybridModel:
         if analytic:
             return fk.fk(self.chain, q)
         q = self.same_turn(q)
-        T = self.base.fk(q)
+        T = self.base.fk(self._approached(q, conditions))
         if not nets or not self.nets:
             return T
         dp, w = self.residuals(q, conditions)
@@ -427,7 +435,8 @@ class HybridModel:
         if analytic:
             return fk.fk_single(self.chain, q)
         q = self.same_turn(q)
-        T = self.base.fk_single(q) if self._rigid_base is None else fk.fk_single(self._rigid_base, q)
+        reached = self._approached(q)
+        T = self.base.fk_single(reached) if self._rigid_base is None else fk.fk_single(self._rigid_base, reached)
         if not self.nets or not self._nets_apply(q[None]):
             return T
         if not all(self._fast.values()):
@@ -472,7 +481,7 @@ class HybridModel:
         if analytic:
             return fk.fk_and_jacobian(self.chain, q)
         q = self.same_turn(q)
-        T, J = self.base.fk_and_jacobian(q)
+        T, J = self.base.fk_and_jacobian(self._approached(q))
         if not self.nets:
             return T, J
         qt = torch.tensor(self._inputs(q), requires_grad=True)
@@ -503,7 +512,7 @@ class HybridModel:
         if analytic:
             return fk.fk_and_jacobian_single(self.chain, q)
         q = self.same_turn(q)
-        T, J = self.base.fk_and_jacobian_single(q)
+        T, J = self.base.fk_and_jacobian_single(self._approached(q))
         if not self.nets or not self._nets_apply(q[None]):
             return T, J
         if not all(self._fast.values()):

@@ -35,7 +35,8 @@ def build_model(
     """The elastic chain for parameter ``values`` in SI units (one per entry of ``params``), and the joint
     error map if there is one. ``gravity``: m/s² in the base frame (None: −9.81 along z)."""
     n = chain.dof
-    zero, compliance, cubic, signed, bend_uv = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((n, 2))
+    zero, compliance, cubic, signed, backlash = (np.zeros(n) for _ in range(5))
+    bend_uv = np.zeros((n, 2))
     delta = np.zeros((n + 1, 6))
     k_max = max((p.component // 2 + 1 for p in params if p.kind == "harmonic"), default=0)
     cyclic = np.zeros((n, k_max, 2))
@@ -50,6 +51,8 @@ def build_model(
             cubic[p.index] = v
         elif p.kind == "signed":
             signed[p.index] = v
+        elif p.kind == "backlash":
+            backlash[p.index] = v
         elif p.kind == "bending":
             bend_uv[p.index, p.component] = v
         else:
@@ -68,6 +71,7 @@ def build_model(
         joint_map=joint_map,
         cubic_compliance=cubic if np.any(cubic) else None,
         signed_compliance=signed if np.any(signed) else None,
+        backlash=backlash if np.any(backlash) else None,
         gravity=GRAVITY.copy() if gravity is None else np.asarray(gravity, dtype=float),
     )
 
