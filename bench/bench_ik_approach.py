@@ -124,7 +124,18 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for name, conditions in (("plain", ()), ("approach", channel_names(cfg.chain.joint_names))):
             path = Path(tmp) / name
-            fit(cfg.chain, tr, va, test, path, PRESET, args.train_minutes, conditions=conditions, parametric=True)
+            fit(
+                cfg.chain,
+                tr,
+                va,
+                test,
+                path,
+                PRESET,
+                args.train_minutes,
+                conditions=conditions,
+                parametric=True,
+                capacity={"approach": bool(conditions)},  # "plain": without the directions, which the data choose
+            )
             models[name] = HybridModel.load(path)
             hybrid = evaluate(models[name], test)["hybrid"]
             fk_rows.append([LABELS[name], f"{hybrid['position_mm_mean']:.4f}", f"{hybrid['position_mm_p95']:.4f}"])
