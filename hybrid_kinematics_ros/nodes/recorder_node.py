@@ -135,16 +135,17 @@ class RecorderNode(Node):
         self.subscriptions_[topic] = (sub, reliability, msgtype, callback)
 
     def _no_joints_message(self, elapsed: float) -> str:
-        """Why no pair can come of this recording yet, logged once as a warning: the whole session would
-        otherwise end with zero pairs (a driver naming its joints otherwise, say)."""
+        """Why no pair can come of this recording yet, logged as a warning once per cause (nothing at all,
+        then the names that came instead): the whole session would otherwise end with zero pairs (a driver
+        naming its joints otherwise, say)."""
         without = self.received["joint_states_without_robot_joints"]
         text = f"no joint state with the robot's joints ({', '.join(self.chain.joint_names)}) in {elapsed:.0f} s"
         if without:
             text += f": {without} on {self.joints_topic} carried {', '.join(self.other_joint_names)} instead"
         else:
             text += f": nothing on {self.joints_topic}"
-        if not self._warned_no_joints:
-            self._warned_no_joints = True
+        if self._warned_no_joints != self.other_joint_names:
+            self._warned_no_joints = self.other_joint_names
             self.get_logger().warning(text)
         return text
 
@@ -185,7 +186,7 @@ class RecorderNode(Node):
         self._aligned, self._align_error = deque(), ""
         self.received = Counter()
         self.other_joint_names: tuple[str, ...] = ()  # of the last joint state without the robot's joints
-        self._warned_no_joints = False
+        self._warned_no_joints: tuple[str, ...] | None = None  # the cause last logged (the names seen instead)
         self.beam_breaks = 0
         self.last_pose_stamp: int | None = None
         self.offsets = []
