@@ -24,7 +24,7 @@ instead of an identification: the whole selection takes seconds. The test pairs 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -40,7 +40,6 @@ from hybrid_kinematics_ros.calibration.parametric import (
     solve_joint_map,
 )
 from hybrid_kinematics_ros.kinematics.elastic import JointMap
-from hybrid_kinematics_ros.model.parametric import Parameter
 
 BLOCKS = 20  # contiguous blocks of the training pairs; each is validated once
 FOLDS = 5  # block b is held out in fold b % FOLDS
@@ -121,24 +120,6 @@ def _elastic_kinds(name: str) -> tuple[str, ...]:
     if name not in ELASTIC:
         raise CalibrationError(f"elastic terms '{name}': choose one of {', '.join(ELASTIC)}")
     return ELASTIC[name]
-
-
-BACKLASH_SCALE = 1e-4  # rad: the scaled unit of a joint's backlash term
-
-
-def _with_backlash(lin: Linearisation, directions: np.ndarray) -> Linearisation:
-    """``lin`` with a backlash column per joint that moves (``b_j`` rad times its approach direction): the
-    joint's column of :attr:`Linearisation.joint_rows` times the direction, as a cyclic error's basis."""
-    moving = np.flatnonzero(np.any(directions > 0, axis=0) & np.any(directions < 0, axis=0))  # both sides seen
-    columns = lin.joint_rows[:, :, moving] * directions[:, None, moving] * BACKLASH_SCALE
-    params = [Parameter(f"backlash {j}", "backlash", int(j), 0) for j in moving]
-    return replace(
-        lin,
-        params=[*lin.params, *params],
-        jacobian=np.concatenate([lin.jacobian, columns], axis=2),
-        identifiable=np.r_[lin.identifiable, np.ones(len(moving), dtype=bool)],
-        scale=np.r_[lin.scale, np.full(len(moving), BACKLASH_SCALE)],
-    )
 
 
 def _blocks(lin: Linearisation, total: int) -> np.ndarray:
@@ -247,7 +228,6 @@ def select_capacity(
     total: int,
     fixed: dict[str, Any] | None = None,
     map_ridge: float | None = None,
-    directions: np.ndarray | None = None,
 ) -> Capacity:
     """Choose the stage's capacity by cross-validation on ``lin`` (linearised with every elastic term and
     the most harmonics of :data:`HARMONICS`), drawn from ``total`` training pairs in recording order.
@@ -255,13 +235,10 @@ def select_capacity(
     ``fixed``: settings the user gave (``elastic``, ``harmonics``, ``harmonic_prior``, ``map_step``,
     ``map_smoothness``, ``approach``); they are not chosen, only recorded.
 
-    ``directions (N, n)``: the drawn pairs' approach directions (:mod:`model.approach`), if they carry them:
-    then ``approach`` is chosen too, from a backlash term (joint ``j`` shifted by ``b_j`` times its direction)
-    on top of the stage.
+    When ``lin`` holds backlash columns (linearised with the pairs' approach directions), ``approach`` is
+    chosen too: whether the stage's backlash terms, and the directions as the nets' inputs, earn their place.
     """
     fixed = {k: v for k, v in (fixed or {}).items() if v is not None}
-    if directions is not None and np.any(directions):
-        lin = _with_backlash(lin, np.asarray(directions, dtype=float))
     unknown = set(fixed) - {"elastic", "harmonics", "harmonic_prior", "map_step", "map_smoothness", "approach"}
     if unknown:
         raise CalibrationError(f"unknown capacity settings {sorted(unknown)}")

@@ -138,6 +138,7 @@ def identify_stations(
         "payload_mass": payload[0],
         "payload_com": payload[1],
         "gravity": gravity,
+        "directions": approach_of(base),
         "position_only": base.position_only,
         "seed": seed,
         "target": _target_offsets(base),
@@ -148,13 +149,11 @@ def identify_stations(
     chosen = None
     if choose:
         linear = linearise(chain, base.q, base.T, harmonics=max(capacity_module.HARMONICS), **common)
-        directions = approach_of(base)
-        drawn = None if directions is None else directions[linear.pick]
-        chosen = capacity_module.select_capacity(linear, len(base), given, directions=drawn)
+        chosen = capacity_module.select_capacity(linear, len(base), given)
         options = chosen.identify_options()
     else:
         options = capacity_module.options_from(given)
-    result = identify(chain, base.q, base.T, **common, **options, directions=approach_of(base))
+    result = identify(chain, base.q, base.T, **common, **options)
     result.capacity = None if chosen is None else chosen.manifest()
     if not refs:
         return refs, result
@@ -259,7 +258,6 @@ def fit(
         if result.capacity is not None:
             manifest["capacity"] = result.capacity
             log("parametric stage capacity (cross-validated): " + capacity_module.summary(result.capacity))
-
         if refs:
             train_pairs, val_pairs, test_pairs = (to_base_frame(p, chain, refs) for p in raw)
         base = result.model
