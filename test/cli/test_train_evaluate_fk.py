@@ -183,7 +183,8 @@ def test_tracker_frame_position_only_workflow(tmp_path):
     report = json.loads(result.stdout)
     # the stage is at the noise floor here, so the position net may rightly correct nothing: never worse than it
     assert report["hybrid"]["position_mm_mean"] <= 1.05 * report["parametric"]["position_mm_mean"] < 0.5
-    assert 1.0 < report["analytic"]["position_mm_mean"] < 10.0  # the cell's robot errors, at the reflector
+    # the URDF model, judged on the same bag, leaves the cell's robot errors: the stage removes nearly all
+    assert report["analytic"]["position_mm_mean"] > 20 * report["parametric"]["position_mm_mean"]
     assert "orientation_deg_mean" not in report["hybrid"]
     report_dir = tmp_path / "report"
     result = run("report", "--model", str(model_dir), "--bag", str(test_bag), "--out", str(report_dir))
