@@ -22,6 +22,15 @@ LIB = ROOT / "install" / "hybrid_kinematics_ros" / "lib" / "hybrid_kinematics_ro
 
 
 LATENCY_KINDS = "fk,trigger,fk_empty,fk_pose"  # called in turn by one client: one machine state for all
+# the embedded UR10 names its joints as ur_robot_driver does
+UR10_JOINTS = (
+    "shoulder_pan_joint",
+    "shoulder_lift_joint",
+    "elbow_joint",
+    "wrist_1_joint",
+    "wrist_2_joint",
+    "wrist_3_joint",
+)
 DEEP_REPLY_QUEUE = 100  # the client QoS depth the README recommends for many concurrent clients
 
 
@@ -59,7 +68,7 @@ def client(calls: int, batch: int = 1, kinds: str = "fk", depth: int = 10) -> di
 
     rclpy.init()
     node = rclpy.create_node(f"bench_client_{os.getpid()}")
-    names = [f"joint_{i}" for i in range(1, 7)]
+    names = list(UR10_JOINTS)
     stamp = node.get_clock().now().to_msg()
     qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -509,7 +518,7 @@ def publish(seconds: float) -> dict:
         lambda m: lags.append(time.time() - sent.get((m.header.stamp.sec, m.header.stamp.nanosec), time.time())),
         100,
     )
-    names = [f"joint_{i}" for i in range(1, 7)]
+    names = list(UR10_JOINTS)
     end = time.monotonic() + seconds
     tick = time.monotonic()
     while time.monotonic() < end:

@@ -22,6 +22,6 @@ def test_readme_commands_run_as_written(tmp_path):
         result = subprocess.run(["bash", "-c", command], cwd=tmp_path, capture_output=True, text=True, check=False)
         assert result.returncode == 0, f"{command}\n{result.stderr[-2000:]}"
     solutions = (tmp_path / "solutions.csv").read_text().splitlines()
-    assert solutions[0].startswith("pose_index,solution,joint_1") and len(solutions) >= 2
+    assert solutions[0].startswith("pose_index,solution,shoulder_pan_joint") and len(solutions) >= 2
     assert re.search(r'"hybrid"', (tmp_path / "eval.json").read_text())
     assert (tmp_path / "model_from_recording" / "model.json").is_file()

@@ -8,7 +8,7 @@ from collections.abc import Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, TransformStamped
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
@@ -108,6 +108,15 @@ def pose_msg_of_rows(
     p, o = msg.pose.position, msg.pose.orientation
     p.x, p.y, p.z = rows[0][3], rows[1][3], rows[2][3]
     o.x, o.y, o.z, o.w = quat_of_rows(rows) if quat is None else quat.tolist()
+    return msg
+
+
+def transform_msg_of_pose(pose: PoseStamped, child_frame_id: str) -> TransformStamped:
+    """The same pose as a TransformStamped, which names the frame it places (``child_frame_id``)."""
+    msg = TransformStamped(header=pose.header, child_frame_id=child_frame_id)
+    p, t = pose.pose.position, msg.transform.translation
+    t.x, t.y, t.z = p.x, p.y, p.z
+    msg.transform.rotation = pose.pose.orientation
     return msg
 
 

@@ -22,7 +22,7 @@ import numpy as np
 import rclpy
 import torch
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, TransformStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -53,6 +53,7 @@ from hybrid_kinematics_ros.nodes.convert import (
     stamp_is_zero,
     trajectory_arrays,
     trajectory_msg,
+    transform_msg_of_pose,
 )
 from hybrid_kinematics_ros.nodes.runtime import StartupError, read_only_parameter, run_node
 from hybrid_kinematics_ros.nodes.stats import RequestStats
@@ -157,11 +158,13 @@ class KinematicsNode(Node):
         self.ik_node.create_service(Trigger, f"{own}/reload", self._on_reload)
         self.ik_node.create_service(CompensateTrajectory, f"{own}/compensate_trajectory", self._on_compensate)
         self.pose_node = Node(f"{self.get_name()}_pose", namespace=self.get_namespace(), context=self.context)
-        self.pose_pub = (
-            self.pose_node.create_publisher(PoseStamped, f"{own}/corrected_pose", QoSProfile(depth=100))
-            if publish
-            else None
-        )
+        self.pose_pub = self.transform_pub = None
+        if publish:
+            self.pose_pub = self.pose_node.create_publisher(PoseStamped, f"{own}/corrected_pose", QoSProfile(depth=100))
+            # the same pose, naming the frame it places (the tip link): PoseStamped has no child frame
+            self.transform_pub = self.pose_node.create_publisher(
+                TransformStamped, f"{own}/corrected_transform", QoSProfile(depth=100)
+            )
         # best effort (matches reliable and best-effort publishers) with a deep queue for bursts
         joint_qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.BEST_EFFORT)
         self.pose_node.create_subscription(JointState, topic, self._on_joint_state, joint_qos)
@@ -356,7 +359,9 @@ class KinematicsNode(Node):
             )
             return
         rows = model.fk_rows(q.tolist())
-        self.pose_pub.publish(pose_msg_of_rows(rows, model.chain.base_link, msg.header.stamp))
+        pose = pose_msg_of_rows(rows, model.chain.base_link, msg.header.stamp)
+        self.pose_pub.publish(pose)
+        self.transform_pub.publish(transform_msg_of_pose(pose, model.chain.tip_link))
 
     def _on_fk(self, request: ComputeFK.Request, response: ComputeFK.Response) -> ComputeFK.Response:
         """The round trip costs a few hundred µs in rclpy alone and the process wakes up with cold caches,

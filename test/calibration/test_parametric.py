@@ -51,10 +51,10 @@ def test_identified_model_matches_the_truth_it_can_represent(cell, identified):
 def test_unidentifiable_parameters_are_reported_with_a_reason(identified):
     reasons = identified.reasons
     # joint 1 is vertical: gravity exerts no torque about it, so its spring never shows
-    assert reasons["compliance joint_1"] == "does not change the measured poses"
+    assert reasons["compliance shoulder_pan_joint"] == "does not change the measured poses"
     # turning joint 2's origin about its own axis is a zero offset of joint 2, which is kept
-    assert "zero offset joint_2" in reasons["origin joint_2 rz"]
-    assert "zero offset joint_2" not in reasons
+    assert "zero offset shoulder_lift_joint" in reasons["origin shoulder_lift_joint rz"]
+    assert "zero offset shoulder_lift_joint" not in reasons
     kept = {p.name for p, ok in zip(identified.params, identified.identifiable, strict=True) if ok}
     assert not kept & set(reasons)
     assert len(kept) + len(reasons) == len(identified.params)
@@ -171,7 +171,7 @@ def test_geometry_only_calibration(cell, identified):
     cfg, robot, q, T = cell
     geometry = identify(cfg.chain, q, T, cfg.payload_mass, cfg.payload_com, max_pairs=1500, kinds=GEOMETRY_KINDS)
     assert not geometry.model.is_elastic and not geometry.model.has_joint_error
-    assert geometry.reasons["compliance joint_2"] == "not fitted (kinds)"
+    assert geometry.reasons["compliance shoulder_lift_joint"] == "not fitted (kinds)"
     served = identified.geometry_model()
     assert not served.is_elastic and not served.has_joint_error
     qt = _held_out(cfg)

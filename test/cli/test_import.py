@@ -13,10 +13,11 @@ from scipy.spatial.transform import Rotation
 from hybrid_kinematics_ros.cli.main import main
 from hybrid_kinematics_ros.io.pairs import read_pairs
 from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures" / "ipa-robot-accuracy"
 SERIES_A = FIXTURES / "Series_A_measurements_grid_head40.csv"
-UR10 = tuple(f"joint_{i}" for i in range(1, 7))
+UR10 = load_robot_config("ur10").chain.joint_names
 
 
 def run(*args):

@@ -111,7 +111,7 @@ def test_train_evaluate_fk_workflow(tmp_path, capsys):
     result = run("report", "--model", str(model_dir), "--bag", str(bag), "--out", str(tmp_path / "report"))
     assert result.returncode == 0, result.stderr
     page = (tmp_path / "report" / "index.html").read_text()
-    assert "joint error map of joint_2" in page and "joint_map.png" in page
+    assert "joint error map of shoulder_lift_joint" in page and "joint_map.png" in page
     # and the capacity table: the given map step, the chosen settings with their validation figures
     assert "Capacity chosen from the data" in page and "given" in page and "harmonics" in page
     assert (tmp_path / "report" / "joint_map.png").stat().st_size > 5000
@@ -119,16 +119,18 @@ def test_train_evaluate_fk_workflow(tmp_path, capsys):
 
 def test_bad_inputs_get_one_line_errors(tmp_path):
     bad = tmp_path / "bad.csv"
-    bad.write_text("joint_1,joint_2,joint_3,joint_4,joint_5,joint_6\n0,0,x,0,0,0\n")
+    bad.write_text(
+        "shoulder_pan_joint,shoulder_lift_joint,elbow_joint,wrist_1_joint,wrist_2_joint,wrist_3_joint\n0,0,x,0,0,0\n"
+    )
     result = run("fk", "--robot", "ur10", "--joints", str(bad), "--out", str(tmp_path / "o.csv"))
     assert result.returncode == 2
     assert result.stderr.strip() == (
-        f"hybrid-kinematics fk: error: {bad}: line 2, column 'joint_3': 'x' is not a number"
+        f"hybrid-kinematics fk: error: {bad}: line 2, column 'elbow_joint': 'x' is not a number"
     )
     missing = tmp_path / "missing.csv"
-    missing.write_text("joint_1,joint_2\n0,0\n")
+    missing.write_text("shoulder_pan_joint,shoulder_lift_joint\n0,0\n")
     result = run("fk", "--robot", "ur10", "--joints", str(missing), "--out", str(tmp_path / "o.csv"))
-    assert "missing column(s) joint_3" in result.stderr and result.returncode == 2
+    assert "missing column(s) elbow_joint" in result.stderr and result.returncode == 2
     result = run("train", "--bag", str(tmp_path / "nobag"), "--robot", "ur10", "--out", str(tmp_path / "m"))
     assert result.returncode == 2 and "does not exist" in result.stderr
     assert result.stderr.count("\n") == 1

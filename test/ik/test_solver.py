@@ -123,7 +123,7 @@ def test_unreachable_target_fails_cleanly(trained):
 def test_outside_calibrated_range_can_be_refused(trained):
     _, model, _, _ = trained
     narrow = HybridModel(model.chain, model.nets, {"trained_range": {"lower": [-0.5] * 6, "upper": [0.5] * 6}})
-    q = np.array([1.0, -0.3, 0.4, -0.2, 0.3, 0.1])  # joint_1 outside the trained range
+    q = np.array([1.0, -0.3, 0.4, -0.2, 0.3, 0.1])  # shoulder_pan_joint outside the trained range
     strict = IKSolver(narrow, IKOptions(timeout_s=1.0, require_calibrated_range=True))
     r = strict.solve(narrow.fk(q)[0], seed=q)
     # other branches are tried too; every one of them leaves the trained box here

@@ -14,9 +14,10 @@ from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.io.import_spec import load_spec_dict, spec_from_dict
 from hybrid_kinematics_ros.io.importer import import_table
 from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures" / "ipa-robot-accuracy"
-UR10 = tuple(f"joint_{i}" for i in range(1, 7))
+UR10 = load_robot_config("ur10").chain.joint_names
 UPSTREAM_JOINTS = (
     "shoulder_pan_joint",
     "shoulder_lift_joint",

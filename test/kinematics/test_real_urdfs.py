@@ -67,7 +67,7 @@ def test_the_same_robot_in_other_words_is_the_same_chain(tmp_path):
         np.testing.assert_allclose(fk(other, q), fk(original, q), atol=1e-7)  # rpy digits: nm
 
 
-@pytest.mark.parametrize("joint", ["joint_1", "joint_3", "joint_6"])
+@pytest.mark.parametrize("joint", ["shoulder_pan_joint", "elbow_joint", "wrist_3_joint"])
 def test_a_joint_origin_moved_by_a_tenth_of_a_millimetre_is_named(joint):
     original = chain_from_urdf(UR10, "base_link", "tool0")
     block = re.search(rf'<joint name="{joint}".*?<origin xyz="([^"]*)"', UR10, re.S)
@@ -83,10 +83,11 @@ def test_other_differences_are_named():
     def diff(old: str, new: str, count: int = 1) -> str | None:
         return original.first_difference(chain_from_urdf(UR10.replace(old, new, count), "base_link", "tool0"))
 
-    assert "'joint_2'" in diff('<joint name="joint_2"', '<joint name="shoulder"')
-    assert "'joint_1'" in diff('<joint name="joint_1" type="revolute"', '<joint name="joint_1" type="continuous"')
-    assert "'joint_1': upper limit" in diff('upper="6.28318531"', 'upper="3.14"')
-    assert "'joint_1': axis" in diff('<axis xyz="0 0 1"/>', '<axis xyz="0 0.01 1"/>')
+    assert "'shoulder_lift_joint'" in diff('<joint name="shoulder_lift_joint"', '<joint name="shoulder"')
+    pan = '<joint name="shoulder_pan_joint" type='
+    assert "'shoulder_pan_joint'" in diff(pan + '"revolute"', pan + '"continuous"')
+    assert "'shoulder_pan_joint': upper limit" in diff('upper="6.28318531"', 'upper="3.14"')
+    assert "'shoulder_pan_joint': axis" in diff('<axis xyz="0 0 1"/>', '<axis xyz="0 0.01 1"/>')
     flange = '<child link="tool0"/>\n    <origin xyz="0 0 0'
     assert "'tool0'" in diff(flange + '"', flange + '.001"')
 
@@ -138,9 +139,9 @@ def test_a_model_accepts_its_robot_restated_and_refuses_a_moved_joint(trained):
     loaded = HybridModel.load(path, expect_urdf=restated(UR10))
     q = np.random.default_rng(2).uniform(model.trained_lower, model.trained_upper, (5, 6))
     np.testing.assert_allclose(loaded.fk(q), model.fk(q), atol=1e-12)
-    block = re.search(r'<joint name="joint_4".*?<origin xyz="([^"]*)"', UR10, re.S)
+    block = re.search(r'<joint name="wrist_1_joint".*?<origin xyz="([^"]*)"', UR10, re.S)
     moved = UR10[: block.start(1)] + "-0.5723 0.0001 0.163941" + UR10[block.end(1) :]
-    with pytest.raises(DataError, match=r"trained for another URDF: joint 'joint_4': origin .* 0\.1000 mm"):
+    with pytest.raises(DataError, match=r"trained for another URDF: joint 'wrist_1_joint': origin .* 0\.1000 mm"):
         HybridModel.load(path, expect_urdf=moved)
 
 
@@ -150,7 +151,9 @@ def test_the_cli_prints_the_inertial_warning_as_one_line(tmp_path, capsys):
     urdf = tmp_path / "mm.urdf"
     urdf.write_text(inertial_of("link_3", "-332.3 0 68", "4.27"))
     joints = tmp_path / "q.csv"
-    joints.write_text("joint_1,joint_2,joint_3,joint_4,joint_5,joint_6\n0,0,0,0,0,0\n")
+    joints.write_text(
+        "shoulder_pan_joint,shoulder_lift_joint,elbow_joint,wrist_1_joint,wrist_2_joint,wrist_3_joint\n0,0,0,0,0,0\n"
+    )
     argv = ["fk", "--urdf", str(urdf), "--base-link", "base_link", "--tip-link", "tool0"]
     assert main([*argv, "--joints", str(joints), "--out", str(tmp_path / "p.csv")]) == 0
     err = capsys.readouterr().err.splitlines()

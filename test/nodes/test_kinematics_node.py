@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 import rclpy
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, TransformStamped
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
@@ -186,11 +186,14 @@ def test_bad_ik_requests_and_the_node_keeps_serving(served):
 
 def test_corrected_pose_topic_rate_and_stamps(served):
     client, _, _, _, model, _, _ = served
-    received = []
+    received, transforms = [], []
     sub = client.node.create_subscription(PoseStamped, f"{NODE}/corrected_pose", received.append, 100)
+    companion = client.node.create_subscription(TransformStamped, f"{NODE}/corrected_transform", transforms.append, 100)
     pub = client.node.create_publisher(JointState, "/joint_states", 100)
     deadline = time.monotonic() + 30.0
-    while (pub.get_subscription_count() < 1 or sub.get_publisher_count() < 1) and time.monotonic() < deadline:
+    while (
+        pub.get_subscription_count() < 1 or min(sub.get_publisher_count(), companion.get_publisher_count()) < 1
+    ) and time.monotonic() < deadline:
         client.spin_for(0.1)  # discovery: both ends matched before anything is sent
     client.spin_for(0.5)
     sent = {}
@@ -212,6 +215,17 @@ def test_corrected_pose_topic_rate_and_stamps(served):
         assert key in sent
         T = model.fk_single(sent[key])
         assert abs(msg.pose.position.x - T[0, 3]) < 1e-9
+    # the companion names the frame it places: the same poses, from the base link to the tip link
+    assert len(transforms) >= 0.95 * n
+    poses = {(m.header.stamp.sec, m.header.stamp.nanosec): m.pose for m in received}
+    for msg in transforms:
+        assert (msg.header.frame_id, msg.child_frame_id) == (model.chain.base_link, model.chain.tip_link)
+        key = (msg.header.stamp.sec, msg.header.stamp.nanosec)
+        if key in poses:
+            assert msg.transform.translation.z == poses[key].position.z
+            assert msg.transform.rotation.w == poses[key].orientation.w
+        T = model.fk_single(sent[key])
+        assert abs(msg.transform.translation.y - T[1, 3]) < 1e-9
 
 
 def test_reload_is_atomic(served):

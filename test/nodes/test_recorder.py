@@ -14,6 +14,9 @@ import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
+from rclpy.time import Time
+from rosbags.rosbag2 import Reader
+from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
@@ -132,12 +135,25 @@ def test_start_stop_services_split_recordings(cell, tmp_path):
     assert first[-1] < second[0]  # split, not copied
 
 
+def test_the_ur10_config_names_its_joints_as_ur_robot_driver_does():
+    """ur_robot_driver publishes ``shoulder_pan_joint``…; a shipped config with other names records nothing."""
+    driver = (
+        "shoulder_pan_joint",
+        "shoulder_lift_joint",
+        "elbow_joint",
+        "wrist_1_joint",
+        "wrist_2_joint",
+        "wrist_3_joint",
+    )
+    assert load_robot_config("ur10").chain.joint_names == driver
+
+
 def test_joint_states_without_the_robots_joints_warn_within_seconds(cell, tmp_path):
-    """A driver that names its joints otherwise (ur_robot_driver's ``shoulder_pan_joint``…) against a
-    config with ``joint_1``…: the recording WARNs in /diagnostics and in its log, naming both sets of names,
-    instead of reporting OK for an hour and ending with zero pairs."""
+    """A driver that names its joints otherwise (``joint_1``…, another arm's driver) against the UR10 config
+    with ur_robot_driver's ``shoulder_pan_joint``…: the recording WARNs in /diagnostics and in its log, naming
+    both sets of names, instead of reporting OK for an hour and ending with zero pairs."""
     client, _ = cell
-    driver = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint"]
+    driver = [f"joint_{i}" for i in range(1, 6)]
     topic = "/driver_named/joint_states"
     pub = client.node.create_publisher(JointState, topic, 10)
     quiet = ("-p", "tracker_topic:=/driver_named/tracker")  # not the sim's 3 kHz stream: only what this test sends
@@ -152,8 +168,8 @@ def test_joint_states_without_the_robots_joints_warn_within_seconds(cell, tmp_pa
     sub = client.node.create_subscription(DiagnosticArray, "/diagnostics", seen, 10)
     try:
         deadline = time.monotonic() + 60.0
-        while not any("shoulder_pan_joint" in w for w in warnings) and time.monotonic() < deadline:
-            msg = JointState(name=[*driver, "wrist_3_joint"], position=[0.0] * 6)
+        while not any("joint_6" in w for w in warnings) and time.monotonic() < deadline:
+            msg = JointState(name=[*driver, "joint_6"], position=[0.0] * 6)
             msg.header.stamp = client.node.get_clock().now().to_msg()
             pub.publish(msg)
             client.spin_for(0.05)
@@ -161,10 +177,45 @@ def test_joint_states_without_the_robots_joints_warn_within_seconds(cell, tmp_pa
         client.node.destroy_subscription(sub)
         client.node.destroy_publisher(pub)
         stop(proc, signal.SIGINT, timeout=60)
-    named = [w for w in warnings if "shoulder_pan_joint" in w]  # before the first message came: "nothing on"
+    named = [w for w in warnings if "joint_6" in w]  # before the first message came: "nothing on"
     assert named, f"no WARN naming the driver's joints in /diagnostics: {warnings[:2]}"
-    assert "no joint state with the robot's joints (joint_1" in named[0]
-    assert "shoulder_pan_joint" in (tmp_path / "names.log").read_text()
+    assert "no joint state with the robot's joints (shoulder_pan_joint" in named[0]
+    assert "joint_6" in (tmp_path / "names.log").read_text()
+
+
+def test_a_recording_under_sim_time_is_on_the_sim_clock(cell, tmp_path):
+    """With ``use_sim_time`` the bag's log times come from /clock (a replayed or simulated cell), not from
+    the wall clock, so they line up with the messages' own stamps."""
+    client, _ = cell
+    base = "/simtime"
+    clock_pub = client.node.create_publisher(Clock, "/clock", 10)
+    joint_pub = client.node.create_publisher(JointState, f"{base}/joint_states", 100)
+    pose_pub = client.node.create_publisher(PoseStamped, f"{base}/tracker", 100)
+    topics = ("-p", f"joint_states_topic:={base}/joint_states", "-p", f"tracker_topic:={base}/tracker")
+    proc, _ = recorder(client, tmp_path, "simtime", "-p", "use_sim_time:=true", "-p", "bag_name:=simtime", *topics)
+    names = list(load_robot_config("ur10").chain.joint_names)
+    start_s, step_s, n = 1000.0, 0.01, 300
+    try:
+        for i in range(n):
+            now = Time(seconds=start_s + i * step_s).to_msg()
+            clock_pub.publish(Clock(clock=now))
+            joints = JointState(name=names, position=[0.1 * i / n] * 6)
+            pose = PoseStamped()
+            joints.header.stamp = pose.header.stamp = now
+            pose.pose.orientation.w = 1.0
+            joint_pub.publish(joints)
+            pose_pub.publish(pose)
+            client.spin_for(0.005)
+    finally:
+        for pub in (clock_pub, joint_pub, pose_pub):
+            client.node.destroy_publisher(pub)
+        assert stop(proc, signal.SIGINT, timeout=60) == 0, (tmp_path / "simtime.log").read_text()
+    with Reader(tmp_path / "simtime") as bag:
+        logged = np.array([t for c, t, _ in bag.messages() if c.topic.startswith(base)]) * 1e-9
+    assert len(logged) > n, len(logged)  # both streams, most of each
+    assert logged.max() < start_s + n * step_s + 1.0, logged.max()  # nothing on the wall clock (1.8e9 s)
+    on_sim = (logged >= start_s) & (logged <= start_s + n * step_s)
+    assert on_sim.mean() > 0.9, np.sort(logged)[:5]  # the first few may come before the first /clock
 
 
 def test_unwritable_output_is_one_clear_line(tmp_path):

@@ -209,7 +209,7 @@ def test_best_effort_tracker_driver_is_recorded(client, tmp_path):
         pose.header.stamp, pose.header.frame_id = stamp, "tracker"
         pose.pose.orientation.w = 1.0
         pose_pub.publish(pose)
-        joints = JointState(name=[f"joint_{i}" for i in range(1, 7)], position=[0.0] * 6)
+        joints = JointState(name=list(load_robot_config("ur10").chain.joint_names), position=[0.0] * 6)
         joints.header.stamp = stamp
         joint_pub.publish(joints)
 
