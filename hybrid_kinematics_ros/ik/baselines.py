@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -84,8 +85,9 @@ class ScipyRefiner(HybridRefiner):
 def scipy_refine_solver(
     model: HybridModel, options: IKOptions | None = None, cost: str = "pose6", rotation_scale_mm: float = 1000.0
 ) -> IKSolver:
-    """Our solver with the paper's refinement: scipy's bounded least squares on ``cost`` ("pose6" or "eq2")."""
-    o = options or IKOptions()
+    """Our solver with the paper's refinement: scipy's bounded least squares on ``cost`` ("pose6" or "eq2"),
+    without the closed forms' fixed point, which would solve before the refinement is reached."""
+    o = replace(options or IKOptions(), closed_form=False)
     limits = joint_limits(model.chain)
     tolerances = (o.position_tolerance_mm, o.orientation_tolerance_deg, o.refine_width_rad, o.timeout_s)
     refiner = ScipyRefiner(model, limits, *tolerances, cost=cost, rotation_scale_mm=rotation_scale_mm)

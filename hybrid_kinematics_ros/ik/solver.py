@@ -1,17 +1,25 @@
 """Inverse kinematics through the hybrid model (paper section 3, Fig. 3), and past it: the solver that
 composes the parts, with ``solve``, ``solve_many`` and ``solve_trajectory``.
 
-1. A classical iterative IK on the URDF model (:mod:`~hybrid_kinematics_ros.ik.lm`, joint limits enforced)
-   from a seed; the seed decides which solution is found. If the seed fails, restarts follow within the
-   time budget from the table's configurations nearest the target, then from random ones
-   (:mod:`~hybrid_kinematics_ros.ik.seeds`).
-2. The hybrid refinement around the classical answer (:mod:`~hybrid_kinematics_ros.ik.refine`).
+1. The URDF model's IK. A chain with closed forms (most industrial arms: a spherical wrist, three parallel
+   axes; :mod:`~hybrid_kinematics_ros.ik.analytic`) gets every analytic branch at once, exact near
+   singularities too, and the branch nearest the seed is the classical answer. Otherwise, or where the
+   closed forms give nothing (exactly at a singularity, where the branches form a continuum), a classical
+   iterative IK (:mod:`~hybrid_kinematics_ros.ik.lm`, joint limits enforced) runs from the seed, which
+   decides which solution is found. If the seed fails, restarts follow within the time budget from the
+   table's configurations nearest the target, then from random ones (:mod:`~hybrid_kinematics_ros.ik.seeds`).
+2. The hybrid refinement around the classical answer. With closed forms, first a fixed point on the
+   classical answer's branch: the closed forms solve the target moved by the hybrid correction at the
+   current answer (the URDF pose to the hybrid pose), until the correction stops changing; then the hybrid
+   pose is the target. It stays exact near singularities, where LM crawls. What it leaves goes to bounded
+   LM through the hybrid FK in a box (:mod:`~hybrid_kinematics_ros.ik.refine`).
 3. When the seed's branch has no hybrid solution near it (near a singularity the nets' tenths of a
    millimetre move the solution by tenths of a radian, or the target lies just beyond the URDF model's
-   reach), the other analytic branches follow: classical answers from the table's nearest
-   configurations, each finished by unbounded LM on the hybrid model, until one reaches the target or
-   the budget ends. A near miss at a near-singular configuration first restarts along the Jacobian's
-   weak direction, where the hybrid near-solutions form a valley with local minima.
+   reach), the other analytic branches follow: the closed forms' other branches, nearest the seed first,
+   then classical answers from the table's nearest configurations, each finished by unbounded LM on the
+   hybrid model, until one reaches the target or the budget ends. A near miss at a near-singular
+   configuration first restarts along the Jacobian's weak direction, where the hybrid near-solutions form a
+   valley with local minima.
 4. A model whose nets take the joints' approach directions (:mod:`~hybrid_kinematics_ros.model.approach`)
    is refined with the directions the robot arrives in when it moves from the seed (where it is) to the
    solution, not with the last ones it moved in: the sign of each joint's move, the current direction for
@@ -38,8 +46,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hybrid_kinematics_ros.ik import seeds as seeding
+from hybrid_kinematics_ros.ik.analytic import AnalyticIK
 from hybrid_kinematics_ros.ik.errors import IKError
-from hybrid_kinematics_ros.ik.lm import joint_limits, lm_solve
+from hybrid_kinematics_ros.ik.lm import error6, joint_limits, lm_solve
 from hybrid_kinematics_ros.ik.refine import HybridRefiner
 from hybrid_kinematics_ros.model import approach
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -54,6 +63,9 @@ SEARCH_SHARE = 0.5
 # jump beyond which the path's extrapolation has gone to another branch.
 PATH_ITERATIONS = 30
 PATH_JUMP_RAD = 0.5
+# The closed forms' fixed point (2.): the hybrid corrections move a solution by milliradians and change little
+# over that, so each round cuts the error by orders of magnitude; a round costs one hybrid FK.
+FIXED_POINT_ROUNDS = 12
 
 
 @dataclass(frozen=True)
@@ -65,6 +77,7 @@ class IKOptions:
     timeout_s: float = 0.05  # per solution, restarts included
     require_calibrated_range: bool = False  # True: a solution outside the trained range fails
     arrive_from_seed: bool = True  # approach-direction models: the directions of the move from the seed (4.)
+    closed_form: bool = True  # False: the iterative solver alone, as before the closed forms (baselines, benches)
 
 
 @dataclass
@@ -98,6 +111,14 @@ class IKSolver:
         self.inner_tol = self.refiner.inner_tol
         self.analytic_fk_jac = lambda q: model.fk_and_jacobian_single(q, analytic=True)
         self.seeds = seeding.SeedTable(model, self.lower, self.upper)
+        self.closed_form = AnalyticIK.of(model.chain) if o.closed_form else None  # None: iterative only
+        self.path = f"closed form ({self.closed_form.family})" if self.closed_form else "iterative"
+
+    def branches(self, target: np.ndarray, seed: np.ndarray) -> np.ndarray:
+        """The closed forms' branches within the limits, nearest the seed first; none without closed forms."""
+        if self.closed_form is None:
+            return np.empty((0, self.model.chain.dof))
+        return self.closed_form.branches(target, seed)
 
     def check(self, target: np.ndarray, seed: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """The request as arrays, or an :class:`IKError` saying what is wrong with it."""
@@ -119,6 +140,15 @@ class IKSolver:
         """Stage 1 from one seed, then restarts while time remains, from the ``restarts`` table configurations
         nearest the target, then random ones: the joints, the errors (m, rad), the attempts."""
         tol_m, tol_rad = self.inner_tol
+        for q in self.branches(target, seed)[:1]:  # nearest the seed; exact, or polished on our FK in a step
+            e = error6(target, self.model.fk_single(q, analytic=True))
+            ep, er = float(np.linalg.norm(e[:3])), float(np.linalg.norm(e[3:]))
+            if ep > tol_m or er > tol_rad:
+                q, ep, er, _ = lm_solve(
+                    self.analytic_fk_jac, target, q, self.limits, tol_m, tol_rad, self.options.max_iterations, deadline
+                )
+            if ep <= tol_m and er <= tol_rad:
+                return q, ep, er, 1
         best = None
         attempt_seed = seed
         attempts = 0
@@ -155,7 +185,7 @@ class IKSolver:
         origin = seed if given else None  # where the robot comes from, if the caller said (4.)
         o = self.options
         deadline = start + o.timeout_s
-        stats = {"attempts": 0, "refinements": 0}
+        stats = {"attempts": 0, "refinements": 0, "path": self.path}
         if analytic or not self.model.is_corrected:
             # no hybrid stages to keep time for, and the branch search would only rerun the same URDF-model LM
             # from the same table seeds: the classical stage gets the whole budget and all of those seeds
@@ -169,7 +199,7 @@ class IKSolver:
         # the other branches (module docstring, 3.)
         tried = [q0]
         tol_m, tol_rad = self.inner_tol
-        starts = self.seeds.nearest(target, 2 * seeding.TABLE_RESTARTS)
+        starts = [*self.branches(target, seed), *self.seeds.nearest(target, 2 * seeding.TABLE_RESTARTS)]
         valley = [] if analytic else seeding.valley_seeds(self.model, best.q, best.position_error_mm, self.limits)
         for i in itertools.count():
             if time.perf_counter() > deadline:
@@ -221,6 +251,10 @@ class IKSolver:
         if analytic or not self.model.is_corrected:
             return self.result(q0, target, analytic, start, dict(stats))
         with self.model.approaching(self._arrival(origin, q0)):
+            q0, errors = self.fixed_point(target, q0, deadline)
+            result = self.result(q0, target, analytic, start, dict(stats), errors)
+            if result.success:
+                return result
             q, *_ = self.refiner.unbounded(target, q0, deadline, chord_first=True)
             return self.result(q, target, analytic, start, dict(stats))
 
@@ -249,13 +283,48 @@ class IKSolver:
         result.stats["approach"] = directions.tolist()
         return result
 
+    def fixed_point(
+        self, target: np.ndarray, q0: np.ndarray, deadline: float
+    ) -> tuple[np.ndarray, tuple[float, float] | None]:
+        """The hybrid solution on ``q0``'s branch through the closed forms alone (module docstring, 2.):
+        ``q = IK(target · C(q)⁻¹)`` with ``C(q) = URDF(q)⁻¹ · hybrid(q)``; at the fixed point hybrid(q) = target.
+        Returns the round nearest the target (``q0`` if none comes nearer) and its hybrid errors (mm, deg;
+        None without closed forms); it stops within the solver's inner tolerance."""
+        if self.closed_form is None:
+            return q0, None
+        tol_m, tol_rad = self.inner_tol
+        best, best_cost, best_errors, q = q0, np.inf, None, q0
+        for round_ in range(FIXED_POINT_ROUNDS + 1):
+            hybrid = self.model.fk_single(q)
+            e = error6(target, hybrid)
+            cost = float(np.linalg.norm(e))  # m and rad, as LM weighs them
+            ep, er = float(np.linalg.norm(e[:3])), float(np.linalg.norm(e[3:]))
+            if cost < best_cost:
+                best, best_cost, best_errors = q, cost, (1e3 * ep, float(np.degrees(er)))
+            if ep <= tol_m and er <= tol_rad:
+                break
+            if round_ == FIXED_POINT_ROUNDS or time.perf_counter() > deadline:
+                break
+            correction = np.linalg.solve(self.model.fk_single(q, analytic=True), hybrid)
+            q = self.closed_form.nearest(target @ np.linalg.inv(correction), q)
+            if q is None:
+                break
+        return best, best_errors
+
     def _refine_branch(
         self, target: np.ndarray, q0: np.ndarray, analytic: bool, start: float, deadline: float, stats: dict
     ) -> IKResult:
-        """The hybrid solution near the classical answer ``q0``: the box refinement, then, if that misses,
-        damped LM on the hybrid model over the whole joint range (the bounded boxes crawl near a singularity)."""
+        """The hybrid solution near the classical answer ``q0``: the closed forms' fixed point, then the box
+        refinement, then, if that misses, damped LM on the hybrid model over the whole joint range (the bounded
+        boxes crawl near a singularity)."""
         q, errors = q0, None
         corrected = not analytic and self.model.is_corrected
+        if corrected and self.closed_form is not None:
+            q0, errors = self.fixed_point(target, q0, deadline)
+            q = q0
+            result = self.result(q, target, analytic, start, dict(stats, method="closed-form fixed point"), errors)
+            if result.success:
+                return result
         if corrected:
             q, info = self.refiner.refine(target, q0)
             errors = info.pop("errors", None)
@@ -321,7 +390,9 @@ class IKSolver:
         tol_m, tol_rad = 1e-3 * o.position_tolerance_mm, np.radians(o.orientation_tolerance_deg)
         end = float("inf") if deadline is None else deadline
         search_end = start + SEARCH_SHARE * (end - start)
-        for s in [seed, *(extra_seeds or []), *self.seeds.spread]:
+        branches = list(self.branches(target, seed))  # every branch at once: the seeds below only add the rest
+        spread = () if branches else self.seeds.spread
+        for s in [*branches, seed, *(extra_seeds or []), *spread]:
             now = time.perf_counter()
             if now > search_end:
                 break
@@ -341,8 +412,14 @@ class IKSolver:
                 break
             corrected = not analytic and self.model.is_corrected
             with self.model.approaching(self._arrival(origin, q0)):
-                q, stats = self.refiner.refine(target, q0, deadline=end) if corrected else (q0, {})
-                result = self.result(q, target, analytic, start, stats, stats.pop("errors", None))
+                result = None
+                if corrected and self.closed_form is not None:
+                    q0, errors = self.fixed_point(target, q0, end)
+                    result = self.result(q0, target, analytic, start, {"method": "closed-form fixed point"}, errors)
+                if result is None or not result.success:
+                    q, stats = self.refiner.refine(target, q0, deadline=end) if corrected else (q0, {})
+                    result = self.result(q, target, analytic, start, stats, stats.pop("errors", None))
+            result.stats["path"] = self.path
             if result.success:
                 results.append(result)
         return results

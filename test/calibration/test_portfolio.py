@@ -12,10 +12,16 @@ import numpy as np
 import pytest
 
 from hybrid_kinematics_ros.calibration import train
+from hybrid_kinematics_ros.calibration.capacity import RESOLUTION
 from hybrid_kinematics_ros.calibration.evaluate import error_stats, target_errors
 from hybrid_kinematics_ros.calibration.fit import fit, identify_stations, reference_all, split
+from hybrid_kinematics_ros.io.pairs import Pairs
+from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.referencing import to_base_frame
+from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from hybrid_kinematics_ros.simulation.portfolio import TRACKER_FAR, CellSpec, build_cell
+from hybrid_kinematics_ros.simulation.sampling import sample_joints
 
 CLEAN = CellSpec("UR10: geometry and compliance", poses=800, test_poses=400, effects={"gear": False, "bending": False})
 GEARS = CellSpec(
@@ -54,8 +60,8 @@ def test_stage_lies_near_the_floor_of_each_cell(spec, bound):
 
 
 def test_capacity_choices_are_recorded_and_follow_the_rule():
-    """Each choice is the simplest candidate within the validation noise of the best, recorded with every
-    candidate's held-out figures; a cell whose joints have cyclic errors gets harmonics."""
+    """Each choice is the simplest candidate within the validation noise (or a micrometre) of the best,
+    recorded with every candidate's held-out figures; a cell whose joints have cyclic errors gets harmonics."""
     _, result = stage_errors(build_cell(GEARS))
     decisions = {d["setting"]: d for d in result.capacity["decisions"]}
     assert decisions["harmonics"]["chosen"] > 0
@@ -63,9 +69,10 @@ def test_capacity_choices_are_recorded_and_follow_the_rule():
         rows = decision["candidates"]
         labels = [c["candidate"] for c in rows]
         chosen = labels.index(decision["chosen"])
-        assert rows[chosen]["worse_than_best_mm"] <= rows[chosen]["noise_mm"] + 1e-12
+        margin = [max(c["noise_mm"], 1e3 * RESOLUTION) for c in rows]
+        assert rows[chosen]["worse_than_best_mm"] <= margin[chosen] + 1e-12
         # no simpler candidate was within the noise
-        assert all(c["worse_than_best_mm"] > c["noise_mm"] for c in rows[:chosen])
+        assert all(c["worse_than_best_mm"] > m for c, m in zip(rows[:chosen], margin, strict=False))
         assert all(c["val_position_mm"] > 0 for c in rows)
 
 
@@ -93,3 +100,25 @@ def test_hybrid_is_no_worse_than_its_stage_and_near_the_floor(tmp_path):
     assert hybrid["position_mm_mean"] <= 1.05 * stage["position_mm_mean"]
     assert hybrid["position_mm_mean"] <= 1.3 * cell.floor["position_mm_mean"], (hybrid, cell.floor)
     assert np.isfinite(hybrid["orientation_deg_mean"])
+
+
+def test_a_noise_free_cell_gets_no_terms_that_only_fit_inside_its_range():
+    """Noise-free pairs make the validation noise vanish: without a floor on the difference that counts,
+    40 harmonics beat the truth's 2 by a fraction of a micrometre, and outside the joints' trained range
+    they extrapolate to 0.09 mm (measured). Trained on the middle 60 % of every joint, tested on all of it."""
+    cfg = load_robot_config("ur10")
+    cell = VirtualCell.from_config(cfg, noise=False)
+
+    def pairs(n: int, seed: int, fraction: float) -> Pairs:
+        q = sample_joints(cfg.chain, n, np.random.default_rng(seed), fraction)
+        T = cell.measure(q, np.random.default_rng(seed + 1))
+        return Pairs(q, T, np.arange(n), cfg.chain.joint_names, cfg.base_link)
+
+    train_pairs, test = pairs(3000, 1, 0.6), pairs(2000, 3, 1.0)
+    refs = reference_all(cfg.chain, [train_pairs])
+    _, result = identify_stations(cfg.chain, [train_pairs], refs, (cfg.payload_mass, cfg.payload_com), 0)
+    outside = np.any((test.q < train_pairs.q.min(0)) | (test.q > train_pairs.q.max(0)), axis=1)
+    position, _ = se3.pose_errors(test.T, result.model.fk(test.q))
+    assert result.capacity["chosen"]["harmonics"] < 40
+    assert position[outside].mean() < 0.06, result.capacity["chosen"]  # measured 0.045 mm (0.091 mm before)
+    assert position[~outside].mean() < 0.005  # measured 0.0024 mm

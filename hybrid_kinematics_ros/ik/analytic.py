@@ -1,0 +1,189 @@
+"""Every analytic IK branch of a URDF chain whose axes meet or run parallel the way most industrial arms' do.
+
+At load, :func:`classify` reads the chain's joint axes at q = 0 and names its family (a spherical wrist, three
+parallel axes, ...). For a family with closed forms, :class:`AnalyticIK` gets every exact branch from IK-Geo's
+subproblem solvers (``ik-geo``, Elias and Wen 2022), in microseconds and exact near singularities, where an
+iterative IK crawls. Chains of no such family (7 joints, prismatic joints, an offset wrist) have no
+:class:`AnalyticIK`, and the iterative solver handles them alone.
+
+IK-Geo's Python API answers wrongly, without an error, unless its conventions are met (``../FINDINGS.md``):
+- the chain as a product of exponentials at q = 0 in the base frame: unit axes ``H (6, 3)`` and the vectors
+  ``P (7, 3)`` from the base to a point on axis 1, ..., from a point on axis 6 to the tip;
+- each family assumes the points where its axes meet: a URDF's joint origins are not those points, so each
+  point slides along its own axis to the intersection;
+- the tip's rotation at q = 0 is not part of the model: the target rotation goes in times its transpose;
+- rotations go in as a list of columns; least-squares answers come mixed in with the exact ones; a wrong family
+  gives NaN joints; answers lie in (-π, π].
+So every branch is checked against our own FK, and folded by 2π into the joint limits, nearest the seed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hybrid_kinematics_ros.ik.lm import error6, joint_limits
+from hybrid_kinematics_ros.kinematics import fk
+from hybrid_kinematics_ros.kinematics.chain import Chain
+
+# Axes this close are parallel (rad), and lines this close meet (m). A URDF's rounded π/2 (1.57079633)
+# leaves a wrist 7e-10 m from spherical: the branches are checked, and polished, on our own FK.
+PARALLEL_RAD = 1e-6
+MEET_M = 1e-6
+# A branch whose pose (through our FK) misses the target by more than this is dropped: the family's
+# assumptions do not hold well enough. Within it, the caller's LM polishes the branch in an iteration or two.
+CHECK_M, CHECK_RAD = 1e-5, 1e-5
+
+# Families with closed forms in IK-Geo, most specific first (its search-based ones find nothing on a UR10).
+FAMILIES = (
+    "spherical_two_parallel",
+    "spherical_two_intersecting",
+    "three_parallel_two_intersecting",
+    "spherical",
+    "three_parallel",
+)
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """The chain at q = 0 in the base frame: unit axes ``(n, 3)``, a point on each ``(n, 3)``, the tip ``(4, 4)``."""
+
+    axes: np.ndarray
+    points: np.ndarray
+    tip: np.ndarray
+
+
+def geometry(chain: Chain) -> Geometry:
+    frames = fk.joint_frames(chain, np.zeros(chain.dof))[0]
+    axes = np.einsum("kij,kj->ki", frames[:-1, :3, :3], chain.axes)
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    return Geometry(axes, frames[:-1, :3, 3].copy(), frames[-1])
+
+
+def _parallel(g: Geometry, i: int, j: int) -> bool:
+    return bool(np.linalg.norm(np.cross(g.axes[i], g.axes[j])) < PARALLEL_RAD)
+
+
+def meeting_point(g: Geometry, i: int, j: int) -> np.ndarray | None:
+    """Where the (non-parallel) axes ``i`` and ``j`` meet, or None if they pass each other."""
+    if _parallel(g, i, j):
+        return None
+    a, b, pa, pb = g.axes[i], g.axes[j], g.points[i], g.points[j]
+    # the closest points pa + s a and pb + t b: their difference is normal to both axes
+    m = np.array([[a @ a, -(a @ b)], [a @ b, -(b @ b)]])
+    s, t = np.linalg.solve(m, [(pb - pa) @ a, (pb - pa) @ b])
+    x, y = pa + s * a, pb + t * b
+    return 0.5 * (x + y) if np.linalg.norm(x - y) < MEET_M else None
+
+
+def _on_axis(g: Geometry, k: int, point: np.ndarray) -> bool:
+    d = point - g.points[k]
+    return bool(np.linalg.norm(d - (d @ g.axes[k]) * g.axes[k]) < MEET_M)
+
+
+def classify(chain: Chain) -> tuple[str, np.ndarray] | None:
+    """The chain's closed-form family and the points ``(6, 3)`` on its axes that the family expects (where
+    the axes meet), or None: not six revolute joints, or no family with closed forms fits."""
+    if chain.dof != 6 or not np.all(chain.revolute):
+        return None
+    g = geometry(chain)
+    points = g.points.copy()
+    wrist = meeting_point(g, 3, 4)
+    if wrist is not None and _on_axis(g, 5, wrist):
+        points[3:6] = wrist
+        if _parallel(g, 1, 2):
+            return "spherical_two_parallel", points
+        shoulder = meeting_point(g, 1, 2)
+        if shoulder is not None:
+            points[1:3] = shoulder
+            return "spherical_two_intersecting", points
+        return "spherical", points
+    if _parallel(g, 1, 2) and _parallel(g, 2, 3):
+        tool = meeting_point(g, 4, 5)
+        if tool is not None:
+            points[4:6] = tool
+            return "three_parallel_two_intersecting", points
+        return "three_parallel", points
+    return None
+
+
+class AnalyticIK:
+    """Every exact closed-form branch of one chain's URDF model (see the module docstring)."""
+
+    def __init__(self, chain: Chain, family: str, points: np.ndarray) -> None:
+        """``points``: on each axis, where the family expects them (:func:`classify`)."""
+        import ik_geo  # a compiled wheel: imported only where a chain has closed forms
+
+        self.chain, self.family = chain, family
+        g = geometry(chain)
+        h = g.axes
+        p = np.vstack([points[0], np.diff(points, axis=0), g.tip[:3, 3] - points[-1]])
+        self._robot = getattr(ik_geo.Robot, family)(h.tolist(), p.tolist())
+        self._tip_rotation_t = g.tip[:3, :3].T  # R_target · R_tip(0)ᵀ is what IK-Geo's model reaches
+        self.lower, self.upper, _ = joint_limits(chain)  # an unlimited joint: ±2π, as the iterative solver
+
+    @classmethod
+    def of(cls, chain: Chain) -> AnalyticIK | None:
+        """The chain's analytic IK, or None where it has no closed forms."""
+        found = classify(chain)
+        if found is None:
+            return None
+        try:
+            return cls(chain, *found)
+        except ImportError:  # ik-geo not installed (requirements.txt has it): the iterative solver, which says so
+            return None
+
+    def raw_branches(self, target: np.ndarray) -> np.ndarray:
+        """IK-Geo's exact answers ``(k, 6)`` in (-π, π], unchecked."""
+        rotation = target[:3, :3] @ self._tip_rotation_t
+        answers = self._robot.get_ik(rotation.T.tolist(), target[:3, 3].tolist())  # columns, not rows
+        exact = [q for q, least_squares in answers if not least_squares]
+        q = np.array(exact, dtype=float).reshape(-1, 6)
+        return q[np.all(np.isfinite(q), axis=1)]
+
+    def nearest(self, target: np.ndarray, seed: np.ndarray) -> np.ndarray | None:
+        """The exact branch within the limits nearest the seed, unchecked (the caller checks it on the model it
+        solves for), or None."""
+        q = fold(self.raw_branches(target), seed, self.lower, self.upper)
+        return q[np.argmin(np.linalg.norm(q - seed, axis=1))] if len(q) else None
+
+    def branches(self, target: np.ndarray, seed: np.ndarray) -> np.ndarray:
+        """Every exact branch ``(k, 6)`` within the joint limits, each joint shifted by 2π to lie nearest the
+        seed, that our own FK takes to within CHECK_M / CHECK_RAD of the target, after one Newton step on it
+        (a URDF's rounded angles leave the family's assumptions off by nanometres, which a near-singular
+        wrist turns into microradians); nearest the seed first."""
+        q = fold(self.raw_branches(target), seed, self.lower, self.upper)
+        if not len(q):
+            return q
+        T, jac = fk.fk_and_jacobian(self.chain, q)
+        e = np.array([error6(target, t) for t in T])
+        step = _newton(jac, e)
+        q = np.clip(q + step, self.lower, self.upper)
+        T = fk.fk(self.chain, q)
+        e = np.array([error6(target, t) for t in T])
+        keep = (np.linalg.norm(e[:, :3], axis=1) < CHECK_M) & (np.linalg.norm(e[:, 3:], axis=1) < CHECK_RAD)
+        q = q[keep]
+        return q[np.argsort(np.linalg.norm(q - seed, axis=1), kind="stable")]
+
+
+def _newton(jac: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """Least-squares steps ``(k, 6)`` for Jacobians ``(k, 6, 6)`` and errors ``(k, 6)`` (rank-deficient at a
+    singularity: the pseudo-inverse, through the SVD)."""
+    u, s, vt = np.linalg.svd(jac)
+    inv = np.where(s > 1e-9 * s[:, :1], 1.0 / np.where(s > 0, s, 1.0), 0.0)
+    return np.einsum("kji,kj,klj,kl->ki", vt, inv, u, e)
+
+
+def fold(q: np.ndarray, seed: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Each row's joints shifted by a multiple of 2π to the value within ``[lower, upper]`` nearest the seed;
+    rows with a joint that has no such value are dropped."""
+    q = np.asarray(q, dtype=float).reshape(-1, len(seed))
+    turns = np.round((seed - q) / (2 * np.pi))
+    out = q + 2 * np.pi * turns
+    for step in (-1.0, 1.0):  # the nearest may lie outside: its neighbour turn may be inside
+        shifted = out + 2 * np.pi * step
+        outside = (out < lower) | (out > upper)
+        out = np.where(outside & (shifted >= lower) & (shifted <= upper), shifted, out)
+    inside = np.all((out >= lower - 1e-12) & (out <= upper + 1e-12), axis=1)
+    return out[inside]

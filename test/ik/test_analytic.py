@@ -1,0 +1,160 @@
+"""The closed-form IK path: each chain's family, every branch checked on our own FK against the joints that made
+the target, the count against IK-Geo's own, and the solver's path at and near singularities, through the
+URDF model and through a hybrid model."""
+
+from __future__ import annotations
+
+import warnings
+
+import ik_geo
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from hybrid_kinematics_ros.ik.analytic import AnalyticIK, classify, fold, geometry
+from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
+from hybrid_kinematics_ros.kinematics import fk
+from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
+from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.model.hybrid import HybridModel
+
+GENEROUS = IKOptions(timeout_s=5.0)  # tests check paths and answers; bench_ik_singular measures time
+
+ARMS = {  # example-robot-data: URDF, base, tip, the family its axes make
+    "UR5": ("ur_description/urdf/ur5_robot.urdf", "base_link", "tool0", "three_parallel_two_intersecting"),
+    "Jaco": ("kinova_description/robots/kinova.urdf", "base", "j2s6s200_end_effector", "spherical_two_parallel"),
+    "Z1": ("z1_description/urdf/z1.urdf", "link00", "link06", "three_parallel_two_intersecting"),
+    "Panda": ("panda_description/urdf/panda.urdf", "panda_link0", "panda_hand_tcp", None),  # 7 joints
+}
+
+
+def chain_of(example_robot_data, name: str):
+    urdf, base, tip, _ = ARMS[name]
+    with warnings.catch_warnings():  # implausible inertials in these URDFs; IK does not use them
+        warnings.simplefilter("ignore")
+        return chain_from_urdf(example_robot_data / urdf, base, tip)
+
+
+def random_joints(chain, n: int, seed: int) -> np.ndarray:
+    lower = np.where(np.isfinite(chain.lower), chain.lower, -np.pi)
+    upper = np.where(np.isfinite(chain.upper), chain.upper, np.pi)
+    return np.random.default_rng(seed).uniform(lower, upper, (n, chain.dof))
+
+
+@pytest.mark.parametrize(
+    ("robot", "family"),
+    [
+        ("ur10", "three_parallel_two_intersecting"),
+        ("rx160", "spherical_two_parallel"),
+        ("kr16", "spherical_two_parallel"),
+    ],
+)
+def test_embedded_robots_get_their_family_and_every_target_its_own_joints(robot, family):
+    chain = load_robot_config(robot).chain
+    closed = AnalyticIK.of(chain)
+    assert closed is not None and closed.family == family
+    q = random_joints(chain, 200, 1)
+    for qi, target in zip(q, fk.fk(chain, q), strict=True):
+        branches = closed.branches(target, qi)
+        assert len(branches) >= 1
+        # the joints that made the target come first: the branch nearest the seed, here the seed itself (to
+        # 1e-6 rad, or 1e-4 near the wrist singularity: the RX160's rounded π/2 leaves its wrist 7e-10 m off)
+        assert np.abs(branches[0] - qi).max() < (1e-6 if abs(qi[4]) > 0.1 else 1e-4), (qi, branches[0])
+        reached = fk.fk(chain, branches)
+        assert np.abs(reached - target).max() < 1e-5  # every branch checked on our FK
+
+
+@pytest.mark.parametrize("name", list(ARMS))
+def test_arms_we_did_not_tune_for_are_classified(example_robot_data, name):
+    chain = chain_of(example_robot_data, name)
+    found = classify(chain)
+    assert (found[0] if found else None) == ARMS[name][3]
+    if found is None:
+        assert IKSolver(HybridModel.analytic_only(chain)).path == "iterative"
+
+
+def test_an_offset_wrist_falls_to_the_next_family_and_a_tilted_elbow_to_none():
+    """Move the UR10's joint 6 sideways: axes 5 and 6 no longer meet, and three parallel axes are left,
+    whose closed forms still give each target its joints. Tilt joint 3's axis too: no family, iterative."""
+    chain = load_robot_config("ur10").chain
+    pre = chain.pre.copy()
+    pre[5, 0, 3] += 0.01
+    offset = chain.with_geometry(pre, chain.post)
+    closed = AnalyticIK.of(offset)
+    assert closed.family == "three_parallel"
+    q = random_joints(offset, 50, 4)
+    hits = []
+    for qi, target in zip(q, fk.fk(offset, q), strict=True):
+        branches = closed.branches(target, qi)
+        hits.append(len(branches) > 0 and np.abs(branches[0] - qi).max() < 1e-6)
+    assert np.mean(hits) >= 0.95, np.mean(hits)
+    tilt = np.eye(4)
+    tilt[:3, :3] = Rotation.from_rotvec([0.01, 0.0, 0.0]).as_matrix()
+    pre[2] = pre[2] @ tilt
+    assert classify(chain.with_geometry(pre, chain.post)) is None
+
+
+def test_the_branch_count_is_ik_geos_own(example_robot_data):
+    """Against IK-Geo called directly with its conventions (H, P at the axes' meeting points, the tip's
+    rotation at zero taken out, the rotation as columns): as many exact branches inside the limits, and
+    ``solve_many`` returns each of them."""
+    chain = chain_of(example_robot_data, "UR5")
+    family, points = classify(chain)
+    g = geometry(chain)
+    p = np.vstack([points[0], np.diff(points, axis=0), g.tip[:3, 3] - points[-1]])
+    robot = getattr(ik_geo.Robot, family)(g.axes.tolist(), p.tolist())
+    model = HybridModel.analytic_only(chain)
+    solver = IKSolver(model, GENEROUS)
+    for target in fk.fk(chain, random_joints(chain, 40, 2)):
+        answers = robot.get_ik((target[:3, :3] @ g.tip[:3, :3].T).T.tolist(), target[:3, 3].tolist())
+        exact = np.array([q for q, least_squares in answers if not least_squares])
+        inside = fold(exact, chain.mid_limits(), solver.lower, solver.upper)
+        assert len(solver.closed_form.branches(target, chain.mid_limits())) == len(inside)
+        assert len(solver.solve_many(target, max_solutions=16, analytic=True)) == len(inside)
+
+
+def test_fold_keeps_each_joint_within_its_limits_nearest_the_seed():
+    lower, upper = np.array([-2 * np.pi, -1.0]), np.array([2 * np.pi, 1.0])
+    q = np.array([[3.0, 0.5], [3.0, 3.0]])  # the second: 3 rad on joint 2 has no equivalent in ±1
+    out = fold(q, np.array([-3.0, 0.0]), lower, upper)
+    np.testing.assert_allclose(out, [[3.0 - 2 * np.pi, 0.5]])
+
+
+@pytest.mark.parametrize("q5", [0.0, 1e-4])
+def test_urdf_targets_at_and_near_the_wrist_singularity(q5):
+    """Near it the closed forms answer; exactly at it they give least-squares answers only (the branches
+    form a continuum), and the iterative path still reaches the target."""
+    chain = load_robot_config("rx160").chain
+    solver = IKSolver(HybridModel.analytic_only(chain), GENEROUS)
+    q = random_joints(chain, 20, 3)
+    q[:, 4] = q5
+    for target in fk.fk(chain, q):
+        result = solver.solve(target, analytic=True)
+        assert result.success, result.message
+        assert result.stats["path"] == "closed form (spherical_two_parallel)"
+        assert result.stats["attempts"] == 1 or q5 == 0.0  # one closed-form answer, no LM restarts
+
+
+def test_hybrid_targets_near_a_shoulder_singularity_take_the_fixed_point(trained):
+    """The UR10's wrist centre 1e-4 rad from its shoulder singularity: the hybrid solution comes from the
+    closed forms' fixed point, not from LM through the hybrid model."""
+    _, model, _, _ = trained
+    solver = IKSolver(model, GENEROUS)
+    chain = model.chain
+    q = np.array([0.4, -1.0, 1.2, -0.7, 0.9, 0.3])
+
+    def sigma(x: float) -> float:
+        v = q.copy()
+        v[1] = x
+        return np.linalg.svd(fk.fk_and_jacobian_single(chain, v)[1], compute_uv=False)[-1]
+
+    grid = np.linspace(-np.pi, 0.0, 2001)
+    q[1] = grid[np.argmin([sigma(x) for x in grid])]
+    assert sigma(q[1]) < 5e-3  # on the singularity to within the grid
+    methods = []
+    for offset in (1e-4, 2e-3, -2e-3):
+        target = model.fk_single(q + np.array([0, offset, 0, 0, 0, 0]))
+        result = solver.solve(target, seed=q)
+        assert result.success, result.message
+        methods.append(result.stats.get("method"))
+    assert methods.count("closed-form fixed point") >= 2, methods
