@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hybrid_kinematics_ros.ik.lm import error6, joint_limits
+from hybrid_kinematics_ros.ik.lm import joint_limits
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import Chain
 
@@ -34,6 +34,7 @@ MEET_M = 1e-6
 # A branch whose pose (through our FK) misses the target by more than this is dropped: the family's
 # assumptions do not hold well enough. Within it, the caller's LM polishes the branch in an iteration or two.
 CHECK_M, CHECK_RAD = 1e-5, 1e-5
+POLISH = 1e-10  # (m and rad) a branch further off gets one Newton step on our FK
 
 # Families with closed forms in IK-Geo, most specific first (its search-based ones find nothing on a UR10).
 FAMILIES = (
@@ -134,11 +135,25 @@ class AnalyticIK:
         except ImportError:  # ik-geo not installed (requirements.txt has it): the iterative solver, which says so
             return None
 
+    def _answers(self, target: np.ndarray) -> list[tuple[list[float], bool]]:
+        rotation = target[:3, :3] @ self._tip_rotation_t
+        return self._robot.get_ik(rotation.T.tolist(), target[:3, 3].tolist())  # columns, not rows
+
+    def singular(self, target: np.ndarray) -> bool:
+        """Whether some branch of the target is at a singularity: there IK-Geo flags its answer as least
+        squares; it reaches the target's position, and its wrist misses the orientation (the branch's
+        solutions form a continuum, which the iterative solver samples nearest the seed). Least-squares
+        answers of a branch out of reach miss the position by centimetres."""
+        q = np.array([q for q, least_squares in self._answers(target) if least_squares], dtype=float).reshape(-1, 6)
+        q = q[np.all(np.isfinite(q), axis=1)]
+        if not len(q):
+            return False
+        reached = fk.fk(self.chain, q)[:, :3, 3]
+        return bool(np.any(np.linalg.norm(reached - target[:3, 3], axis=1) < CHECK_M))
+
     def raw_branches(self, target: np.ndarray) -> np.ndarray:
         """IK-Geo's exact answers ``(k, 6)`` in (-π, π], unchecked."""
-        rotation = target[:3, :3] @ self._tip_rotation_t
-        answers = self._robot.get_ik(rotation.T.tolist(), target[:3, 3].tolist())  # columns, not rows
-        exact = [q for q, least_squares in answers if not least_squares]
+        exact = [q for q, least_squares in self._answers(target) if not least_squares]
         q = np.array(exact, dtype=float).reshape(-1, 6)
         return q[np.all(np.isfinite(q), axis=1)]
 
@@ -157,14 +172,26 @@ class AnalyticIK:
         if not len(q):
             return q
         T, jac = fk.fk_and_jacobian(self.chain, q)
-        e = np.array([error6(target, t) for t in T])
-        step = _newton(jac, e)
-        q = np.clip(q + step, self.lower, self.upper)
-        T = fk.fk(self.chain, q)
-        e = np.array([error6(target, t) for t in T])
-        keep = (np.linalg.norm(e[:, :3], axis=1) < CHECK_M) & (np.linalg.norm(e[:, 3:], axis=1) < CHECK_RAD)
-        q = q[keep]
+        e = _errors(target, T)
+        rough = np.linalg.norm(e, axis=1) > POLISH
+        if rough.any():
+            q[rough] = np.clip(q[rough] + _newton(jac[rough], e[rough]), self.lower, self.upper)
+            e[rough] = _errors(target, fk.fk(self.chain, q[rough]))
+        q = q[(np.linalg.norm(e[:, :3], axis=1) < CHECK_M) & (np.linalg.norm(e[:, 3:], axis=1) < CHECK_RAD)]
         return q[np.argsort(np.linalg.norm(q - seed, axis=1), kind="stable")]
+
+
+def _errors(target: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``(k, 6)``: :func:`~hybrid_kinematics_ros.ik.lm.error6` of each pose ``T (k, 4, 4)``, in one call. The
+    rotation's angle is exact at any size (arctan2); its axis, from the skew part, loses accuracy near π,
+    where the branch fails the check anyway. scipy's Rotation costs 70 µs for these few poses."""
+    r = target[:3, :3] @ np.swapaxes(T[:, :3, :3], 1, 2)
+    skew = np.stack([r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0], r[:, 1, 0] - r[:, 0, 1]], axis=1)
+    s = 0.5 * np.linalg.norm(skew, axis=1)
+    angle = np.arctan2(s, 0.5 * (np.trace(r, axis1=1, axis2=2) - 1.0))
+    with np.errstate(divide="ignore", invalid="ignore"):  # a half turn with no skew part: NaN, never a pass
+        scale = np.where(angle < 1e-6, 0.5, angle / (2.0 * s))
+    return np.concatenate([target[:3, 3] - T[:, :3, 3], scale[:, None] * skew], axis=1)
 
 
 def _newton(jac: np.ndarray, e: np.ndarray) -> np.ndarray:

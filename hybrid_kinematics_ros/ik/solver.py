@@ -66,6 +66,7 @@ PATH_JUMP_RAD = 0.5
 # The closed forms' fixed point (2.): the hybrid corrections move a solution by milliradians and change little
 # over that, so each round cuts the error by orders of magnitude; a round costs one hybrid FK.
 FIXED_POINT_ROUNDS = 12
+SINGULAR = 1e-6  # the URDF Jacobian's smallest singular value (m or rad per rad) at a singular target's answer
 
 
 @dataclass(frozen=True)
@@ -122,25 +123,36 @@ class IKSolver:
 
     def check(self, target: np.ndarray, seed: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """The request as arrays, or an :class:`IKError` saying what is wrong with it."""
+        dof = self.model.chain.dof
+        if dof not in (6, 7):
+            c = self.model.chain
+            raise IKError(
+                f"IK needs a chain of 6 or 7 joints; {c.base_link} -> {c.tip_link} has {dof}: choose another tip link"
+            )
         target = np.asarray(target, dtype=float)
         if target.shape != (4, 4) or not np.all(np.isfinite(target)):
             raise IKError("the target must be a finite 4x4 homogeneous matrix")
         r = target[:3, :3]
         if np.abs(r @ r.T - np.eye(3)).max() > 1e-6 or np.linalg.det(r) < 0:
             raise IKError("the target's rotation is not orthonormal")
-        dof = self.model.chain.dof
         seed = self.model.chain.mid_limits() if seed is None else np.asarray(seed, dtype=float)
         if seed.shape != (dof,) or not np.all(np.isfinite(seed)):
             raise IKError(f"the seed must have {dof} finite joint values, got {seed.shape}")
         return target, seed
 
     def classical(
-        self, target: np.ndarray, seed: np.ndarray, deadline: float, restarts: int = seeding.TABLE_RESTARTS
+        self,
+        target: np.ndarray,
+        seed: np.ndarray,
+        deadline: float,
+        restarts: int = seeding.TABLE_RESTARTS,
+        branches: np.ndarray | None = None,
     ) -> tuple[np.ndarray, float, float, int]:
         """Stage 1 from one seed, then restarts while time remains, from the ``restarts`` table configurations
         nearest the target, then random ones: the joints, the errors (m, rad), the attempts."""
         tol_m, tol_rad = self.inner_tol
-        for q in self.branches(target, seed)[:1]:  # nearest the seed; exact, or polished on our FK in a step
+        branches = self.branches(target, seed) if branches is None else branches
+        for q in branches[:1]:  # nearest the seed; exact, or polished on our FK in a step
             e = error6(target, self.model.fk_single(q, analytic=True))
             ep, er = float(np.linalg.norm(e[:3])), float(np.linalg.norm(e[3:]))
             if ep > tol_m or er > tol_rad:
@@ -148,7 +160,22 @@ class IKSolver:
                     self.analytic_fk_jac, target, q, self.limits, tol_m, tol_rad, self.options.max_iterations, deadline
                 )
             if ep <= tol_m and er <= tol_rad:
-                return q, ep, er, 1
+                if not (self._rank_lost(q) or self.closed_form.singular(target)):
+                    return q, ep, er, 1
+                # a branch at a singularity has no closed-form answer: its continuum's member nearest the seed
+                # comes from LM, and wins if nearer than the closed forms' nearest
+                q2, ep2, er2, _ = lm_solve(
+                    self.analytic_fk_jac,
+                    target,
+                    seed,
+                    self.limits,
+                    tol_m,
+                    tol_rad,
+                    self.options.max_iterations,
+                    deadline,
+                )
+                near = ep2 <= tol_m and er2 <= tol_rad and np.linalg.norm(q2 - seed) < np.linalg.norm(q - seed)
+                return (q2, ep2, er2, 2) if near else (q, ep, er, 2)
         best = None
         attempt_seed = seed
         attempts = 0
@@ -186,16 +213,18 @@ class IKSolver:
         o = self.options
         deadline = start + o.timeout_s
         stats = {"attempts": 0, "refinements": 0, "path": self.path}
+        closed = self.branches(target, seed)
         if analytic or not self.model.is_corrected:
             # no hybrid stages to keep time for, and the branch search would only rerun the same URDF-model LM
             # from the same table seeds: the classical stage gets the whole budget and all of those seeds
-            q, _, _, stats["attempts"] = self.classical(target, seed, deadline, 2 * seeding.TABLE_RESTARTS)
-            return self.result(q, target, analytic, start, stats)
-        q0, _, _, attempts = self.classical(target, seed, start + CLASSICAL_SHARE * o.timeout_s)
+            restarts = 2 * seeding.TABLE_RESTARTS
+            q, _, _, stats["attempts"] = self.classical(target, seed, deadline, restarts, closed)
+            return self._singular(self.result(q, target, analytic, start, stats))
+        q0, _, _, attempts = self.classical(target, seed, start + CLASSICAL_SHARE * o.timeout_s, branches=closed)
         stats["attempts"] += attempts
         best = self._from_branch(target, q0, analytic, start, deadline, stats, origin)
         if best.success:
-            return best
+            return self._singular(best)
         # the other branches (module docstring, 3.)
         tried = [q0]
         tol_m, tol_rad = self.inner_tol
@@ -225,7 +254,31 @@ class IKSolver:
                 break
         best.stats["branches"] = len(tried)
         best.seconds = time.perf_counter() - start
-        return best
+        return self._singular(best)
+
+    def _rank_lost(self, q: np.ndarray) -> bool:
+        """The URDF Jacobian at ``q`` has lost rank: ``q`` is at a singularity."""
+        jac = self.model.fk_and_jacobian_single(q, analytic=True)[1]
+        return bool(np.linalg.svd(jac, compute_uv=False)[-1] < SINGULAR)
+
+    def _singular(self, result: IKResult) -> IKResult:
+        """Says so when a solved target is singular for the URDF model at the answer (its Jacobian has lost
+        rank): there the solutions of that branch form a continuum, and the answer is the member the solver
+        reached from the seed, near it."""
+        if not result.success:
+            return result
+        if self._rank_lost(result.q):
+            result.stats["singular"] = True
+            result.message = (
+                "solved; the target is singular (its solutions form a continuum): this one is the nearest the seed"
+            )
+        return result
+        if self._rank_lost(result.q):
+            result.stats["singular"] = True
+            result.message = (
+                "solved; the target is singular (its solutions form a continuum): this one is the nearest the seed"
+            )
+        return result
 
     def _arrival(self, origin: np.ndarray | None, q: np.ndarray) -> np.ndarray | None:
         """The approach directions of a move from ``origin`` to ``q`` (4.); None: keep the current ones

@@ -440,6 +440,7 @@ class KinematicsNode(Node):
         solver: IKSolver,
         start: float,
     ) -> ComputeIK.Response:
+        nearest = False  # out of reach: the nearest configuration found is returned, with success false
         try:
             frames = [model.chain.base_link, *(f for f in model.chain.link_frames if f != model.chain.base_link)]
             target = matrix_from_msg(request.target, frames)
@@ -466,6 +467,7 @@ class KinematicsNode(Node):
                 deadline = start + budget_ms / 1e3
                 results = solver.solve_many(target, seed, k, extra, analytic=request.analytic_only, deadline=deadline)
             good = [r for r in results if r.success]
+            nearest = k == 1 and not good and bool(results) and results[0].q is not None
             now = self.get_clock().now().to_msg()
             response.solutions = [joint_state_msg(r.q, model.joint_names, now) for r in good]
             response.position_error_mm = [float(r.position_error_mm) for r in good]
@@ -478,11 +480,18 @@ class KinematicsNode(Node):
                 response.message = (
                     results[0].message if results else "no solution found from any seed within the time budget"
                 )
+            if nearest:
+                r = results[0]
+                response.solutions = [joint_state_msg(r.q, model.joint_names, now)]
+                response.position_error_mm = [float(r.position_error_mm)]
+                response.orientation_error_deg = [float(r.orientation_error_deg)]
+                response.in_calibrated_range = [bool(r.in_calibrated_range)]
+                response.message += "; solutions[0] is the nearest configuration found"
         except (RequestError, IKError, KinematicsError, ModelError) as exc:
             response.success, response.message = False, str(exc)
         except Exception as exc:  # a bug must cost one answer, never the service
             self._unexpected("compute_ik", exc, response)
-        if not response.success:
+        if not response.success and not nearest:
             response.solutions, response.position_error_mm, response.orientation_error_deg = [], [], []
             response.in_calibrated_range = []
         outside = response.in_calibrated_range.count(False) if model.nets else 0

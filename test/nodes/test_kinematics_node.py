@@ -184,6 +184,23 @@ def test_bad_ik_requests_and_the_node_keeps_serving(served):
     assert client.call(ik, ik_request(T)).success
 
 
+def test_an_unreachable_target_gets_the_nearest_configuration_and_its_distance(served):
+    """0.3 m beyond the stretched arm: success false, and solutions[0] is the configuration that comes
+    nearest, its errors the distance the hybrid FK measures from there to the target."""
+    client, _, ik, _, model, _, _ = served
+    q = np.array([0.2, -1.0, 0.4, -0.8, 1.1, 0.2])
+    T = model.fk(q)[0]
+    T[:3, 3] *= 1.0 + 0.3 / np.linalg.norm(T[:3, 3])
+    resp = client.call(ik, ik_request(T, q, model.joint_names), timeout=60)
+    assert not resp.success and "nearest configuration" in resp.message, resp.message
+    assert len(resp.solutions) == 1 and resp.position_error_mm[0] > 100.0
+    reached = model.fk(np.array(resp.solutions[0].position))[0]
+    assert np.linalg.norm(reached[:3, 3] - T[:3, 3]) * 1e3 == pytest.approx(resp.position_error_mm[0], rel=1e-6)
+    # several solutions asked for: none, and no configuration passed off as one
+    many = client.call(ik, ik_request(T, q, model.joint_names, k=4), timeout=60)
+    assert not many.success and not many.solutions
+
+
 def test_corrected_pose_topic_rate_and_stamps(served):
     client, _, _, _, model, _, _ = served
     received, transforms = [], []
