@@ -19,8 +19,7 @@ from scipy.optimize import least_squares
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.lm import error6, joint_limits
 from hybrid_kinematics_ros.ik.refine import HybridRefiner
-from hybrid_kinematics_ros.ik.solver import IKOptions, IKResult, IKSolver
-from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.ik.solver import IKOptions, IKResult, IKSolver, compensated_target
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 COSTS = ("pose6", "eq2")
@@ -104,8 +103,5 @@ def wang_baseline(
     deadline = start + solver.options.timeout_s * (iterations + 1)
     q, *_ = solver.classical(target, seed, deadline)
     for _ in range(iterations):
-        T_h = solver.model.fk_single(q)
-        T_a = solver.model.fk_single(q, analytic=True)
-        compensated = target @ se3.inverse(T_h) @ T_a
-        q, *_ = solver.classical(compensated, q, deadline)
+        q, *_ = solver.classical(compensated_target(solver.model, target, q), q, deadline)
     return solver.result(q, target, False, start, {"method": "wang"})

@@ -50,6 +50,7 @@ from hybrid_kinematics_ros.ik.analytic import AnalyticIK
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.lm import error6, joint_limits, lm_solve
 from hybrid_kinematics_ros.ik.refine import HybridRefiner
+from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.model import approach
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
@@ -67,6 +68,16 @@ PATH_JUMP_RAD = 0.5
 # over that, so each round cuts the error by orders of magnitude; a round costs one hybrid FK.
 FIXED_POINT_ROUNDS = 12
 SINGULAR = 1e-6  # the URDF Jacobian's smallest singular value (m or rad per rad) at a singular target's answer
+
+
+def compensated_target(
+    model: HybridModel, target: np.ndarray, q: np.ndarray, hybrid: np.ndarray | None = None
+) -> np.ndarray:
+    """Wang et al.'s compensated target ``T_target · T_hybrid(q)⁻¹ · T_URDF(q)``: where the URDF model must go
+    for the hybrid model to reach the target, if the correction at ``q`` held there (``hybrid``: T_hybrid(q),
+    when known)."""
+    hybrid = model.fk_single(q) if hybrid is None else hybrid
+    return target @ se3.inverse(hybrid) @ model.fk_single(q, analytic=True)
 
 
 @dataclass(frozen=True)
@@ -340,7 +351,7 @@ class IKSolver:
         self, target: np.ndarray, q0: np.ndarray, deadline: float
     ) -> tuple[np.ndarray, tuple[float, float] | None]:
         """The hybrid solution on ``q0``'s branch through the closed forms alone (module docstring, 2.):
-        ``q = IK(target · C(q)⁻¹)`` with ``C(q) = URDF(q)⁻¹ · hybrid(q)``; at the fixed point hybrid(q) = target.
+        ``q = IK(compensated_target(q))`` on the branch; at the fixed point hybrid(q) = target.
         Returns the round nearest the target (``q0`` if none comes nearer) and its hybrid errors (mm, deg;
         None without closed forms); it stops within the solver's inner tolerance."""
         if self.closed_form is None:
@@ -358,8 +369,7 @@ class IKSolver:
                 break
             if round_ == FIXED_POINT_ROUNDS or time.perf_counter() > deadline:
                 break
-            correction = np.linalg.solve(self.model.fk_single(q, analytic=True), hybrid)
-            q = self.closed_form.nearest(target @ np.linalg.inv(correction), q)
+            q = self.closed_form.nearest(compensated_target(self.model, target, q, hybrid), q)
             if q is None:
                 break
         return best, best_errors
