@@ -95,9 +95,9 @@ def classify(chain: Chain) -> tuple[str, np.ndarray] | None:
         points[3:6] = wrist
         if _parallel(g, 1, 2):
             return "spherical_two_parallel", points
-        shoulder = meeting_point(g, 1, 2)
+        shoulder = meeting_point(g, 0, 1)  # IK-Geo's family: axes 1 and 2 meet (it never reads p12)
         if shoulder is not None:
-            points[1:3] = shoulder
+            points[0:2] = shoulder
             return "spherical_two_intersecting", points
         return "spherical", points
     if _parallel(g, 1, 2) and _parallel(g, 2, 3):
@@ -206,11 +206,9 @@ def fold(q: np.ndarray, seed: np.ndarray, lower: np.ndarray, upper: np.ndarray) 
     """Each row's joints shifted by a multiple of 2π to the value within ``[lower, upper]`` nearest the seed;
     rows with a joint that has no such value are dropped."""
     q = np.asarray(q, dtype=float).reshape(-1, len(seed))
-    turns = np.round((seed - q) / (2 * np.pi))
-    out = q + 2 * np.pi * turns
-    for step in (-1.0, 1.0):  # the nearest may lie outside: its neighbour turn may be inside
-        shifted = out + 2 * np.pi * step
-        outside = (out < lower) | (out > upper)
-        out = np.where(outside & (shifted >= lower) & (shifted <= upper), shifted, out)
-    inside = np.all((out >= lower - 1e-12) & (out <= upper + 1e-12), axis=1)
-    return out[inside]
+    tau = 2 * np.pi
+    first = np.ceil((lower - 1e-12 - q) / tau)  # the fewest and the most turns that stay inside
+    last = np.floor((upper + 1e-12 - q) / tau)
+    turns = np.clip(np.round((seed - q) / tau), first, last)
+    inside = np.all(first <= last, axis=1)
+    return (q + tau * turns)[inside]

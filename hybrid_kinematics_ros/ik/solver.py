@@ -159,8 +159,11 @@ class IKSolver:
         restarts: int = seeding.TABLE_RESTARTS,
         branches: np.ndarray | None = None,
     ) -> tuple[np.ndarray, float, float, int]:
-        """Stage 1 from one seed, then restarts while time remains, from the ``restarts`` table configurations
-        nearest the target, then random ones: the joints, the errors (m, rad), the attempts."""
+        """Stage 1: the joints, the errors (m, rad), the attempts. With closed forms, the branch nearest the seed
+        (``branches``, when the caller has them); where the target has a branch at a singularity, LM from the
+        seed too, and the nearer of the two. Otherwise, or when the closed forms give nothing, LM from the
+        seed, then restarts while time remains, from the ``restarts`` table configurations nearest the
+        target, then random ones."""
         tol_m, tol_rad = self.inner_tol
         branches = self.branches(target, seed) if branches is None else branches
         for q in branches[:1]:  # nearest the seed; exact, or polished on our FK in a step
@@ -214,9 +217,9 @@ class IKSolver:
         return best[0], best[1], best[2], attempts
 
     def solve(self, target: np.ndarray, seed: np.ndarray | None = None, analytic: bool = False) -> IKResult:
-        """One solution, the one the seed leads to. If that branch has no hybrid solution near it, the other
-        analytic branches follow, from the restart table's configurations nearest the target, while the time
-        budget lasts."""
+        """One solution, the one the seed leads to (with closed forms, the branch nearest the seed). If that branch
+        has no hybrid solution near it, the other branches follow while the time budget lasts: the closed
+        forms' others, then those from the restart table's configurations nearest the target."""
         start = time.perf_counter()
         given = seed is not None
         target, seed = self.check(target, seed)
@@ -239,7 +242,7 @@ class IKSolver:
         # the other branches (module docstring, 3.)
         tried = [q0]
         tol_m, tol_rad = self.inner_tol
-        starts = [*self.branches(target, seed), *self.seeds.nearest(target, 2 * seeding.TABLE_RESTARTS)]
+        starts = [*closed, *self.seeds.nearest(target, 2 * seeding.TABLE_RESTARTS)]
         valley = [] if analytic else seeding.valley_seeds(self.model, best.q, best.position_error_mm, self.limits)
         for i in itertools.count():
             if time.perf_counter() > deadline:
@@ -278,12 +281,6 @@ class IKSolver:
         reached from the seed, near it."""
         if not result.success:
             return result
-        if self._rank_lost(result.q):
-            result.stats["singular"] = True
-            result.message = (
-                "solved; the target is singular (its solutions form a continuum): this one is the nearest the seed"
-            )
-        return result
         if self._rank_lost(result.q):
             result.stats["singular"] = True
             result.message = (
@@ -350,7 +347,9 @@ class IKSolver:
     def fixed_point(
         self, target: np.ndarray, q0: np.ndarray, deadline: float
     ) -> tuple[np.ndarray, tuple[float, float] | None]:
-        """The hybrid solution on ``q0``'s branch through the closed forms alone (module docstring, 2.):
+        """The hybrid solution from ``q0`` through the closed forms alone (module docstring, 2.), each round on
+        the branch nearest the last answer (near a singularity that can be another: every round is checked on
+        the hybrid FK):
         ``q = IK(compensated_target(q))`` on the branch; at the fixed point hybrid(q) = target.
         Returns the round nearest the target (``q0`` if none comes nearer) and its hybrid errors (mm, deg;
         None without closed forms); it stops within the solver's inner tolerance."""
@@ -454,7 +453,9 @@ class IKSolver:
         end = float("inf") if deadline is None else deadline
         search_end = start + SEARCH_SHARE * (end - start)
         branches = list(self.branches(target, seed))  # every branch at once: the seeds below only add the rest
-        spread = () if branches else self.seeds.spread
+        # a branch at a singularity has no closed-form answer: the spread of seeds searches for it too
+        singular = self.closed_form is not None and self.closed_form.singular(target)
+        spread = () if branches and not singular else self.seeds.spread
         for s in [*branches, seed, *(extra_seeds or []), *spread]:
             now = time.perf_counter()
             if now > search_end:

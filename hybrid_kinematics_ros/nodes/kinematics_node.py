@@ -174,7 +174,8 @@ class KinematicsNode(Node):
         m = self.model
         kind = f"calibrated model {self.model_dir}" if m.is_corrected else "analytic URDF model (no model_dir)"
         self.get_logger().info(
-            f"serving {kind}: {m.chain.base_link} -> {m.chain.tip_link}, joints {', '.join(m.joint_names)}"
+            f"serving {kind}: {m.chain.base_link} -> {m.chain.tip_link}, joints {', '.join(m.joint_names)}; "
+            f"IK: {self.solver.path}"
         )
         for warning in m.chain.inertial_warnings:
             self.get_logger().warn(f"URDF: {warning}")
@@ -467,7 +468,18 @@ class KinematicsNode(Node):
                 deadline = start + budget_ms / 1e3
                 results = solver.solve_many(target, seed, k, extra, analytic=request.analytic_only, deadline=deadline)
             good = [r for r in results if r.success]
-            nearest = k == 1 and not good and bool(results) and results[0].q is not None
+            # out of reach (not refused for the calibrated range: that answer is no configuration to run)
+            o = solver.options
+            nearest = (
+                k == 1
+                and not good
+                and bool(results)
+                and results[0].q is not None
+                and (
+                    results[0].position_error_mm > o.position_tolerance_mm
+                    or results[0].orientation_error_deg > o.orientation_tolerance_deg
+                )
+            )
             now = self.get_clock().now().to_msg()
             response.solutions = [joint_state_msg(r.q, model.joint_names, now) for r in good]
             response.position_error_mm = [float(r.position_error_mm) for r in good]

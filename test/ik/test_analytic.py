@@ -37,6 +37,10 @@ def chain_of(example_robot_data, name: str):
         return chain_from_urdf(example_robot_data / urdf, base, tip)
 
 
+def wrapped(d: np.ndarray) -> np.ndarray:
+    return (d + np.pi) % (2 * np.pi) - np.pi
+
+
 def random_joints(chain, n: int, seed: int) -> np.ndarray:
     lower = np.where(np.isfinite(chain.lower), chain.lower, -np.pi)
     upper = np.where(np.isfinite(chain.upper), chain.upper, np.pi)
@@ -57,10 +61,10 @@ def test_embedded_robots_get_their_family_and_every_target_its_own_joints(robot,
     assert closed is not None and closed.family == family
     q = random_joints(chain, 200, 1)
     for qi, target in zip(q, fk.fk(chain, q), strict=True):
-        branches = closed.branches(target, qi)
+        branches = closed.branches(target, qi + 0.01)
         assert len(branches) >= 1
-        # the joints that made the target come first: the branch nearest the seed, here the seed itself (to
-        # 1e-6 rad, or 1e-4 near the wrist singularity: the RX160's rounded π/2 leaves its wrist 7e-10 m off)
+        # the joints that made the target come first: the branch nearest a seed beside them (to 1e-6 rad, or
+        # 1e-4 near the wrist singularity: the RX160's rounded π/2 leaves its wrist 7e-10 m off)
         assert np.abs(branches[0] - qi).max() < (1e-6 if abs(qi[4]) > 0.1 else 1e-4), (qi, branches[0])
         reached = fk.fk(chain, branches)
         assert np.abs(reached - target).max() < 1e-5  # every branch checked on our FK
@@ -96,6 +100,24 @@ def test_an_offset_wrist_falls_to_the_next_family_and_a_tilted_elbow_to_none():
     assert classify(chain.with_geometry(pre, chain.post)) is None
 
 
+def test_a_wrist_with_intersecting_first_axes_gets_its_own_family():
+    """The KR16 without its shoulder offset (axes 1 and 2 meet) and with joint 3 tilted (axes 2 and 3 no
+    longer parallel): IK-Geo's spherical-two-intersecting family, which assumes axes 1 and 2 meet."""
+    chain = load_robot_config("kr16").chain
+    pre = chain.pre.copy()
+    pre[1][:2, 3] = 0.0
+    tilt = np.eye(4)
+    tilt[:3, :3] = Rotation.from_rotvec([0.3, 0.0, 0.0]).as_matrix()
+    pre[2] = pre[2] @ tilt
+    arm = chain.with_geometry(pre, chain.post)
+    closed = AnalyticIK.of(arm)
+    assert closed.family == "spherical_two_intersecting"
+    q = random_joints(arm, 100, 8)
+    for qi, target in zip(q, fk.fk(arm, q), strict=True):
+        branches = closed.branches(target, qi + 0.01)
+        assert len(branches) and np.abs(branches[0] - qi).max() < 1e-6
+
+
 def test_the_branch_count_is_ik_geos_own(example_robot_data):
     """Against IK-Geo called directly with its conventions (H, P at the axes' meeting points, the tip's
     rotation at zero taken out, the rotation as columns): as many exact branches inside the limits, and
@@ -120,6 +142,10 @@ def test_fold_keeps_each_joint_within_its_limits_nearest_the_seed():
     q = np.array([[3.0, 0.5], [3.0, 3.0]])  # the second: 3 rad on joint 2 has no equivalent in ±1
     out = fold(q, np.array([-3.0, 0.0]), lower, upper)
     np.testing.assert_allclose(out, [[3.0 - 2 * np.pi, 0.5]])
+    # a seed wound up far beyond the limits: the turn inside them nearest it
+    np.testing.assert_allclose(
+        fold(np.array([[0.5]]), np.array([20.0]), np.array([0.0]), np.array([13.0])), [[0.5 + 2 * np.pi]]
+    )
 
 
 @pytest.mark.parametrize("q5", [0.0, 1e-4])
@@ -192,3 +218,19 @@ def test_the_batched_pose_error_is_lm_error6_at_every_angle():
     T[1, :3, :3] = target[:3, :3] @ Rotation.from_rotvec([1e-9, 0.0, 0.0]).as_matrix().T
     T[2, :3, :3] = target[:3, :3] @ Rotation.from_rotvec([0.0, np.pi - 1e-3, 0.0]).as_matrix().T
     np.testing.assert_allclose(_errors(target, T), [error6(target, t) for t in T], atol=1e-12)
+
+
+def test_several_solutions_of_a_singular_target_include_the_singular_branch():
+    """At q5 = 0 the wrist's branch has no closed-form answer; ``solve_many`` still finds a member of its
+    continuum: the configuration that made the target, up to the q4/q6 trade-off (same pose). The RX160's
+    spherical wrist: its continuum is q4 + q6 alone (the UR's four parallel axes move q2 and q3 too)."""
+    chain = load_robot_config("rx160").chain
+    solver = IKSolver(HybridModel.analytic_only(chain), GENEROUS)
+    q = random_joints(chain, 20, 9)
+    q[:, 4] = 0.0
+    found = 0
+    for qi, target in zip(q, fk.fk(chain, q), strict=True):
+        results = solver.solve_many(target, max_solutions=16, analytic=True)  # from mid-limits
+        # the same branch: joints 1-3 and 5 as made (4 and 6 trade off along the continuum)
+        found += any(np.abs(np.delete(wrapped(r.q - qi), [3, 5])).max() < 1e-5 for r in results)
+    assert found >= 18, found

@@ -196,6 +196,10 @@ def test_a_recording_under_sim_time_is_on_the_sim_clock(cell, tmp_path):
     names = list(load_robot_config("ur10").chain.joint_names)
     start_s, step_s, n = 1000.0, 0.01, 300
     try:
+        deadline = time.monotonic() + 60.0  # discovery: the recorder subscribes to all three before anything is sent
+        while min(p.get_subscription_count() for p in (clock_pub, joint_pub, pose_pub)) < 1:
+            assert time.monotonic() < deadline, "the recorder never subscribed"
+            client.spin_for(0.1)
         for i in range(n):
             now = Time(seconds=start_s + i * step_s).to_msg()
             clock_pub.publish(Clock(clock=now))
