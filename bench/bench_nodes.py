@@ -22,15 +22,6 @@ LIB = ROOT / "install" / "hybrid_kinematics_ros" / "lib" / "hybrid_kinematics_ro
 
 
 LATENCY_KINDS = "fk,trigger,fk_empty,fk_pose"  # called in turn by one client: one machine state for all
-# the embedded UR10 names its joints as ur_robot_driver does
-UR10_JOINTS = (
-    "shoulder_pan_joint",
-    "shoulder_lift_joint",
-    "elbow_joint",
-    "wrist_1_joint",
-    "wrist_2_joint",
-    "wrist_3_joint",
-)
 DEEP_REPLY_QUEUE = 100  # the client QoS depth the README recommends for many concurrent clients
 
 
@@ -64,11 +55,12 @@ def client(calls: int, batch: int = 1, kinds: str = "fk", depth: int = 10) -> di
     from std_srvs.srv import Trigger
 
     from hybrid_kinematics_interfaces.srv import ComputeFK, ComputeIK
+    from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
     from hybrid_kinematics_ros.nodes.convert import joint_state_msg, pose_msg
 
     rclpy.init()
     node = rclpy.create_node(f"bench_client_{os.getpid()}")
-    names = list(UR10_JOINTS)
+    names = list(load_robot_config("ur10").chain.joint_names)
     stamp = node.get_clock().now().to_msg()
     qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -508,6 +500,8 @@ def publish(seconds: float) -> dict:
     from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import JointState
 
+    from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+
     rclpy.init()
     node = rclpy.create_node("bench_joint_publisher")
     pub = node.create_publisher(JointState, "/joint_states", 100)
@@ -518,7 +512,7 @@ def publish(seconds: float) -> dict:
         lambda m: lags.append(time.time() - sent.get((m.header.stamp.sec, m.header.stamp.nanosec), time.time())),
         100,
     )
-    names = list(UR10_JOINTS)
+    names = list(load_robot_config("ur10").chain.joint_names)
     end = time.monotonic() + seconds
     tick = time.monotonic()
     while time.monotonic() < end:

@@ -480,11 +480,12 @@ class KinematicsNode(Node):
                     or results[0].orientation_error_deg > o.orientation_tolerance_deg
                 )
             )
+            shown = results[:1] if nearest else good
             now = self.get_clock().now().to_msg()
-            response.solutions = [joint_state_msg(r.q, model.joint_names, now) for r in good]
-            response.position_error_mm = [float(r.position_error_mm) for r in good]
-            response.orientation_error_deg = [float(r.orientation_error_deg) for r in good]
-            response.in_calibrated_range = [bool(r.in_calibrated_range) for r in good]
+            response.solutions = [joint_state_msg(r.q, model.joint_names, now) for r in shown]
+            response.position_error_mm = [float(r.position_error_mm) for r in shown]
+            response.orientation_error_deg = [float(r.orientation_error_deg) for r in shown]
+            response.in_calibrated_range = [bool(r.in_calibrated_range) for r in shown]
             response.success = bool(good)
             if good:
                 response.message = f"{len(good)} solution(s)" + self._unset_note()
@@ -493,11 +494,6 @@ class KinematicsNode(Node):
                     results[0].message if results else "no solution found from any seed within the time budget"
                 )
             if nearest:
-                r = results[0]
-                response.solutions = [joint_state_msg(r.q, model.joint_names, now)]
-                response.position_error_mm = [float(r.position_error_mm)]
-                response.orientation_error_deg = [float(r.orientation_error_deg)]
-                response.in_calibrated_range = [bool(r.in_calibrated_range)]
                 response.message += "; solutions[0] is the nearest configuration found"
         except (RequestError, IKError, KinematicsError, ModelError) as exc:
             response.success, response.message = False, str(exc)
