@@ -1,8 +1,11 @@
 """One way to run a node's process: init, build the node (a startup error is one FATAL line and exit 1),
-spin, and always clean up, also on Ctrl-C and external shutdown."""
+spin, and always clean up, also on Ctrl-C and external shutdown. ``kill -USR1 <pid>`` prints every
+thread's Python stack to stderr (the node's log), to see where a process that will not stop is waiting."""
 
 from __future__ import annotations
 
+import faulthandler
+import signal
 from collections.abc import Callable
 
 import rclpy
@@ -30,6 +33,7 @@ def run_node(
     on_exit: Callable[[Node], None] | None = None,
     **init_kwargs,
 ) -> int:
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     rclpy.init(args=args, **init_kwargs)
     try:
         node = make_node()

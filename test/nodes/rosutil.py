@@ -56,9 +56,13 @@ def stop(proc: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 15.0
         os.killpg(proc.pid, sig)
         try:
             proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+        except subprocess.TimeoutExpired:  # its threads' stacks into its log first (nodes/runtime.py)
+            os.kill(proc.pid, signal.SIGUSR1)
+            try:
+                proc.wait(2.0)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
     return proc.returncode
 
 
