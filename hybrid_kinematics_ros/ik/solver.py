@@ -50,6 +50,7 @@ from hybrid_kinematics_ros.ik.analytic import AnalyticIK
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.lm import error6, joint_limits, lm_solve
 from hybrid_kinematics_ros.ik.refine import HybridRefiner
+from hybrid_kinematics_ros.ik.valley import valley_starts
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.model import approach
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -67,6 +68,7 @@ PATH_JUMP_RAD = 0.5
 # The closed forms' fixed point (2.): the hybrid corrections move a solution by milliradians and change little
 # over that, so each round cuts the error by orders of magnitude; a round costs one hybrid FK.
 FIXED_POINT_ROUNDS = 12
+VALLEY_SHARE = 0.5  # of the budget, still left, for the search along a singular valley (ik/valley.py)
 SINGULAR = 1e-6  # the URDF Jacobian's smallest singular value (m or rad per rad) at a singular target's answer
 
 
@@ -387,8 +389,12 @@ class IKSolver:
             result = self.result(q, target, analytic, start, dict(stats, method="closed-form fixed point"), errors)
             if result.success:
                 return result
+            found = self._valley(target, q0, start, deadline, stats)
+            if found is not None:
+                return found
         if corrected:
-            q, info = self.refiner.refine(target, q0)
+            # the box keeps its own budget (its share of timeout_s), unless the valley search took the time
+            q, info = self.refiner.refine(target, q0, deadline if "valley" in stats else float("inf"))
             errors = info.pop("errors", None)
             stats["refinements"] += 1
             stats.update(info)
@@ -398,6 +404,27 @@ class IKSolver:
             stats["hybrid_lm"] = stats.get("hybrid_lm", 0) + 1
             result = self.result(q, target, analytic, start, dict(stats))
         return result
+
+    def _valley(
+        self, target: np.ndarray, q0: np.ndarray, start: float, deadline: float, stats: dict
+    ) -> IKResult | None:
+        """The hybrid solution along the URDF model's singular valley through ``q0``, nearest ``q0`` first
+        (:mod:`~hybrid_kinematics_ros.ik.valley`); None when ``q0`` is not near a singularity or no root of
+        the valley reaches the target."""
+        if deadline - time.perf_counter() < VALLEY_SHARE * self.options.timeout_s:
+            return None  # the grid alone costs a few hybrid FKs of the whole grid: too late to start it
+        starts = valley_starts(self.model, target, q0, self.limits, deadline, self.inner_tol[0])
+        if starts is None:
+            return None
+        stats["valley"] = len(starts)
+        for q in starts:
+            result = self.result(q, target, False, start, dict(stats, method="singular valley"))
+            if not result.success and time.perf_counter() < deadline:  # a double root: LM finishes from next to it
+                q, *_ = self.refiner.unbounded(target, q, deadline)
+                result = self.result(q, target, False, start, dict(stats, method="singular valley"))
+            if result.success:
+                return result
+        return None
 
     def result(
         self,
