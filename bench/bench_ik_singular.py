@@ -87,10 +87,14 @@ def run(solver: IKSolver, targets: np.ndarray, analytic: bool) -> tuple[float, f
 
 
 def side_by_side(model: HybridModel, targets: np.ndarray, analytic: bool, options: IKOptions) -> list[str]:
-    with_closed = IKSolver(model, options)
-    iterative = IKSolver(model, replace(options, closed_form=False))
-    a, b = run(iterative, targets, analytic), run(with_closed, targets, analytic)
-    return [f"{a[0]:.2f} / {b[0]:.2f}", f"{a[1]:.2f} / {b[1]:.3f}", f"{a[2]:.1f} / {b[2]:.2f}"]
+    """Iterative / closed forms without the valley search / with it (the URDF model has no valley search: its
+    middle figure is left out)."""
+    solvers = [IKSolver(model, replace(options, closed_form=False))]
+    if not analytic:
+        solvers.append(IKSolver(model, replace(options, valley=False)))
+    solvers.append(IKSolver(model, options))
+    figures = [run(solver, targets, analytic) for solver in solvers]
+    return [" / ".join(f"{f[k]:{spec}}" for f in figures) for k, spec in enumerate((".2f", ".3f", ".1f"))]
 
 
 def branch_counts(model: HybridModel, n: int) -> tuple[int, int]:
@@ -144,15 +148,17 @@ def main() -> None:
         "closed-form family",
         "targets",
         "model",
-        "solved within 50 ms (%): iterative / closed forms",
-        "median ms: iterative / closed forms",
-        "p99 ms: iterative / closed forms",
+        "solved within 50 ms (%): iterative / closed forms [/ + valley]",
+        "median ms: iterative / closed forms [/ + valley]",
+        "p99 ms: iterative / closed forms [/ + valley]",
     ]
     body = (
         f"{args.targets} targets per case, from the hybrid FK (rows `hybrid`, the model trained here for "
         f"{args.train_minutes:g} min) or the URDF model (rows `URDF`), mid-limits seed, {1e3 * BUDGET_S:.0f} ms "
         "budget, solved = within 1e-4 mm and 1e-4° through the same model. Each row runs the same solver twice, "
-        "side by side: with its closed forms switched off (*iterative*, the solver before them) and on. "
+        "side by side: with its closed forms switched off (*iterative*, the solver before them) and on. Hybrid "
+        "rows give three figures: iterative / closed forms without the root search along the URDF model's "
+        "singular valley / with it (`ik/valley.py`, the default). "
         "The wrist-centre and elbow cases are found along q2 and q3 (the smallest singular value of the URDF "
         "Jacobian below 1e-7), then moved off by the offset in the row.\n\n"
         + table(head, rows)

@@ -11,8 +11,10 @@ composes the parts, with ``solve``, ``solve_many`` and ``solve_trajectory``.
 2. The hybrid refinement around the classical answer. With closed forms, first a fixed point on the
    classical answer's branch: the closed forms solve the target moved by the hybrid correction at the
    current answer (the URDF pose to the hybrid pose), until the correction stops changing; then the hybrid
-   pose is the target. It stays exact near singularities, where LM crawls. What it leaves goes to bounded
-   LM through the hybrid FK in a box (:mod:`~hybrid_kinematics_ros.ik.refine`).
+   pose is the target. Near a singularity of the URDF model, where its chord Jacobian loses rank and the
+   fixed point wanders along the singular valley, a root search along that valley follows
+   (:mod:`~hybrid_kinematics_ros.ik.valley`). What they leave goes to bounded LM through the hybrid FK in a
+   box (:mod:`~hybrid_kinematics_ros.ik.refine`).
 3. When the seed's branch has no hybrid solution near it (near a singularity the nets' tenths of a
    millimetre move the solution by tenths of a radian, or the target lies just beyond the URDF model's
    reach), the other analytic branches follow: the closed forms' other branches, nearest the seed first,
@@ -92,6 +94,7 @@ class IKOptions:
     require_calibrated_range: bool = False  # True: a solution outside the trained range fails
     arrive_from_seed: bool = True  # approach-direction models: the directions of the move from the seed (4.)
     closed_form: bool = True  # False: the iterative solver alone, as before the closed forms (baselines, benches)
+    valley: bool = True  # False: no root search along a singular valley (ik/valley.py; benches compare)
 
 
 @dataclass
@@ -411,7 +414,7 @@ class IKSolver:
         """The hybrid solution along the URDF model's singular valley through ``q0``, nearest ``q0`` first
         (:mod:`~hybrid_kinematics_ros.ik.valley`); None when ``q0`` is not near a singularity or no root of
         the valley reaches the target."""
-        if deadline - time.perf_counter() < VALLEY_SHARE * self.options.timeout_s:
+        if not self.options.valley or deadline - time.perf_counter() < VALLEY_SHARE * self.options.timeout_s:
             return None  # the grid alone costs a few hybrid FKs of the whole grid: too late to start it
         starts = valley_starts(self.model, target, q0, self.limits, deadline, self.inner_tol[0])
         if starts is None:

@@ -163,8 +163,10 @@ def _touch(
     """Where ``r`` touches zero between three settled points ``Q (3, n)`` (a double root): the vertex of the
     parabola through them, settled, then again with the best three. LM through the hybrid model finishes."""
     for _ in range(TOUCH_STEPS):
-        a, b, _ = np.polyfit(t - t[1], r, 2)
-        x = t[1] + (-b / (2 * a) if a != 0 else 0.0)
+        # the parabola r0 + d01 (x - t0) + a (x - t0)(x - t1) through the three points, and its vertex
+        d01, d12 = (r[1] - r[0]) / (t[1] - t[0]), (r[2] - r[1]) / (t[2] - t[1])
+        a = (d12 - d01) / (t[2] - t[0])
+        x = 0.5 * (t[0] + t[1]) - d01 / (2 * a) if a != 0 else t[1]
         x = float(np.clip(x, t[0], t[2]))
         w = (x - t[0]) / (t[2] - t[0])
         q = Q[0] + w * (Q[2] - Q[0])
@@ -175,7 +177,7 @@ def _touch(
         order = np.argsort(np.r_[t[keep], x])
         Q = np.vstack([Q[keep], q])[order]
         t, r = np.r_[t[keep], x][order], np.r_[r[keep], rx][order]
-        if t[2] - t[0] < 1e-12:
+        if np.min(np.diff(t)) < 1e-12:
             break
     return Q[np.argmin(np.abs(r))]
 
