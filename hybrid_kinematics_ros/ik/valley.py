@@ -28,7 +28,7 @@ from hybrid_kinematics_ros.ik.lm import Limits, project
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
-# The grid over the valley's turn (batched: 24 points cost about two single hybrid FKs), the chord steps
+# The grid over the valley's turn (batched: 24 points cost about three single hybrid FKs), the chord steps
 # that settle the five joints at each point (the chord Jacobian is exact to the corrections' derivative, a
 # thousandth: each step gains ~1000x), and the regula falsi steps within a bracket.
 GRID_POINTS = 24
@@ -107,7 +107,7 @@ def valley_starts(
     j = int(np.argmax(np.abs(v)))
     free = np.flatnonzero(np.arange(len(q_near)) != j)
     t = np.linspace(max(lower[j], q_near[j] - np.pi), min(upper[j], q_near[j] + np.pi), GRID_POINTS)
-    # each point starts along the weak motion (the others joints follow ``v``), where the five joints have
+    # each point starts along the weak motion (the other joints follow ``v``), where the five joints have
     # least to remove: from ``q_near`` with joint j alone turned, a rotation error near π has no clean log
     Q = q_near + np.outer((t - q_near[j]) / v[j], v)
     Q = project(Q, *limits)
