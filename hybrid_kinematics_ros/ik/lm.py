@@ -55,6 +55,12 @@ def error6(target: np.ndarray, T: np.ndarray) -> np.ndarray:
     return np.concatenate([target[:3, 3] - T[:3, 3], log_so3(target[:3, :3] @ T[:3, :3].T)])
 
 
+def error6_batch(targets: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``(B, 6)``: :func:`error6` of poses ``T (B, 4, 4)`` against ``targets`` ``(B, 4, 4)`` or one ``(4, 4)``."""
+    rotation = se3.rotvec(targets[..., :3, :3] @ T[:, :3, :3].mT)
+    return np.concatenate([targets[..., :3, 3] - T[:, :3, 3], rotation], axis=1)
+
+
 def joint_limits(chain: Chain) -> Limits:
     """The chain's limits for the solvers: an unlimited joint gets ±2π (every angle, once)."""
     lower = np.where(np.isfinite(chain.lower), chain.lower, -2 * np.pi)

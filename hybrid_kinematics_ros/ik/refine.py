@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from hybrid_kinematics_ros.ik.lm import FkJac, Limits, lm_solve, project
+from hybrid_kinematics_ros.ik.lm import FkJac, Limits, error6_batch, lm_solve, project
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
@@ -167,9 +167,7 @@ class HybridRefiner:
         active = np.arange(len(targets))
         for _ in range(BATCH_CHORD_STEPS):
             T = self.model.fk(q[active], conditions=None if conditions is None else conditions[active])
-            e = np.concatenate(
-                [targets[active, :3, 3] - T[:, :3, 3], se3.rotvec(targets[active, :3, :3] @ T[:, :3, :3].mT)], axis=1
-            )
+            e = error6_batch(targets[active], T)
             ep, er = np.linalg.norm(e[:, :3], axis=1), np.linalg.norm(e[:, 3:], axis=1)
             done = (ep <= tol_m) & (er <= tol_rad)
             errors[active[done]] = np.column_stack([1e3 * ep[done], np.degrees(er[done])])

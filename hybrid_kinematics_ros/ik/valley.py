@@ -24,8 +24,7 @@ import time
 
 import numpy as np
 
-from hybrid_kinematics_ros.ik.lm import Limits, project
-from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.ik.lm import Limits, error6_batch, project
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 # The grid over the valley's turn (batched: 24 points cost about three single hybrid FKs), the chord steps
@@ -49,12 +48,6 @@ def weak_direction(model: HybridModel, q: np.ndarray) -> tuple[np.ndarray, float
     """The URDF Jacobian's weakest joint motion at ``q`` (unit) and its singular value."""
     _, sv, vt = np.linalg.svd(model.fk_and_jacobian_single(q, analytic=True)[1])
     return vt[-1], float(sv[-1])
-
-
-def _errors(target: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """``(K, 6)`` pose errors (m, rad) of poses ``(K, 4, 4)`` against one target, as the solvers weigh them."""
-    rotation = se3.rotvec(target[:3, :3] @ T[:, :3, :3].mT)
-    return np.concatenate([target[:3, 3] - T[:, :3, 3], rotation], axis=1)
 
 
 def _normal(J5: np.ndarray) -> np.ndarray:
@@ -83,15 +76,15 @@ def settle(
     free_limits = tuple(side[free] for side in limits)
     for step in range(steps + 1):
         T, J = _poses_and_jacobians(model, Q)
-        e, J5 = _errors(target, T), J[:, :, free]
-        if step == steps:
-            u = _normal(J5)
-            r = np.einsum("ki,ki->k", u, e)
-            return Q, r, np.linalg.norm(e - r[:, None] * u, axis=1)
+        e, J5 = error6_batch(target, T), J[:, :, free]
+        if step == steps:  # the last evaluation measures, no step follows it
+            break
         jt = J5.mT
         delta = np.linalg.solve(jt @ J5 + 1e-12 * np.eye(len(free)), jt @ e[:, :, None])[:, :, 0]
         Q[:, free] = project(Q[:, free] + delta, *free_limits)
-    raise AssertionError("unreachable")
+    u = _normal(J5)
+    r = np.einsum("ki,ki->k", u, e)
+    return Q, r, np.linalg.norm(e - r[:, None] * u, axis=1)
 
 
 def valley_starts(
