@@ -8,6 +8,7 @@ from __future__ import annotations
 import itertools
 import os
 import signal
+import time
 
 import pytest
 
@@ -33,16 +34,36 @@ def own_domain():
     os.environ["ROS_DOMAIN_ID"] = str(SESSION_DOMAIN)
 
 
+def dump_stacks(proc, timeout: float = 5.0) -> None:
+    """Before a failed test's process is killed: its threads' stacks into its log (SIGUSR1, nodes/runtime.py),
+    so the failure shows where a node that never answered was waiting."""
+    log = LOGS.get(proc.pid)
+    if proc.poll() is not None or log is None:
+        return
+    os.kill(proc.pid, signal.SIGUSR1)
+    deadline = time.monotonic() + timeout
+    size = -1
+    while time.monotonic() < deadline:  # until the dump has begun and stopped growing
+        text = log.read_text(errors="replace")
+        if "most recent call first" in text and len(text) == size:
+            break
+        size = len(text)
+        time.sleep(0.2)
+
+
 @pytest.fixture(autouse=True)
 def no_leftover_processes(request):
     before = len(STARTED)
     yield
+    failed = getattr(request.node, "failed_call", False)
     for proc in STARTED[before:]:
+        if failed:
+            dump_stacks(proc)
         stop(proc, signal.SIGKILL, timeout=5.0)
-    if getattr(request.node, "failed_call", False):
+    if failed:
         running = [proc for proc in STARTED[:before] if proc.poll() is None]  # e.g. the module's simulated cell
         for proc in running + STARTED[before:]:
             log = LOGS.get(proc.pid)
             if log is not None and log.is_file():
-                tail = log.read_text(errors="replace").splitlines()[-40:]
+                tail = log.read_text(errors="replace").splitlines()[-80:]
                 print(f"----- {proc.args[0]} (pid {proc.pid}, exit {proc.returncode}), {log}:", *tail, sep="\n")
