@@ -34,7 +34,7 @@ demo: bootstrap
 
 bench: bootstrap
 	$(ENV)
-	python bench/run_all.py
+	python -m bench.run_all $(if $(RERUN),--rerun)
 
 clean:
 	rm -rf build install log env.sh out

@@ -5,6 +5,8 @@ from __future__ import annotations
 import os
 import platform
 import re
+import shlex
+import subprocess
 import sys
 from datetime import UTC, datetime
 from pathlib import Path
@@ -27,14 +29,27 @@ def machine() -> str:
     return f"{cpu}, {os.cpu_count()} cores, {mem_gb:.0f} GB, Python {platform.python_version()}, {platform.system()}"
 
 
+def commit(script: str) -> str:
+    """The commit the measured code is at, and whether the working tree changes it (bench/staleness.py)."""
+    from bench.staleness import git, measured_paths
+
+    try:
+        head = git("rev-parse", "--short=12", "HEAD")
+        dirty = git("status", "--porcelain", "--", *measured_paths(script))
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown (not a git checkout)"
+    return head + (" + uncommitted changes" if dirty else "")
+
+
 def write_section(key: str, title: str, body: str) -> None:
     """Replace (or append) the section ``key`` of BENCHMARKS.md."""
     module = "bench." + Path(sys.argv[0]).stem
-    command = " ".join(["python -m", module, *sys.argv[1:]])
+    command = shlex.join(["python", "-m", module, *sys.argv[1:]])
     stamp = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
     section = (
         f"<!-- section:{key} -->\n## {title}\n\n"
-        f"Command: `{command}`  \nMachine: {machine()}  \nRun: {stamp}\n\n{body.strip()}\n<!-- end:{key} -->\n"
+        f"Command: `{command}`  \nMachine: {machine()}  \nRun: {stamp}  \nCommit: {commit(Path(sys.argv[0]).stem)}\n\n"
+        f"{body.strip()}\n<!-- end:{key} -->\n"
     )
     text = BENCHMARKS.read_text() if BENCHMARKS.exists() else HEADER
     pattern = re.compile(rf"<!-- section:{re.escape(key)} -->.*?<!-- end:{re.escape(key)} -->\n", re.S)
