@@ -1,9 +1,12 @@
 """An accuracy report a calibration engineer can hand in: one HTML page with PNG plots.
 
-Sections: the errors of each model (URDF, parametric, hybrid) with their distributions; errors over the
-workspace; inside and outside the calibrated joint range; ISO 9283-style pose accuracy (AP) and
-repeatability (RP) where the test data repeats poses; the referencing; the parametric stage's
-parameters; and the data-amount curve when one is given.
+It opens with a summary block (:mod:`calibration.summary`) that fits the first screen: the robot and the
+data, before and after, ISO 9283 AP and RP, the capacity chosen, the working range and a verdict against
+the user's tolerance. Then the evidence, section by section: the errors of each model (URDF,
+parametric, hybrid) with their distributions; errors over the workspace; inside and outside the
+calibrated joint range; ISO 9283-style pose accuracy (AP) and repeatability (RP) where the test data
+repeats poses; the referencing; the parametric stage's parameters; and the data-amount curve when one
+is given.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.calibration.evaluate import evaluate, measured_targets, plot_distributions, pose_errors_of
+from hybrid_kinematics_ros.calibration.summary import MODELS, summarise
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics.elastic import JointMap
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -218,16 +222,18 @@ def _capacity_section(capacity: dict[str, Any] | None, nets: dict[str, Any]) -> 
     ]
 
 
+MODEL_LABELS = {"analytic": "URDF model", "parametric": "parametric stage", "hybrid": "hybrid model"}
+
+
 def _stats_rows(report: dict[str, Any], suffix: str = "") -> list[list[Any]]:
     rows = []
-    for name in ("analytic", "parametric", "hybrid"):
+    for name in MODELS:
         stats = report.get(f"{name}{suffix}")
         if not stats or not stats.get("count"):
             continue
-        label = {"analytic": "URDF model", "parametric": "parametric stage", "hybrid": "hybrid model"}[name]
         rows.append(
             [
-                label,
+                MODEL_LABELS[name],
                 stats["count"],
                 stats["position_mm_mean"],
                 stats["position_mm_p95"],
@@ -251,26 +257,132 @@ STATS_HEAD = [
     "orientation max (deg)",
 ]
 STYLE = """
-body { font-family: sans-serif; margin: 2em; max-width: 1150px; color: #222; }
+body { font-family: sans-serif; margin: 1.2em 2em; max-width: 1150px; color: #222; }
+h1 { font-size: 1.6em; margin: 0 0 0.4em; }
 table { border-collapse: collapse; margin: 0.5em 0 1.5em; }
 th, td { border: 1px solid #bbb; padding: 3px 8px; text-align: right; }
 th { background: #eee; } td:first-child { text-align: left; }
 img { max-width: 100%; } .note { color: #a33; }
+#summary { border: 2px solid #888; border-radius: 6px; padding: 0.2em 1em 0.4em; margin-bottom: 1.5em; }
+#summary h2 { font-size: 1.2em; margin: 0.4em 0; } #summary p { margin: 0.35em 0; }
+#summary table { margin: 0.3em 0 0.5em; } #summary th:first-child { text-align: left; }
+#verdict { font-size: 1.15em; font-weight: bold; } .pass { color: #070; } .fail { color: #b00; }
+.basis { color: #555; font-size: 0.9em; }
 """
 
 
+def _summary_section(s: dict[str, Any]) -> list[str]:
+    """The block a report opens with (:func:`calibration.summary.summarise`): verdict first, then what it
+    stands on. Every figure is one of the sections' below; this block only picks and orders them."""
+    esc = html.escape
+    verdict = s["verdict"]
+    data = s["data"]
+    if verdict is None:
+        parts = [
+            "<p id='verdict' class='none'>No tolerance given: pass <code>--tolerance-mm</code> "
+            "(and <code>--tolerance-deg</code>) for a PASS or FAIL verdict.</p>"
+        ]
+    else:
+        on = "position" + (" and orientation" if verdict.get("orientation_checked") else "")
+        skipped = (
+            " The data has no orientation, so --tolerance-deg was not checked."
+            if verdict.get("orientation_checked") is False
+            else ""
+        )
+        parts = [
+            f"<p id='verdict' class='{'pass' if verdict['passed'] else 'fail'}'>{esc(verdict['line'])}</p>",
+            f"<p class='basis'>The verdict is computed on the hybrid model's {on} errors at the measured target, "
+            f"over all {verdict['poses']} poses of the test data: it passes when at least "
+            f"{100 * verdict['share_required']:g} % of them lie within the tolerance. Test poses should be held "
+            f"out of training.{skipped}</p>",
+        ]
+    stations = [f for f in data["stations"] if f != s["chain"][0]]
+    where = (
+        f"{len(stations)} tracker station{'s' if len(stations) > 1 else ''} ({esc(', '.join(stations))})"
+        if stations
+        else "in the robot's base frame"
+    )
+    when = (
+        f"recorded {data['from']} to {data['to']} UTC"
+        if data["from"]
+        else "no calendar dates in the stamps (simulated or relative time)"
+    )
+    parts.append(
+        f"<p><b>Robot</b> {esc(s['robot'])} ({esc(s['chain'][0])} → {esc(s['chain'][1])}). "
+        f"<b>Data</b> {data['poses']} test poses from {esc(', '.join(data['bags']))}, measured {where}; {when}.</p>"
+    )
+    models = list(s["errors"])
+    head = [
+        "error",
+        *(("before: " if m == "analytic" else "after: " if m == "hybrid" else "") + MODEL_LABELS[m] for m in models),
+    ]
+    rows = []
+    for quantity, unit in (("position", "mm"), ("orientation", "deg")):
+        for stat in ("mean", "p95", "max"):
+            key = f"{quantity}_{unit}_{stat}"
+            if any(key in s["errors"][m] for m in models):
+                rows.append([f"{quantity} {stat} ({unit})", *(s["errors"][m].get(key, "n/a") for m in models)])
+    parts.append(_table(head, rows))
+    iso = s["iso9283"]
+    parts.append(
+        "<p><b>ISO 9283</b> "
+        + (
+            f"over {iso['poses']} poses measured {'/'.join(map(str, iso['repeats']))} times: pose accuracy AP up to "
+            f"{iso['AP_analytic_mm_max']:.3g} mm before, {iso['AP_hybrid_mm_max']:.3g} mm after; "
+            f"repeatability RP up to {iso['RP_mm_max']:.3g} mm.</p>"
+            if iso
+            else "AP and RP: the test data repeats no pose.</p>"
+        )
+    )
+    capacity = "; ".join(s["capacity"]) or "nothing chosen (no parametric stage, no nets)"
+    parts.append(f"<p><b>Capacity chosen from the data</b> {esc(capacity)}.</p>")
+    wr = s["working_range"]
+    joints = wr["joints"]
+    parts.append(
+        "<p><b>Working range</b> the calibration holds in (the training data's joint range"
+        + ("" if wr["recorded"] else "; not recorded in model.json, so the joint limits")
+        + f"): {wr['inside']} of {data['poses']} test poses lie inside it.</p>"
+    )
+    parts.append(
+        _table(
+            ["joint", *(f"{j['joint']} ({j['unit']})" for j in joints)],
+            [["from", *(round(j["lower"], 1) for j in joints)], ["to", *(round(j["upper"], 1) for j in joints)]],
+        )
+    )
+    if wr["conditions"]:
+        text = ", ".join(f"{n} {c['lower']:.4g} to {c['upper']:.4g}" for n, c in wr["conditions"].items())
+        parts.append(f"<p>Conditions the nets were trained over: {esc(text)}.</p>")
+    return ["<section id='summary'><h2>Summary</h2>", *parts, "</section>"]
+
+
 def write_report(
-    model: HybridModel, pairs: Pairs, out_dir: Path, bags: list[str], curve: list[dict[str, Any]] | None = None
-) -> Path:
-    """Write ``index.html`` and its PNGs into ``out_dir``; return the page's path."""
+    model: HybridModel,
+    pairs: Pairs,
+    out_dir: Path,
+    bags: list[str],
+    curve: list[dict[str, Any]] | None = None,
+    stations: list[str] | None = None,
+    tolerance_mm: float | None = None,
+    tolerance_deg: float | None = None,
+) -> tuple[Path, dict[str, Any]]:
+    """Write ``index.html`` and its PNGs into ``out_dir``; return the page's path and the summary's figures
+    (:func:`calibration.summary.summarise`, with the verdict a caller may print or act on).
+
+    ``stations``: the frames the test data was measured in (the summary names them); ``tolerance_mm`` and
+    ``tolerance_deg``: the user's tolerance, which the summary's verdict line judges the hybrid model by.
+    """
     out_dir.mkdir(parents=True, exist_ok=True)
     report = evaluate(model, pairs)
+    iso = iso9283(model, pairs)
+    summary = summarise(
+        model, pairs, report, pose_errors_of(model, pairs), iso, bags, stations or [], tolerance_mm, tolerance_deg
+    )
     m = model.manifest
     parts = [
-        f"<h1>Accuracy report: {html.escape(str(model.path or 'model'))}</h1>",
-        f"<p>Robot chain {html.escape(model.chain.base_link)} → {html.escape(model.chain.tip_link)}, joints "
-        f"{html.escape(', '.join(model.joint_names))}. Test data: {html.escape(', '.join(bags))} "
-        f"({len(pairs)} pairs). Errors are measured against the tracker, in the robot's base frame.</p>",
+        f"<h1>Accuracy report: {html.escape(summary['robot'])}</h1>",
+        *_summary_section(summary),
+        f"<p>Model {html.escape(str(model.path or 'in memory'))}; joints {html.escape(', '.join(model.joint_names))}. "
+        "Errors are measured against the tracker, in the robot's base frame.</p>",
     ]
     if report.get("note"):
         parts.append(f"<p class='note'>{html.escape(report['note'])}</p>")
@@ -290,7 +402,6 @@ def write_report(
     outside_rows = _stats_rows(report, "_outside_range")
     parts.append(_table(STATS_HEAD, outside_rows) if outside_rows else "<p>No test pair lies outside.</p>")
     parts.extend(_coverage_section(report.get("coverage")))
-    iso = iso9283(model, pairs)
     parts.append("<h2>ISO 9283 pose accuracy and repeatability</h2>")
     if iso:
         head = ["pose", "repeats", "AP, URDF model (mm)", "AP, hybrid model (mm)", "RP (mm)"]
@@ -361,5 +472,5 @@ def write_report(
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>Accuracy report</title>"
         f"<style>{STYLE}</style></head><body>{''.join(parts)}</body></html>\n"
     )
-    (out_dir / "report.json").write_text(json.dumps({**report, "iso9283": iso}, indent=2) + "\n")
-    return page
+    (out_dir / "report.json").write_text(json.dumps({**report, "iso9283": iso, "summary": summary}, indent=2) + "\n")
+    return page, summary
