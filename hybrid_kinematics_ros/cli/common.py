@@ -24,6 +24,19 @@ def add_robot_args(p: argparse.ArgumentParser, required: bool = True) -> None:
     p.add_argument("--tip-link", help="tip link of the chain (with --urdf)")
 
 
+def add_payload_args(p: argparse.ArgumentParser) -> None:
+    """The payload and gravity the joints' torques come from, for a robot given by ``--urdf``."""
+    p.add_argument("--payload-mass", type=float, help="kg, with --urdf (a --robot config has its own)")
+    p.add_argument("--payload-com", type=float, nargs=3, metavar=("X", "Y", "Z"), help="m, in the tip frame")
+    p.add_argument(
+        "--gravity",
+        type=float,
+        nargs=3,
+        metavar=("X", "Y", "Z"),
+        help="m/s² in the base frame, with --urdf (default 0 0 -9.81, a floor mount; a --robot config has its own)",
+    )
+
+
 def add_coverage_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--coverage-radius",

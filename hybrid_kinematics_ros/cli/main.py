@@ -1,4 +1,4 @@
-"""``hybrid-kinematics``: the offline workflow (simulate, import, align, train, evaluate, fk, ik, ...) as subcommands.
+"""``hybrid-kinematics``: the offline workflow (plan, simulate, import, align, train, fk, ik, ...) as subcommands.
 
 Every subsystem error ends the command with one line naming the bad file, field or value, and exit code 2.
 """
@@ -19,6 +19,7 @@ from hybrid_kinematics_ros.cli import (
     fk,
     ik,
     import_,
+    plan,
     report,
     simulate,
     train,
@@ -30,7 +31,7 @@ from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.simulation.errors import SimulationError
 
-COMMANDS = [simulate, import_, align, train, evaluate, report, fk, ik, compensate, export_urdf]
+COMMANDS = [plan, simulate, import_, align, train, evaluate, report, fk, ik, compensate, export_urdf]
 USER_ERRORS: tuple[type[Exception], ...] = (
     CalibrationError,
     DataError,

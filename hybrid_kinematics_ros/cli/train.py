@@ -14,7 +14,13 @@ from tqdm import tqdm
 
 from hybrid_kinematics_ros.calibration import capacity, train
 from hybrid_kinematics_ros.calibration.fit import SPLIT_BLOCKS, fit, load_stations, split, split_summary
-from hybrid_kinematics_ros.cli.common import add_robot_args, chain_from_args, gravity_from_args, payload_from_args
+from hybrid_kinematics_ros.cli.common import (
+    add_payload_args,
+    add_robot_args,
+    chain_from_args,
+    gravity_from_args,
+    payload_from_args,
+)
 from hybrid_kinematics_ros.model import approach
 
 PLAIN_INTERVAL_S = 5.0  # off a terminal: one progress line this often
@@ -63,15 +69,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     stage.add_argument("--harmonic-prior", type=float, help="ridge prior of each cyclic coefficient, in pairs")
     stage.add_argument("--map-step", type=float, help="rad between the joint error map's knots (0: no map)")
     stage.add_argument("--map-smoothness", type=float, help="weight of the joint error map's curvature")
-    p.add_argument("--payload-mass", type=float, help="kg, with --urdf (a --robot config has its own)")
-    p.add_argument("--payload-com", type=float, nargs=3, metavar=("X", "Y", "Z"), help="m, in the tip frame")
-    p.add_argument(
-        "--gravity",
-        type=float,
-        nargs=3,
-        metavar=("X", "Y", "Z"),
-        help="m/s² in the base frame, with --urdf (default 0 0 -9.81, a floor mount; a --robot config has its own)",
-    )
+    add_payload_args(p)
     p.add_argument("--val-bag", nargs="+", help="separate validation bag(s); default: 10%% of --bag")
     p.add_argument("--test-bag", nargs="+", help="separate test bag(s); default: 10%% of --bag")
     p.add_argument(

@@ -1,0 +1,364 @@
+"""Plan a measurement: which configurations to measure, in which order, and the accuracy they will give.
+
+Measuring is what a calibration costs, so the poses are chosen for what the model can learn from them:
+
+- **Information for the parametric stage.** The stage's problem linearised at the nominal model
+  (:func:`calibration.parametric.linearise`) gives each candidate's Jacobian; the candidates are taken one at
+  a time, each the one that raises the log-determinant of the information matrix most (greedy D-optimal
+  design), with the Jacobian rows divided by the noise they will carry. Parameters the candidates cannot
+  identify are left out. The stage planned for is the one every capacity includes (geometry, compliance,
+  bending; no harmonics, no joint map): fewer poses then mean that ``train``'s capacity selection keeps the
+  richer terms out.
+- **Coverage of the working range for the nets.** Each candidate's distance, in joint space scaled by the
+  working range, to the nearest pose already chosen. Both terms are divided by their largest value among the
+  candidates at each step and added, the coverage term weighted by ``coverage_weight``.
+
+The predicted accuracy comes from the same linearisation: the parameters' covariance (the inverse of the
+information matrix) propagated to the tip at configurations drawn from the working range, plus what the stage
+cannot learn (``floor_mm``, e.g. a previous calibration's held-out figure; 0: nothing) and the test
+measurement's own noise. The noise that identification sees is the tracker's plus the floor.
+
+The order is a short tour: nearest neighbour, then 2-opt, with the largest joint move as the distance (with
+every joint at the same speed, that is the time a move takes).
+
+What is checked about the tracker: the distance from the tracker to the target, the target's acceptance cone
+about its axis (the tip frame's z), a box for the target's position. Not checked: self-occlusion by the
+robot's links, and the cell's other objects, for want of collision geometry.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
+from hybrid_kinematics_ros.calibration.parametric import linearise
+from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics.chain import Chain
+from hybrid_kinematics_ros.kinematics.fk import fk
+
+# mean over RMS of the norm of an isotropic 3-D Gaussian error (chi distribution with 3 degrees of freedom)
+MEAN_OVER_RMS = float(np.sqrt(8.0 / (3.0 * np.pi)))
+MAX_INFORMATION_CANDIDATES = 4000  # candidates linearised at once: a few thousand cover a working range
+EVALUATION_POSES = 500  # where the predicted accuracy is averaged
+CURVE = (50, 100, 200, 300, 500, 750, 1000, 1500, 2000)
+
+
+@dataclass(frozen=True)
+class TrackerView:
+    """What the tracker can see. ``position``: the tracker in the base frame (m; None: unknown, so neither
+    the distance nor the cone is checked). ``cone_deg``: the target's acceptance half-angle about the tip
+    frame's z axis (about 45° for a 6-DoF probe, 30° for a plain reflector). ``box``: ``(2, 3)`` the lower
+    and upper corner of the region the target must lie in (m, base frame)."""
+
+    position: np.ndarray | None = None
+    cone_deg: float | None = None
+    min_distance: float = 0.0
+    max_distance: float = float("inf")
+    box: np.ndarray | None = None
+
+    def checks(self) -> dict[str, list[str]]:
+        checked = []
+        if self.box is not None:
+            checked.append("target inside the box")
+        if self.position is not None:
+            checked.append(f"tracker distance {self.min_distance:g}-{self.max_distance:g} m")
+            if self.cone_deg is not None:
+                checked.append(f"target's acceptance cone ±{self.cone_deg:g}° about the tip's z axis")
+        not_checked = ["self-occlusion by the robot's links (no collision geometry)", "other objects in the cell"]
+        if self.position is None:
+            not_checked.insert(0, "line of sight, distance and acceptance cone (no --tracker-xyz)")
+        return {"checked": checked, "not_checked": not_checked}
+
+    def kept(self, frames: np.ndarray, target: np.ndarray | None) -> dict[str, np.ndarray]:
+        """Each check's mask over the target frames ``(N, 4, 4)``, in the order they are applied."""
+        point = se3.point_at(frames, target)
+        out: dict[str, np.ndarray] = {}
+        if self.box is not None:
+            out["box"] = np.all((point >= self.box[0]) & (point <= self.box[1]), axis=1)
+        if self.position is not None:
+            ray = self.position - point
+            distance = np.linalg.norm(ray, axis=1)
+            out["distance"] = (distance >= self.min_distance) & (distance <= self.max_distance)
+            if self.cone_deg is not None:
+                cosine = np.einsum("ni,ni->n", frames[:, :3, 2], ray) / np.maximum(distance, 1e-12)
+                out["cone"] = cosine >= np.cos(np.radians(self.cone_deg))
+        return out
+
+
+@dataclass(frozen=True)
+class PlanOptions:
+    count: int
+    target: np.ndarray | None = None  # (3,) m in the tip frame: a plain reflector there (position only)
+    position_noise_m: float = 15e-6  # the tracker's, per axis
+    orientation_noise_rad: float = np.radians(0.001)
+    floor_mm: float = 0.0  # what the stage cannot learn, as a mean position error
+    coverage_weight: float = 1.0
+    criterion: str = "i-optimal"  # or "d-optimal" (see _greedy)
+    seconds_per_pose: float = 5.0  # settling and measuring
+    joint_speed: float = 0.5  # rad/s, every joint
+    curve: bool = False
+    seed: int = 0
+    payload_mass: float = 0.0  # kg, and its centre of mass in the tip frame (m): the joints' torques need them
+    payload_com: np.ndarray | None = None
+    gravity: np.ndarray | None = None  # m/s², base frame (None: a floor mount)
+
+
+@dataclass
+class Plan:
+    """``rows``: the chosen candidates' indices in tour order; ``predicted``: at the chosen count."""
+
+    rows: np.ndarray
+    q: np.ndarray
+    seconds: float
+    predicted: dict[str, float]
+    parameters: int  # identifiable, of the stage planned for
+    candidates: dict[str, int]
+    checks: dict[str, list[str]]
+    curve: list[dict[str, float]] = field(default_factory=list)
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "poses": len(self.rows),
+            "measuring_time_h": round(self.seconds / 3600.0, 2),
+            "predicted": self.predicted,
+            "identifiable_parameters": self.parameters,
+            "candidates": self.candidates,
+            "tracker": self.checks,
+            **({"curve": self.curve} if self.curve else {}),
+        }
+
+
+def draw_configurations(lower: np.ndarray, upper: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
+    """``count`` configurations uniform in the box ``lower``-``upper`` (rad or m)."""
+    lower, upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
+    if not (np.all(np.isfinite(lower)) and np.all(np.isfinite(upper))):
+        raise CalibrationError("the working range needs finite joint ranges: give --joint-range for unlimited joints")
+    return np.random.default_rng(seed).uniform(lower, upper, (count, len(lower)))
+
+
+def visible(chain: Chain, q: np.ndarray, view: TrackerView, target: np.ndarray | None) -> tuple[np.ndarray, dict]:
+    """The mask of configurations the tracker can measure, and how many each check kept in turn."""
+    kept = np.ones(len(q), dtype=bool)
+    counts = {"given": len(q)}
+    for name, mask in view.kept(fk(chain, q), target).items():
+        kept &= mask
+        counts[f"after {name}"] = int(kept.sum())
+    return kept, counts
+
+
+def _whitened_information(chain: Chain, q: np.ndarray, options: PlanOptions) -> tuple[np.ndarray, np.ndarray]:
+    """Each candidate's Jacobian on the identifiable parameters, rows divided by their noise ``(N, w, P)``,
+    and the position rows unscaled ``(N, 3, P)`` (m per scaled unit)."""
+    frames = fk(chain, q)
+    position_only = options.target is not None
+    measured = frames.copy()
+    measured[:, :3, 3] = se3.point_at(frames, options.target)
+    lin = linearise(
+        chain,
+        q,
+        measured,
+        position_only=position_only,
+        target=options.target,
+        max_pairs=len(q),
+        harmonics=0,
+        map_step=0.0,
+        payload_mass=options.payload_mass,
+        payload_com=options.payload_com,
+        gravity=options.gravity,
+    )
+    order = np.argsort(lin.pick)  # the linearisation's rows back in the candidates' order
+    jac = lin.jacobian[order][:, :, lin.identifiable]
+    floor_axis = 1e-3 * options.floor_mm / MEAN_OVER_RMS / np.sqrt(3.0)  # per axis, m
+    sigma_p = np.hypot(options.position_noise_m, floor_axis)
+    sigma = np.full(jac.shape[1], sigma_p)
+    if not position_only:  # orientation rows are rad × 1 m (ORIENTATION_LENGTH)
+        sigma[3:] = options.orientation_noise_rad * 1.0
+    return jac / sigma[None, :, None], jac[:, :3]
+
+
+def _greedy(
+    info: np.ndarray,
+    spread: np.ndarray,
+    count: int,
+    coverage_weight: float,
+    stops: tuple[int, ...],
+    metric: np.ndarray | None = None,
+) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+    """Greedy optimal design with a coverage term: the order of choice and, at each count in ``stops``, the
+    parameters' covariance ``A`` (the information matrix's inverse, scaled units).
+
+    ``metric`` None: D-optimal, each step's gain ``log det(I + G_c A G_cᵀ)``. Else I-optimal: the fall of the
+    mean prediction variance ``tr(metric A)``, which adding candidate ``c`` lowers by ``tr(S_c⁻¹ G_c A metric A
+    G_cᵀ)`` with ``S_c = I + G_c A G_cᵀ``. The forms ``G_c A G_cᵀ`` of every candidate follow rank-``w``
+    (Woodbury) updates, so a step costs a product or two with the candidates' Jacobians."""
+    n, w, p = info.shape
+    full = np.einsum("nwp,nwq->pq", info, info)
+    ridge = 1e-9 * np.trace(full) / p  # an almost flat start, so the first steps are defined
+    cov = np.eye(p) / ridge
+    quad = np.einsum("nwp,nvp->nwv", info, info) / ridge
+    nearest = np.full(n, np.inf)
+    taken = np.zeros(n, dtype=bool)
+    order = np.empty(count, dtype=int)
+    saved: dict[int, np.ndarray] = {}
+    eye = np.eye(w)
+    for k in range(count):
+        if metric is None:
+            gain = np.linalg.slogdet(eye + quad)[1]
+        else:
+            through = info @ (cov @ metric @ cov)  # (n, w, p)
+            fall = through @ np.swapaxes(info, 1, 2)  # (n, w, w): G_c A M A G_cᵀ
+            gain = np.einsum("nii->n", np.linalg.solve(eye + quad, fall))
+        score = gain / max(np.max(gain[~taken]), 1e-300)
+        if k and coverage_weight > 0:
+            score = score + coverage_weight * nearest / max(np.max(nearest[~taken]), 1e-300)
+        score[taken] = -np.inf
+        s = int(np.argmax(score))
+        order[k] = s
+        taken[s] = True
+        v = cov @ info[s].T  # (p, w)
+        inner = np.linalg.inv(eye + info[s] @ v)
+        cross = info @ v  # (n, w, w): G_c A G_sᵀ
+        quad -= cross @ inner @ np.swapaxes(cross, 1, 2)
+        cov -= v @ inner @ v.T
+        cov = 0.5 * (cov + cov.T)
+        nearest = np.minimum(nearest, np.linalg.norm(spread - spread[s], axis=1))
+        if k + 1 in stops:
+            saved[k + 1] = cov.copy()
+    return order, saved
+
+
+def _predicted(cov: np.ndarray, position_rows: np.ndarray, options: PlanOptions) -> dict[str, float]:
+    """Mean position error (mm) the stage will show on test measurements like these, and its parts."""
+    model_var = np.einsum("nip,pq,niq->n", position_rows, cov, position_rows)  # trace of each 3x3 covariance
+    parameters_rms = float(np.sqrt(np.mean(model_var)))  # m
+    floor_rms = 1e-3 * options.floor_mm / MEAN_OVER_RMS
+    measured_rms = np.sqrt(parameters_rms**2 + floor_rms**2 + 3.0 * options.position_noise_m**2)
+    return {
+        "position_mean_mm": round(1e3 * MEAN_OVER_RMS * measured_rms, 4),
+        "parameters_part_mm": round(1e3 * MEAN_OVER_RMS * parameters_rms, 4),
+        "floor_mm": options.floor_mm,
+        "tracker_noise_mm": round(1e3 * MEAN_OVER_RMS * np.sqrt(3.0) * options.position_noise_m, 4),
+    }
+
+
+def tour(q: np.ndarray, start: int = 0) -> np.ndarray:
+    """An open tour through every row of ``q`` from row ``start``: nearest neighbour, then 2-opt, with the
+    largest joint move as the distance."""
+    n = len(q)
+    if n <= 2:
+        return np.arange(n)
+    dist = np.max(np.abs(q[:, None, :] - q[None, :, :]), axis=2)
+    order = [start]
+    free = np.ones(n, dtype=bool)
+    free[start] = False
+    for _ in range(n - 1):
+        row = np.where(free, dist[order[-1]], np.inf)
+        order.append(int(np.argmin(row)))
+        free[order[-1]] = False
+    path = np.array(order)
+    for _ in range(100):  # 2-opt passes: reverse path[i:j+1] when that shortens the tour
+        improved = False
+        for i in range(1, n - 1):
+            j = np.arange(i + 1, n)
+            before = dist[path[i - 1], path[i]] + np.where(j < n - 1, dist[path[j], path[np.minimum(j + 1, n - 1)]], 0)
+            after = dist[path[i - 1], path[j]] + np.where(j < n - 1, dist[path[i], path[np.minimum(j + 1, n - 1)]], 0)
+            best = int(np.argmin(after - before))
+            if after[best] - before[best] < -1e-12:
+                path[i : j[best] + 1] = path[i : j[best] + 1][::-1].copy()
+                improved = True
+        if not improved:
+            break
+    return path
+
+
+def travel_seconds(q: np.ndarray, options: PlanOptions) -> np.ndarray:
+    """Cumulative time at which each pose of the tour is measured (moves at ``joint_speed``, then a dwell)."""
+    moves = np.r_[0.0, np.max(np.abs(np.diff(q, axis=0)), axis=1)] / options.joint_speed
+    return np.cumsum(moves + options.seconds_per_pose)
+
+
+def plan(
+    chain: Chain,
+    candidates: np.ndarray,
+    options: PlanOptions,
+    view: TrackerView | None = None,
+    spread_lower: np.ndarray | None = None,
+    spread_upper: np.ndarray | None = None,
+) -> Plan:
+    """Choose ``options.count`` of ``candidates (N, n)`` and order them; the rows refer to ``candidates``.
+
+    ``spread_lower``/``spread_upper``: the working range that scales joint distances (default: the
+    candidates' own)."""
+    view = view or TrackerView()
+    candidates = np.asarray(candidates, dtype=float)
+    kept, counts = visible(chain, candidates, view, options.target)
+    usable = np.flatnonzero(kept)
+    if options.count < 1:
+        raise CalibrationError(f"--count {options.count}: plan at least one pose")
+    if len(usable) < options.count:
+        steps = ", ".join(f"{k} {v}" for k, v in counts.items())
+        raise CalibrationError(
+            f"--count {options.count}: only {len(usable)} usable candidate configurations ({steps}); "
+            "widen the working range or the tracker's limits, or ask for fewer poses"
+        )
+    rng = np.random.default_rng(options.seed)
+    pool = usable
+    if len(pool) > MAX_INFORMATION_CANDIDATES and options.count < MAX_INFORMATION_CANDIDATES:
+        pool = np.sort(rng.choice(usable, MAX_INFORMATION_CANDIDATES, replace=False))
+    counts["considered"] = len(pool)
+    q = candidates[pool]
+    info, position_rows = _whitened_information(chain, q, options)
+    lower = q.min(axis=0) if spread_lower is None else np.asarray(spread_lower, dtype=float)
+    upper = q.max(axis=0) if spread_upper is None else np.asarray(spread_upper, dtype=float)
+    spread = (q - lower) / np.maximum(upper - lower, 1e-9)
+    stops = tuple(c for c in CURVE if c <= len(pool)) if options.curve else ()
+    last = max((options.count, *stops))
+    evaluate = rng.choice(len(pool), min(EVALUATION_POSES, len(pool)), replace=False)
+    at_eval = position_rows[evaluate]
+    metric = None
+    if options.criterion == "i-optimal":
+        metric = np.einsum("nip,niq->pq", at_eval, at_eval) / len(at_eval)
+    elif options.criterion != "d-optimal":
+        raise CalibrationError(f"criterion {options.criterion!r}: choose i-optimal or d-optimal")
+    order, covs = _greedy(info, spread, last, options.coverage_weight, (*stops, options.count), metric)
+    chosen = order[: options.count]
+    middle = int(np.argmin(np.linalg.norm(spread[chosen] - 0.5, axis=1)))  # start near the range's middle
+    path = chosen[tour(q[chosen], middle)]
+    times = travel_seconds(q[path], options)
+    curve = [
+        {"poses": c, **_predicted(covs[c], at_eval, options), "measuring_time_h": round(c * _per_pose(times) / 3600, 2)}
+        for c in stops
+    ]
+    return Plan(
+        rows=pool[path],
+        q=candidates[pool[path]],
+        seconds=float(times[-1]),
+        predicted=_predicted(covs[options.count], at_eval, options),
+        parameters=int(info.shape[2]),
+        candidates=counts,
+        checks=view.checks(),
+        curve=curve,
+    )
+
+
+def _per_pose(times: np.ndarray) -> float:
+    return float(times[-1] / len(times))
+
+
+def trajectory_message(joint_names: tuple[str, ...], q: np.ndarray, seconds: np.ndarray) -> dict[str, Any]:
+    """A ``trajectory_msgs/JointTrajectory`` as a YAML-ready mapping: one point per pose to stop at, its
+    ``time_from_start`` when the pose is measured (after the move and the dwell)."""
+    points = []
+    for row, t in zip(q, seconds, strict=True):
+        sec, nanosec = divmod(round(float(t) * 1e9), 1_000_000_000)
+        points.append(
+            {
+                "positions": [float(v) for v in row],
+                "velocities": [0.0] * len(row),
+                "time_from_start": {"sec": sec, "nanosec": nanosec},
+            }
+        )
+    return {"header": {"frame_id": ""}, "joint_names": list(joint_names), "points": points}

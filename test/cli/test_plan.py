@@ -1,0 +1,68 @@
+"""``hybrid-kinematics plan`` from the command line: a pool's rows come back unchanged in tour order, the
+JointTrajectory YAML matches them, and bad input ends with one line naming what to fix."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+
+import numpy as np
+import yaml
+
+from hybrid_kinematics_ros.calibration.plan import draw_configurations
+from hybrid_kinematics_ros.cli.main import main
+from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+
+
+def cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["hybrid-kinematics", "plan", *args], capture_output=True, text=True, check=False)
+
+
+def test_a_pool_is_planned_into_its_own_rows_a_trajectory_and_a_summary(tmp_path):
+    chain = load_robot_config("ur10").chain
+    q = draw_configurations(np.full(6, -2.5), np.full(6, 2.5), 400, seed=1)
+    pool = tmp_path / "pool.csv"
+    with pool.open("w", newline="") as f:  # an extra column and the pool's own number format, kept as they are
+        writer = csv.writer(f)
+        writer.writerow(["label", *chain.joint_names])
+        writer.writerows([f"pose{i}", *(f"{v:.5f}" for v in row)] for i, row in enumerate(q))
+    out = tmp_path / "plan"
+    result = cli("--robot", "ur10", "--candidates", str(pool), "--count", "30", "--out", str(out), "--curve")
+    assert result.returncode == 0, result.stderr
+    lines = pool.read_text().splitlines()
+    planned = (out / "poses.csv").read_text().splitlines()
+    assert planned[0] == lines[0] and len(planned) == 31
+    assert set(planned[1:]) <= set(lines[1:]) and len(set(planned[1:])) == 30  # rows of the pool, unchanged
+    message = yaml.safe_load((out / "trajectory.yaml").read_text())
+    assert message["joint_names"] == list(chain.joint_names)
+    for point, line in zip(message["points"], planned[1:], strict=True):
+        assert np.allclose(point["positions"], [float(v) for v in line.split(",")[1:]])
+    times = [p["time_from_start"]["sec"] + 1e-9 * p["time_from_start"]["nanosec"] for p in message["points"]]
+    assert np.all(np.diff(times) >= 5.0)  # a move, then 5 s at each pose
+    summary = json.loads((out / "plan.json").read_text())
+    assert summary["poses"] == 30 and summary["predicted"]["position_mean_mm"] > 0
+    assert [row["poses"] for row in summary["curve"]][:3] == [50, 100, 200]
+    assert "self-occlusion" in " ".join(summary["tracker"]["not_checked"])
+
+
+def test_bad_input_is_one_line_naming_it(tmp_path, capsys):
+    """In this process (the entry point's ``main``): five starts of the executable would cost a minute."""
+    pool = tmp_path / "pool.csv"
+    pool.write_text("joint_1,joint_2\n0.1,0.2\n")
+    cases = {
+        ("--candidates", str(pool), "--count", "5"): f"{pool}: missing column(s) shoulder_pan_joint",
+        (
+            "--count",
+            "30",
+            "--joint-range",
+            "elbow_joint:1.0:9.0",
+        ): "--joint-range elbow_joint:1.0:9.0: needs LOW < HIGH",
+        ("--count", "30", "--joint-range", "elbow:0:1"): "no joint 'elbow'",
+        ("--count", "30", "--tracker-xyz", "3", "0", "0.5", "--max-distance-m", "0.5"): "only 0 usable",
+        ("--count", "5", "--cone-deg", "30"): "--cone-deg needs --tracker-xyz",
+    }
+    for args, message in cases.items():
+        code = main(["plan", "--robot", "ur10", "--out", str(tmp_path / "out"), *args])
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(lines) == 1 and message in lines[0], (args, lines)
