@@ -13,10 +13,11 @@ Measuring is what a calibration costs, so the poses are chosen for what the mode
   working range, to the nearest pose already chosen. Both terms are divided by their largest value among the
   candidates at each step and added, the coverage term weighted by ``coverage_weight``.
 
-The predicted accuracy comes from the same linearisation: the parameters' covariance (the inverse of the
-information matrix) propagated to the tip at configurations drawn from the working range, plus what the stage
-cannot learn (``floor_mm``, e.g. a previous calibration's held-out figure; 0: nothing) and the test
-measurement's own noise. The noise that identification sees is the tracker's plus the floor.
+The predicted accuracy comes from the same linearisation: the parameters' covariance for the stage's own
+estimator (every row weighted alike) propagated to the tip at configurations drawn from the working range, plus
+what the stage cannot learn (``floor_mm``, ``floor_deg``: e.g. a previous calibration's held-out figures; 0:
+nothing) and the test measurement's own noise. The noise that identification sees is the tracker's plus the
+floor, in position and in orientation.
 
 The order is a short tour: nearest neighbour, then 2-opt, with the largest joint move as the distance (with
 every joint at the same speed, that is the time a move takes).
@@ -95,6 +96,7 @@ class PlanOptions:
     position_noise_m: float = 15e-6  # the tracker's, per axis
     orientation_noise_rad: float = np.radians(0.001)
     floor_mm: float = 0.0  # what the stage cannot learn, as a mean position error
+    floor_deg: float = 0.0  # and as a mean orientation error (6-DoF measurements)
     coverage_weight: float = 1.0
     criterion: str = "i-optimal"  # or "d-optimal" (see _greedy)
     seconds_per_pose: float = 5.0  # settling and measuring
@@ -149,9 +151,10 @@ def visible(chain: Chain, q: np.ndarray, view: TrackerView, target: np.ndarray |
     return kept, counts
 
 
-def _whitened_information(chain: Chain, q: np.ndarray, options: PlanOptions) -> tuple[np.ndarray, np.ndarray]:
-    """Each candidate's Jacobian on the identifiable parameters, rows divided by their noise ``(N, w, P)``,
-    and the position rows unscaled ``(N, 3, P)`` (m per scaled unit)."""
+def _information(chain: Chain, q: np.ndarray, options: PlanOptions) -> tuple[np.ndarray, np.ndarray]:
+    """Each candidate's Jacobian on the identifiable parameters ``(N, w, P)`` (m, or rad × 1 m for orientation
+    rows, per scaled unit) and the noise each row will carry ``(w,)``: the tracker's and, as if it were noise,
+    what the stage cannot learn."""
     frames = fk(chain, q)
     position_only = options.target is not None
     measured = frames.copy()
@@ -171,12 +174,21 @@ def _whitened_information(chain: Chain, q: np.ndarray, options: PlanOptions) -> 
     )
     order = np.argsort(lin.pick)  # the linearisation's rows back in the candidates' order
     jac = lin.jacobian[order][:, :, lin.identifiable]
-    floor_axis = 1e-3 * options.floor_mm / MEAN_OVER_RMS / np.sqrt(3.0)  # per axis, m
-    sigma_p = np.hypot(options.position_noise_m, floor_axis)
-    sigma = np.full(jac.shape[1], sigma_p)
+    per_axis = MEAN_OVER_RMS * np.sqrt(3.0)  # a mean error norm over the per-axis standard deviation
+    sigma = np.full(jac.shape[1], np.hypot(options.position_noise_m, 1e-3 * options.floor_mm / per_axis))
     if not position_only:  # orientation rows are rad × 1 m (ORIENTATION_LENGTH)
-        sigma[3:] = options.orientation_noise_rad * 1.0
-    return jac / sigma[None, :, None], jac[:, :3]
+        sigma[3:] = np.hypot(options.orientation_noise_rad, np.radians(options.floor_deg) / per_axis)
+    return jac, sigma
+
+
+def _covariance(jac: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """The parameters' covariance from the poses' Jacobians ``(k, w, P)`` for the stage's own estimator:
+    least squares with every row weighted alike (position in m, orientation in rad × 1 m), whatever noise
+    each carries (``sigma``): ``A⁻¹ B A⁻¹`` with ``A = Σ JᵀJ`` and ``B = Σ Jᵀ diag(σ²) J``."""
+    a = np.einsum("kwp,kwq->pq", jac, jac)
+    b = np.einsum("kwp,w,kwq->pq", jac, sigma**2, jac)
+    a_inv = np.linalg.pinv(a, rcond=1e-12, hermitian=True)
+    return a_inv @ b @ a_inv
 
 
 def _greedy(
@@ -310,7 +322,8 @@ def plan(
         pool = np.sort(rng.choice(usable, MAX_INFORMATION_CANDIDATES, replace=False))
     counts["considered"] = len(pool)
     q = candidates[pool]
-    info, position_rows = _whitened_information(chain, q, options)
+    jac, sigma = _information(chain, q, options)
+    info, position_rows = jac / sigma[None, :, None], jac[:, :3]
     lower = q.min(axis=0) if spread_lower is None else np.asarray(spread_lower, dtype=float)
     upper = q.max(axis=0) if spread_upper is None else np.asarray(spread_upper, dtype=float)
     spread = (q - lower) / np.maximum(upper - lower, 1e-9)
@@ -323,20 +336,24 @@ def plan(
         metric = np.einsum("nip,niq->pq", at_eval, at_eval) / len(at_eval)
     elif options.criterion != "d-optimal":
         raise CalibrationError(f"criterion {options.criterion!r}: choose i-optimal or d-optimal")
-    order, covs = _greedy(info, spread, last, options.coverage_weight, (*stops, options.count), metric)
+    order, _ = _greedy(info, spread, last, options.coverage_weight, (), metric)
     chosen = order[: options.count]
     middle = int(np.argmin(np.linalg.norm(spread[chosen] - 0.5, axis=1)))  # start near the range's middle
     path = chosen[tour(q[chosen], middle)]
     times = travel_seconds(q[path], options)
     curve = [
-        {"poses": c, **_predicted(covs[c], at_eval, options), "measuring_time_h": round(c * _per_pose(times) / 3600, 2)}
+        {
+            "poses": c,
+            **_predicted(_covariance(jac[order[:c]], sigma), at_eval, options),
+            "measuring_time_h": round(c * _per_pose(times) / 3600, 2),
+        }
         for c in stops
     ]
     return Plan(
         rows=pool[path],
         q=candidates[pool[path]],
         seconds=float(times[-1]),
-        predicted=_predicted(covs[options.count], at_eval, options),
+        predicted=_predicted(_covariance(jac[chosen], sigma), at_eval, options),
         parameters=int(info.shape[2]),
         candidates=counts,
         checks=view.checks(),

@@ -62,7 +62,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--target", type=float, nargs=3, metavar=("X", "Y", "Z"), help="plain reflector at this tip-frame offset (m)"
     )
     p.add_argument("--noise-mm", type=float, default=0.015, help="tracker position noise per axis (mm)")
+    p.add_argument("--noise-deg", type=float, default=0.001, help="tracker orientation noise per axis (deg)")
     p.add_argument("--floor-mm", type=float, default=0.0, help="mean error the stage cannot learn (mm), if known")
+    p.add_argument("--floor-deg", type=float, default=0.0, help="mean orientation error it cannot learn (deg)")
     p.add_argument("--coverage-weight", type=float, default=1.0, help="weight of joint-space coverage (0: none)")
     p.add_argument("--seconds-per-pose", type=float, default=5.0, help="settling and measuring at each pose (s)")
     p.add_argument("--joint-speed", type=float, default=0.5, help="joint speed between poses (rad/s)")
@@ -123,6 +125,8 @@ def run(args: argparse.Namespace) -> int:
         target=None if args.target is None else np.asarray(args.target),
         position_noise_m=1e-3 * args.noise_mm,
         floor_mm=args.floor_mm,
+        floor_deg=args.floor_deg,
+        orientation_noise_rad=np.radians(args.noise_deg),
         coverage_weight=args.coverage_weight,
         seconds_per_pose=args.seconds_per_pose,
         joint_speed=args.joint_speed,
@@ -132,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
         payload_com=payload[1],
         gravity=gravity_from_args(args),
     )
-    for name in ("noise_mm", "floor_mm", "coverage_weight", "seconds_per_pose"):
+    for name in ("noise_mm", "noise_deg", "floor_mm", "floor_deg", "coverage_weight", "seconds_per_pose"):
         if getattr(args, name) < 0:
             raise DataError(f"--{name.replace('_', '-')} {getattr(args, name)}: must not be negative")
     if args.joint_speed <= 0:

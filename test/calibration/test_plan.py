@@ -30,7 +30,8 @@ def test_the_greedy_covariance_is_the_inverse_of_the_chosen_poses_information(ur
     """The Woodbury-updated covariance after k picks equals ``inv(ridge I + Σ GᵀG)`` over the k picked."""
     cfg, lower, upper = ur10
     q = planning.draw_configurations(lower, upper, 300, seed=3)
-    info, _ = planning._whitened_information(cfg.chain, q, planning.PlanOptions(count=40))
+    jac, sigma = planning._information(cfg.chain, q, planning.PlanOptions(count=40))
+    info = jac / sigma[None, :, None]
     spread = (q - lower) / (upper - lower)
     order, covs = planning._greedy(info, spread, 40, 1.0, (20, 40))
     assert len(set(order.tolist())) == 40  # no pose twice
