@@ -97,7 +97,7 @@ class PlanOptions:
     orientation_noise_rad: float = np.radians(0.001)
     floor_mm: float = 0.0  # what the stage cannot learn, as a mean position error
     floor_deg: float = 0.0  # and as a mean orientation error (6-DoF measurements)
-    coverage_weight: float = 1.0
+    coverage_weight: float = 3.0  # against the information term, both scaled to 1 among the candidates
     criterion: str = "i-optimal"  # or "d-optimal" (see _greedy)
     seconds_per_pose: float = 5.0  # settling and measuring
     joint_speed: float = 0.5  # rad/s, every joint

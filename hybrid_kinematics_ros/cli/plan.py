@@ -65,7 +65,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--noise-deg", type=float, default=0.001, help="tracker orientation noise per axis (deg)")
     p.add_argument("--floor-mm", type=float, default=0.0, help="mean error the stage cannot learn (mm), if known")
     p.add_argument("--floor-deg", type=float, default=0.0, help="mean orientation error it cannot learn (deg)")
-    p.add_argument("--coverage-weight", type=float, default=1.0, help="weight of joint-space coverage (0: none)")
+    p.add_argument("--coverage-weight", type=float, default=3.0, help="weight of joint-space coverage (0: none)")
     p.add_argument("--seconds-per-pose", type=float, default=5.0, help="settling and measuring at each pose (s)")
     p.add_argument("--joint-speed", type=float, default=0.5, help="joint speed between poses (rad/s)")
     p.add_argument("--curve", action="store_true", help="also predict the accuracy for 50 to 2,000 poses")
