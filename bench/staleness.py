@@ -7,7 +7,8 @@ BENCHMARKS.md (git blame): its numbers were committed together with the code the
 
 The code a section measures: its script and every file of the package and of bench/ that it imports, directly or
 through the files it imports (the closure over their imports, lazy ones included), and ``config/`` (the robots'
-URDFs and parameters). A section is stale when a commit after the one it ran at touched any of it.
+URDFs and parameters), but not the files that only write the sections (``WRITERS``). A section is stale when a
+commit after the one it ran at touched any of it.
 
 ``python -m bench.staleness`` lists the sections and marks the stale ones in BENCHMARKS.md; ``--check`` only
 lists them and exits 1 if any is stale.
@@ -26,6 +27,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = "hybrid_kinematics_ros"
 ALWAYS = ("config",)
+# how sections are written, not what they measure: a change here leaves every figure as it was
+WRITERS = ("bench/__init__.py", "bench/report.py", "bench/staleness.py")
 SECTION = re.compile(r"<!-- section:(?P<key>[\w-]+) -->\n(?P<body>.*?)<!-- end:(?P=key) -->\n", re.S)
 STALE_LINE = re.compile(r"^\*\*Stale:\*\*.*\n\n?", re.M)
 
@@ -88,7 +91,7 @@ def measured_paths(script: str, root: Path = ROOT) -> tuple[str, ...]:
             continue
         seen.add(file)
         todo.extend(_imports(file, root) - seen)
-    paths = {str(file.relative_to(root)) for file in seen}
+    paths = {str(file.relative_to(root)) for file in seen} - set(WRITERS)
     if any(path.startswith(f"{PACKAGE}/nodes/") for path in paths):
         paths.add("hybrid_kinematics_interfaces")
     return tuple(sorted(paths)) + ALWAYS

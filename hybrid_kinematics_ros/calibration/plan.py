@@ -40,6 +40,11 @@ from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.kinematics.fk import fk
 
+PREDICTION_CAVEAT = (
+    "what the parameters' covariance gives if what the stage cannot learn behaves as noise: a lower bound "
+    "below a few hundred poses, where capacity selection and systematic errors weigh more (on the real UR10 "
+    "the error of 60-120 poses was about twice this; see BENCHMARKS.md, Planning the measurement)"
+)
 # mean over RMS of the norm of an isotropic 3-D Gaussian error (chi distribution with 3 degrees of freedom)
 MEAN_OVER_RMS = float(np.sqrt(8.0 / (3.0 * np.pi)))
 MAX_INFORMATION_CANDIDATES = 4000  # candidates linearised at once: a few thousand cover a working range
@@ -125,7 +130,7 @@ class Plan:
         return {
             "poses": len(self.rows),
             "measuring_time_h": round(self.seconds / 3600.0, 2),
-            "predicted": self.predicted,
+            "predicted": {**self.predicted, "note": PREDICTION_CAVEAT},
             "identifiable_parameters": self.parameters,
             "candidates": self.candidates,
             "tracker": self.checks,

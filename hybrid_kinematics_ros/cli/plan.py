@@ -17,6 +17,7 @@ import yaml
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.plan import (
+    PREDICTION_CAVEAT,
     PlanOptions,
     TrackerView,
     draw_configurations,
@@ -165,6 +166,7 @@ def run(args: argparse.Namespace) -> int:
         f"(parameters {predicted['parameters_part_mm']:.4f} mm, floor {predicted['floor_mm']:g} mm, "
         f"tracker noise {predicted['tracker_noise_mm']:.4f} mm); {result.parameters} identifiable parameters"
     )
+    print(f"the prediction is {PREDICTION_CAVEAT}")
     print("checked: " + ("; ".join(result.checks["checked"]) or "nothing about the tracker"))
     print("not checked: " + "; ".join(result.checks["not_checked"]))
     for row in result.curve:
