@@ -68,9 +68,12 @@ def pose_errors_of(model: HybridModel, pairs: Pairs) -> dict[str, tuple[np.ndarr
     return {name: target_errors(pairs, T) for name, T in models.items()}
 
 
-def evaluate(model: HybridModel, pairs: Pairs) -> dict[str, Any]:
-    """Statistics for each model, on all pairs and split by the calibrated joint range."""
-    errors = pose_errors_of(model, pairs)
+def evaluate(
+    model: HybridModel, pairs: Pairs, errors: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
+) -> dict[str, Any]:
+    """Statistics for each model, on all pairs and split by the calibrated joint range; ``errors``: their
+    :func:`pose_errors_of`, when the caller has them already."""
+    errors = pose_errors_of(model, pairs) if errors is None else errors
     inside = model.in_calibrated_range(pairs.q)
     report: dict[str, Any] = {"pairs": len(pairs), "inside_calibrated_range": int(inside.sum())}
     for name, (pos, rot) in errors.items():
@@ -127,15 +130,18 @@ def coverage_report(
     }
 
 
-def plot_distributions(model: HybridModel, pairs: Pairs, out_dir: Path) -> list[Path]:
-    """The paper's Figs. 4 and 8: error distributions of each model, URDF to hybrid (PNG)."""
+def plot_distributions(
+    model: HybridModel, pairs: Pairs, out_dir: Path, errors: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
+) -> list[Path]:
+    """The paper's Figs. 4 and 8: error distributions of each model, URDF to hybrid (PNG); ``errors`` as in
+    :func:`evaluate`."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    errors = pose_errors_of(model, pairs)
+    errors = pose_errors_of(model, pairs) if errors is None else errors
     colors = {"analytic": "tab:orange", "parametric": "tab:green", "hybrid": "tab:blue"}
     paths = []
     for index, (label, unit) in enumerate((("position", "mm"), ("orientation", "deg"))):

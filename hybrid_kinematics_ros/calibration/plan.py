@@ -201,11 +201,10 @@ def _greedy(
     spread: np.ndarray,
     count: int,
     coverage_weight: float,
-    stops: tuple[int, ...],
     metric: np.ndarray | None = None,
-) -> tuple[np.ndarray, dict[int, np.ndarray]]:
-    """Greedy optimal design with a coverage term: the order of choice and, at each count in ``stops``, the
-    parameters' covariance ``A`` (the information matrix's inverse, scaled units).
+) -> tuple[np.ndarray, np.ndarray]:
+    """Greedy optimal design with a coverage term: the order of choice and the design's inverse information
+    matrix ``A`` after the last pick (scaled units).
 
     ``metric`` None: D-optimal, each step's gain ``log det(I + G_c A G_cᵀ)``. Else I-optimal: the fall of the
     mean prediction variance ``tr(metric A)``, which adding candidate ``c`` lowers by ``tr(S_c⁻¹ G_c A metric A
@@ -219,7 +218,6 @@ def _greedy(
     nearest = np.full(n, np.inf)
     taken = np.zeros(n, dtype=bool)
     order = np.empty(count, dtype=int)
-    saved: dict[int, np.ndarray] = {}
     eye = np.eye(w)
     for k in range(count):
         if metric is None:
@@ -242,9 +240,7 @@ def _greedy(
         cov -= v @ inner @ v.T
         cov = 0.5 * (cov + cov.T)
         nearest = np.minimum(nearest, np.linalg.norm(spread - spread[s], axis=1))
-        if k + 1 in stops:
-            saved[k + 1] = cov.copy()
-    return order, saved
+    return order, cov
 
 
 def _predicted(cov: np.ndarray, position_rows: np.ndarray, options: PlanOptions) -> dict[str, float]:
@@ -341,7 +337,7 @@ def plan(
         metric = np.einsum("nip,niq->pq", at_eval, at_eval) / len(at_eval)
     elif options.criterion != "d-optimal":
         raise CalibrationError(f"criterion {options.criterion!r}: choose i-optimal or d-optimal")
-    order, _ = _greedy(info, spread, last, options.coverage_weight, (), metric)
+    order, _ = _greedy(info, spread, last, options.coverage_weight, metric)
     chosen = order[: options.count]
     middle = int(np.argmin(np.linalg.norm(spread[chosen] - 0.5, axis=1)))  # start near the range's middle
     path = chosen[tour(q[chosen], middle)]

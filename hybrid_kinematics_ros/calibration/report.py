@@ -68,13 +68,12 @@ def iso9283(
     return out
 
 
-def _workspace_plot(model: HybridModel, pairs: Pairs, path: Path) -> Path:
+def _workspace_plot(errors: dict[str, tuple[np.ndarray, np.ndarray]], pairs: Pairs, path: Path) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    errors = pose_errors_of(model, pairs)
     p = pairs.T[:, :3, 3]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
     for ax, (i, j), label in zip(axes, ((0, 1), (0, 2)), ("top view (x, y)", "side view (x, z)"), strict=True):
@@ -372,11 +371,10 @@ def write_report(
     ``tolerance_deg``: the user's tolerance, which the summary's verdict line judges the hybrid model by.
     """
     out_dir.mkdir(parents=True, exist_ok=True)
-    report = evaluate(model, pairs)
+    errors = pose_errors_of(model, pairs)  # every model's FK of the test poses, once for the whole page
+    report = evaluate(model, pairs, errors)
     iso = iso9283(model, pairs)
-    summary = summarise(
-        model, pairs, report, pose_errors_of(model, pairs), iso, bags, stations or [], tolerance_mm, tolerance_deg
-    )
+    summary = summarise(model, pairs, report, errors, iso, bags, stations or [], tolerance_mm, tolerance_deg)
     m = model.manifest
     parts = [
         f"<h1>Accuracy report: {html.escape(summary['robot'])}</h1>",
@@ -387,11 +385,11 @@ def write_report(
     if report.get("note"):
         parts.append(f"<p class='note'>{html.escape(report['note'])}</p>")
     parts += ["<h2>Errors before and after calibration</h2>", _table(STATS_HEAD, _stats_rows(report))]
-    for path in plot_distributions(model, pairs, out_dir):
+    for path in plot_distributions(model, pairs, out_dir, errors):
         parts.append(f"<img src='{path.name}' alt='{path.stem}'>")
     parts += [
         "<h2>Errors over the workspace</h2>",
-        f"<img src='{_workspace_plot(model, pairs, out_dir / 'workspace.png').name}' alt='workspace'>",
+        f"<img src='{_workspace_plot(errors, pairs, out_dir / 'workspace.png').name}' alt='workspace'>",
         "<h2>Inside and outside the calibrated joint range</h2>",
         f"<p>{report['inside_calibrated_range']} of {len(pairs)} test pairs lie inside the joint range the nets "
         "were trained on. Outside it the nets extrapolate, and their error grows.</p>",

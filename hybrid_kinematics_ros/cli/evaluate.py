@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from hybrid_kinematics_ros.calibration.evaluate import evaluate, plot_distributions
+from hybrid_kinematics_ros.calibration.evaluate import evaluate, plot_distributions, pose_errors_of
 from hybrid_kinematics_ros.calibration.fit import load_pairs
 from hybrid_kinematics_ros.cli.common import add_coverage_arg
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -27,11 +27,12 @@ def run(args: argparse.Namespace) -> int:
     if args.coverage_radius is not None:  # evaluate the model as served with it: no nets beyond the radius
         model.coverage_radius, model.range_policy = args.coverage_radius, "parametric"
     pairs = load_pairs(args.bag, model.chain, referencings=model.referencings)
-    report = {"model": str(args.model), "bags": [str(b) for b in args.bag], **evaluate(model, pairs)}
+    errors = pose_errors_of(model, pairs)  # for the statistics and the plots alike
+    report = {"model": str(args.model), "bags": [str(b) for b in args.bag], **evaluate(model, pairs, errors)}
     if pairs.dropped:
         report["dropped"] = dict(pairs.dropped)
     if args.plots:
-        report["plots"] = [str(p) for p in plot_distributions(model, pairs, args.plots)]
+        report["plots"] = [str(p) for p in plot_distributions(model, pairs, args.plots, errors)]
     text = json.dumps(report, indent=2)
     if args.json:
         args.json.write_text(text + "\n")

@@ -33,8 +33,11 @@ def test_the_greedy_covariance_is_the_inverse_of_the_chosen_poses_information(ur
     jac, sigma = planning._information(cfg.chain, q, planning.PlanOptions(count=40))
     info = jac / sigma[None, :, None]
     spread = (q - lower) / (upper - lower)
-    order, covs = planning._greedy(info, spread, 40, 1.0, (20, 40))
+    covs = {k: planning._greedy(info, spread, k, 1.0) for k in (20, 40)}
+    order = covs[40][0]
     assert len(set(order.tolist())) == 40  # no pose twice
+    assert np.array_equal(covs[20][0], order[:20])  # greedy: the first 20 of 40 are the 20
+    covs = {k: cov for k, (_, cov) in covs.items()}
     ridge = 1e-9 * np.trace(np.einsum("nwp,nwq->pq", info, info)) / info.shape[2]
     for k in (20, 40):
         picked = info[order[:k]]
