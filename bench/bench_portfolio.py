@@ -5,6 +5,7 @@ Each cell is trained twice, side by side in one run: with the capacity chosen fr
 prior 30, a 0.01 rad joint error map). Errors are held-out means and p95, at the target in the measuring frame.
 
 Usage: python -m bench.bench_portfolio [--steps S] [--virtual-only] [--only SUBSTRING]
+(``--only`` and ``--virtual-only`` print their rows and leave BENCHMARKS.md alone.)
 """
 
 from __future__ import annotations
@@ -154,6 +155,9 @@ def main() -> None:
         "term, 40 harmonics, prior 30, a 0.01 rad joint error map; the elastic terms now include the cubic and "
         "signed compliances, so the column isolates the capacity's choice).\n\n" + table(HEAD, rows)
     )
+    if args.only or args.virtual_only:
+        print(body)  # a partial table must not replace the whole one in BENCHMARKS.md
+        return
     write_section("portfolio", "Portfolio: every cell against its floor", body)
 
 

@@ -126,6 +126,13 @@ def _elastic_kinds(name: str) -> tuple[str, ...]:
     return ELASTIC[name]
 
 
+def harmonic_ridge(lin: Linearisation, harmonic_prior: float) -> np.ndarray:
+    """``(P,)``: the stage's prior on each column of ``lin`` in normal-equation units (scaled parameters):
+    ``harmonic_prior`` pairs' worth on each harmonic, none on the other terms."""
+    kind = np.array([p.kind for p in lin.params])
+    return np.where(kind == "harmonic", harmonic_prior * lin.scale**2, 0.0)
+
+
 def _blocks(lin: Linearisation, total: int) -> np.ndarray:
     """The block of each drawn pair, from its place among the ``total`` training pairs."""
     return np.minimum(lin.pick * BLOCKS // max(total, 1), BLOCKS - 1)
@@ -251,7 +258,6 @@ def select_capacity(
     params = [lin.params[c] for c in folds.columns]
     kind = np.array([p.kind for p in params])
     freq = np.array([p.component // 2 + 1 if p.kind == "harmonic" else 0 for p in params])
-    scale = lin.scale[folds.columns]
     if max(freq, default=0) < max(fixed.get("harmonics", 0), 0):
         raise CalibrationError(f"harmonics {fixed['harmonics']}: the linearisation holds only {max(freq)}")
     block = folds.block
@@ -262,7 +268,7 @@ def select_capacity(
         return np.isin(kind, kinds) | ((kind == "harmonic") & (freq <= harmonics))
 
     def prior(harmonic_prior: float) -> np.ndarray:
-        return np.where(kind == "harmonic", harmonic_prior * scale**2, 0.0)
+        return harmonic_ridge(lin, harmonic_prior)[folds.columns]
 
     def stage_residuals(elastic: str, harmonics: int, harmonic_prior: float, backlash: bool = False) -> np.ndarray:
         """``(N, width)``: every pair's residual, from the fold that held it out."""

@@ -10,12 +10,13 @@ from typing import Any
 
 import numpy as np
 
+from hybrid_kinematics_ros.calibration import bounds as bounds_module
 from hybrid_kinematics_ros.calibration import capacity as capacity_module
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.alignment import AlignOptions, AlignResult, align
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.calibration.evaluate import evaluate
-from hybrid_kinematics_ros.calibration.parametric import ParametricResult, identify, linearise
+from hybrid_kinematics_ros.calibration.evaluate import evaluate, target_errors
+from hybrid_kinematics_ros.calibration.parametric import HARMONIC_PRIOR, ParametricResult, identify, linearise
 from hybrid_kinematics_ros.calibration.referencing import (
     anchor_stations,
     reference_stations,
@@ -35,6 +36,7 @@ from hybrid_kinematics_ros.io.raw_bag import RawRecording, read_raw
 from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
 from hybrid_kinematics_ros.model import approach
+from hybrid_kinematics_ros.model.bounds import Bounds, Distance
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.model.referencing import Referencing, to_base_frame
 
@@ -155,6 +157,7 @@ def identify_stations(
         options = capacity_module.options_from(given)
     result = identify(chain, base.q, base.T, **common, **options)
     result.capacity = None if chosen is None else chosen.manifest()
+    result.options = options
     if not refs:
         return refs, result
     anchored, result = anchor_stations(chain, list(refine_stations(refs, labels, result).values()), result)
@@ -336,7 +339,19 @@ def fit(
             }
             for name, lo, hi in zip(conditions, norm_lower[chain.dof :], norm_upper[chain.dof :], strict=True)
         }
-    model = HybridModel(chain, nets, manifest)
+    coverage = thinned(train_pairs.q)
+    model = HybridModel(chain, nets, manifest, coverage=coverage)
+    stage_options = result.options if parametric else {"kinds": capacity_module.ELASTIC["geometry"], "harmonics": 0}
+    try:
+        bounds = calibrate_bounds(chain, model, train_pairs, val_pairs, stage_options, payload, gravity)
+    except CalibrationError as exc:  # too few pairs to measure the growth: the model serves without bounds
+        log(f"no error bounds: {exc}")
+    else:
+        manifest["bounds"] = bounds.manifest()
+        log(
+            f"error bounds ({bounds.level:.0%}): {1e3 * bounds.position.quantile:.4f} mm on the data, "
+            f"growing by √2 at {bounds.position.length:.3g} m from it"
+        )
     metrics = evaluate(model, test_pairs)  # eager nets here; the saved TorchScript is checked against them
     manifest.update(
         {
@@ -359,8 +374,50 @@ def fit(
     )
     if position_only:
         manifest["note"] = "position-only data: orientation is not corrected (no orientation net)"
-    save_model_dir(out, manifest, chain.urdf_text, nets, coverage=thinned(train_pairs.q))
+    save_model_dir(out, manifest, chain.urdf_text, nets, coverage=coverage)
     return HybridModel.load(out), manifest
+
+
+def calibrate_bounds(
+    chain: Chain,
+    model: HybridModel,
+    train_pairs: Pairs,
+    val_pairs: Pairs,
+    stage_options: dict[str, Any],
+    payload: tuple[float, np.ndarray],
+    gravity: np.ndarray | None,
+) -> Bounds:
+    """The bound on each answer's error (:mod:`calibration.bounds`): its growth from the stage, linearised
+    over the base-frame training pairs with the options it was identified with, and its size on the data
+    from ``model``'s errors on the validation pairs."""
+    options = {k: v for k, v in stage_options.items() if k in ("kinds", "harmonics", "harmonic_prior")}
+    lin = linearise(
+        chain,
+        train_pairs.q,
+        train_pairs.T,
+        payload_mass=payload[0],
+        payload_com=payload[1],
+        gravity=gravity,
+        directions=approach_of(train_pairs),
+        position_only=train_pairs.position_only,
+        target=_target_offsets(train_pairs),
+        map_step=0.0,
+        **options,
+    )
+    tip = model.fk(val_pairs.q, conditions=model.conditions_of(val_pairs.conditions, len(val_pairs)))
+    pos_mm, rot_deg = target_errors(val_pairs, tip)
+    ridge = capacity_module.harmonic_ridge(lin, float(options.get("harmonic_prior", HARMONIC_PRIOR)))
+    arms = bounds_module.lever_arms(chain, train_pairs.q)
+    distance = Distance(model.coverage, arms, chain.revolute)
+    return bounds_module.calibrate(
+        lin,
+        ridge,
+        arms,
+        chain.revolute,
+        distance(val_pairs.q),
+        1e-3 * pos_mm,
+        None if val_pairs.position_only else np.radians(rot_deg),
+    )
 
 
 def _net_inputs(pairs: Pairs, conditions: Sequence[str]) -> np.ndarray:

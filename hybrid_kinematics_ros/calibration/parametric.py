@@ -321,6 +321,7 @@ class ParametricResult:
     placements: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     mounts: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     capacity: dict[str, Any] | None = None  # how the capacity was chosen (calibration.capacity), if it was
+    options: dict[str, Any] | None = None  # the capacity options it was identified with (kinds, harmonics, …)
 
     def geometry_model(self) -> ElasticChain:
         """The geometry-only calibration (joint offsets and joint origins, no compliance, bending or

@@ -91,6 +91,48 @@ def _workspace_plot(errors: dict[str, tuple[np.ndarray, np.ndarray]], pairs: Pai
     return path
 
 
+def _bounds_section(model: HybridModel, pairs: Pairs, errors: dict[str, Any], out_dir: Path) -> list[str]:
+    """Each test pair's error against its bound (:mod:`model.bounds`), with the share under it."""
+    bounds = model.error_bounds(pairs.q)
+    if bounds is None:
+        return []
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pos_mm, rot_deg = errors["hybrid"]
+    kinds = [("position", pos_mm, 1e3 * bounds[0], "mm")]
+    if bounds[1] is not None:
+        kinds.append(("orientation", rot_deg, np.degrees(bounds[1]), "deg"))
+    fig, axes = plt.subplots(1, len(kinds), figsize=(5.5 * len(kinds), 4.5), squeeze=False)
+    rows = []
+    for ax, (kind, error, bound, unit) in zip(axes[0], kinds, strict=True):
+        under = float(np.mean(error <= bound))
+        rows.append([kind, f"{np.median(bound):.4f} {unit}", f"{np.median(error):.4f} {unit}", f"{100 * under:.1f} %"])
+        ax.scatter(bound, error, s=4, alpha=0.5)
+        top = float(max(bound.max(), error.max()))
+        ax.plot([0, top], [0, top], "k--", lw=1, label="error = bound")
+        ax.set_xlabel(f"{kind} bound ({unit})")
+        ax.set_ylabel(f"{kind} error ({unit})")
+        ax.set_title(f"{kind}: {100 * under:.1f} % under the bound")
+        ax.legend()
+    fig.tight_layout()
+    path = out_dir / "bounds.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    level = model.bounds.level
+    return [
+        "<h2>Error bounds</h2>",
+        f"<p>Each answer of the model carries a bound meant to hold for {100 * level:.0f} % of real errors: "
+        "calibrated on the validation blocks, it grows with the distance from the training configurations "
+        f"(by √2 at {model.bounds.position.length:.3g} m of joint moves weighed by their lever arms). "
+        "On these test pairs:</p>",
+        _table(["kind", "median bound", "median error", "errors under their bound"], rows),
+        f"<img src='{path.name}' alt='bounds'>",
+    ]
+
+
 def _curve_plot(curve: list[dict[str, Any]], path: Path) -> Path:
     import matplotlib
 
@@ -400,6 +442,7 @@ def write_report(
     outside_rows = _stats_rows(report, "_outside_range")
     parts.append(_table(STATS_HEAD, outside_rows) if outside_rows else "<p>No test pair lies outside.</p>")
     parts.extend(_coverage_section(report.get("coverage")))
+    parts.extend(_bounds_section(model, pairs, errors, out_dir))  # joints are the same in any frame
     parts.append("<h2>ISO 9283 pose accuracy and repeatability</h2>")
     if iso:
         head = ["pose", "repeats", "AP, URDF model (mm)", "AP, hybrid model (mm)", "RP (mm)"]

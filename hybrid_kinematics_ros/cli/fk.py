@@ -1,4 +1,5 @@
-"""``fk``: joints CSV (header of joint names) to poses CSV ``x,y,z,qx,qy,qz,qw`` in metres, base frame."""
+"""``fk``: joints CSV (header of joint names) to poses CSV ``x,y,z,qx,qy,qz,qw`` in metres, base frame; with
+``--bounds``, each pose's error bounds beside it (``position_bound_mm``, ``orientation_bound_deg``)."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from hybrid_kinematics_ros.cli.common import (
     read_csv,
     write_csv,
 )
+from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
@@ -28,6 +30,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--joints", required=True, type=Path, help="CSV whose header names the joints (radians)")
     p.add_argument("--out", required=True, type=Path, help="poses CSV to write")
     p.add_argument("--analytic", action="store_true", help="uncorrected URDF kinematics")
+    p.add_argument(
+        "--bounds",
+        action="store_true",
+        help="add each pose's error bounds (mm, deg), under which the model's level (95 %%) of real errors lie",
+    )
     add_range_args(p)
     p.set_defaults(run=run)
 
@@ -38,9 +45,20 @@ def run(args: argparse.Namespace) -> int:
     _, q = read_csv(args.joints, model.joint_names)
     if not args.analytic:
         model.check_range(q)
+    columns, bounds = list(POSE_COLUMNS), []
+    if args.bounds:
+        if args.analytic or model.bounds is None:
+            why = "--analytic answers carry none" if args.analytic else f"model {args.model or '(none)'} carries none"
+            raise DataError(f"--bounds: {why}; give a model trained with this version, without --analytic")
+        position_bound, orientation_bound = model.error_bounds(q)
+        columns.append("position_bound_mm")
+        bounds.append(1e3 * position_bound[:, None])
+        if orientation_bound is not None:
+            columns.append("orientation_bound_deg")
+            bounds.append(np.degrees(orientation_bound)[:, None])
     T = model.fk(q, analytic=args.analytic)
     position, quat = pose_from_matrix(T)
-    write_csv(args.out, list(POSE_COLUMNS), np.hstack([position, quat]))
+    write_csv(args.out, columns, np.hstack([position, quat, *bounds]))
     outside = int(np.sum(~model.in_calibrated_range(q))) if model.nets and not args.analytic else 0
     print(f"wrote {len(q)} poses to {args.out}")
     if outside:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from hybrid_kinematics_ros.cli.common import POSE_COLUMNS, read_csv, write_csv
@@ -23,6 +24,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--solutions", type=int, default=1, help="up to K distinct solutions per pose")
     p.add_argument("--analytic", action="store_true", help="solve on the uncorrected URDF model")
     p.add_argument("--timeout-ms", type=float, default=50.0, help="time budget per solution")
+    p.add_argument(
+        "--bounds",
+        action="store_true",
+        help="add each solution's error bounds (position_bound_mm, orientation_bound_deg)",
+    )
+    p.add_argument(
+        "--rank-by-bound",
+        action="store_true",
+        help="with --solutions K: the solution the model knows best first (smallest position bound), not the "
+        "nearest to the seed; implies --bounds",
+    )
     p.set_defaults(run=run)
 
 
@@ -40,7 +52,12 @@ def run(args: argparse.Namespace) -> int:
             raise DataError(f"{args.seeds}: {len(seeds)} seed rows; give one, or one per pose ({len(targets)})")
     if args.solutions < 1:
         raise DataError(f"--solutions must be at least 1, got {args.solutions}")
+    bounded = args.bounds or args.rank_by_bound
+    if bounded and (args.analytic or model.bounds is None):
+        why = "--analytic answers carry none" if args.analytic else f"model {args.model} carries none"
+        raise DataError(f"--bounds: {why}; give a model trained with this version, without --analytic")
     solver = IKSolver(model, IKOptions(timeout_s=args.timeout_ms / 1e3))
+    width = 2 if bounded and model.bounds.orientation is not None else int(bounded)
     out_rows = []
     failed = 0
     for i, target in enumerate(tqdm(targets, desc="ik", unit="pose")):
@@ -52,10 +69,19 @@ def run(args: argparse.Namespace) -> int:
         results = [r for r in results if r.success]
         if not results:
             failed += 1
-            out_rows.append([i, 0, *([float("nan")] * model.chain.dof), float("nan"), float("nan"), "false"])
-        for k, r in enumerate(results):
-            out_rows.append([i, k, *r.q, r.position_error_mm, r.orientation_error_deg, "true"])
+            nan = [float("nan")] * (model.chain.dof + 2 + width)
+            out_rows.append([i, 0, *nan[: model.chain.dof + 2], "false", *nan[:width]])
+            continue
+        bounds = np.zeros((len(results), 0))
+        if bounded:
+            position, orientation = model.error_bounds(np.array([r.q for r in results]))
+            bounds = np.column_stack([1e3 * position, *([] if orientation is None else [np.degrees(orientation)])])
+        order = np.argsort(bounds[:, 0], kind="stable") if args.rank_by_bound else range(len(results))
+        for k, j in enumerate(order):
+            r = results[j]
+            out_rows.append([i, k, *r.q, r.position_error_mm, r.orientation_error_deg, "true", *bounds[j]])
     header = ["pose_index", "solution", *model.joint_names, "position_error_mm", "orientation_error_deg", "success"]
+    header += ["position_bound_mm", "orientation_bound_deg"][:width]
     write_csv(args.out, header, out_rows)
     print(f"wrote {len(out_rows)} rows for {len(targets)} poses to {args.out}; {failed} without a solution")
     return 1 if failed else 0

@@ -39,6 +39,7 @@ from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
 from hybrid_kinematics_ros.kinematics.se3 import exp_so3, skew
 from hybrid_kinematics_ros.kinematics.unrolled import Rows, unrolled_fk
 from hybrid_kinematics_ros.model import approach
+from hybrid_kinematics_ros.model.bounds import Bounds, Distance
 from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.model.nets import NumpyResidual
 from hybrid_kinematics_ros.model.parametric import model_from_manifest
@@ -109,6 +110,10 @@ class HybridModel:
         self.approach_index = (
             np.array([self.condition_names.index(n) for n in names]) if names[0] in self.condition_names else None
         )
+        section = self.manifest.get("bounds")
+        # the bound grows with the distance to the stored training configurations: without them, none
+        self.bounds = Bounds.from_manifest(section) if section and self.coverage is not None else None
+        self._bound_distance: Distance | None = None
 
     @property
     def range_policy(self) -> str:
@@ -146,6 +151,16 @@ class HybridModel:
         if self._tree is None:
             self._tree = cKDTree(self.coverage)
         return self._tree.query(np.atleast_2d(q))[0]
+
+    def error_bounds(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """Bounds on the answers' errors at configurations ``q (B, n)``: position (m) and orientation (rad;
+        None for a position-only model), each meant to hold for ``bounds.level`` of answers
+        (:mod:`model.bounds`); None when the model carries no bounds."""
+        if self.bounds is None:
+            return None
+        if self._bound_distance is None:
+            self._bound_distance = Distance(self.coverage, self.bounds.lever_arms, self.chain.revolute)
+        return self.bounds.of(self._bound_distance(q))
 
     @property
     def is_corrected(self) -> bool:

@@ -8,7 +8,8 @@ from collections.abc import Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import PoseStamped, TransformStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TransformStamped
+from scipy.stats import chi2
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
@@ -108,6 +109,34 @@ def pose_msg_of_rows(
     p, o = msg.pose.position, msg.pose.orientation
     p.x, p.y, p.z = rows[0][3], rows[1][3], rows[2][3]
     o.x, o.y, o.z, o.w = quat_of_rows(rows) if quat is None else quat.tolist()
+    return msg
+
+
+def set_bounds(response, model, q: np.ndarray | Sequence[float]) -> None:
+    """Fill a response's ``position_bound_mm`` and ``orientation_bound_deg`` with the error bounds of the
+    model's answers at ``q`` (one configuration or ``(B, n)``); left empty when the model carries none."""
+    bounds = model.error_bounds(np.atleast_2d(np.asarray(q, dtype=float)))
+    if bounds is None:
+        return
+    position, orientation = bounds
+    response.position_bound_mm = (1e3 * position).tolist()
+    if orientation is not None:
+        response.orientation_bound_deg = np.degrees(orientation).tolist()
+
+
+def pose_with_covariance_msg(
+    pose: PoseStamped, position_bound: float, orientation_bound: float | None, level: float
+) -> PoseWithCovarianceStamped:
+    """The pose with the covariance its error bounds (m, rad, at ``level``) imply: an isotropic Gaussian per
+    part whose error norm stays under the bound with that probability (σ = bound / √χ²₃(level)). Without an
+    orientation bound (position-only model) the orientation's variance is −1 on the diagonal: unknown."""
+    msg = PoseWithCovarianceStamped(header=pose.header)
+    msg.pose.pose = pose.pose
+    scale = chi2.ppf(level, 3)
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = np.eye(3) * position_bound**2 / scale
+    cov[3:, 3:] = np.eye(3) * (-1.0 if orientation_bound is None else orientation_bound**2 / scale)
+    msg.pose.covariance = cov.ravel().tolist()
     return msg
 
 

@@ -22,7 +22,7 @@ import numpy as np
 import rclpy
 import torch
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseStamped, TransformStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TransformStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -50,6 +50,8 @@ from hybrid_kinematics_ros.nodes.convert import (
     matrix_from_msg,
     pose_msg_of_rows,
     pose_msgs,
+    pose_with_covariance_msg,
+    set_bounds,
     stamp_is_zero,
     trajectory_arrays,
     trajectory_msg,
@@ -158,12 +160,16 @@ class KinematicsNode(Node):
         self.ik_node.create_service(Trigger, f"{own}/reload", self._on_reload)
         self.ik_node.create_service(CompensateTrajectory, f"{own}/compensate_trajectory", self._on_compensate)
         self.pose_node = Node(f"{self.get_name()}_pose", namespace=self.get_namespace(), context=self.context)
-        self.pose_pub = self.transform_pub = None
+        self.pose_pub = self.transform_pub = self.covariance_pub = None
         if publish:
             self.pose_pub = self.pose_node.create_publisher(PoseStamped, f"{own}/corrected_pose", QoSProfile(depth=100))
             # the same pose, naming the frame it places (the tip link): PoseStamped has no child frame
             self.transform_pub = self.pose_node.create_publisher(
                 TransformStamped, f"{own}/corrected_transform", QoSProfile(depth=100)
+            )
+            # with its error bounds as a covariance, for a model that carries them (see docs/nodes.md)
+            self.covariance_pub = self.pose_node.create_publisher(
+                PoseWithCovarianceStamped, f"{own}/corrected_pose_with_covariance", QoSProfile(depth=100)
             )
         # best effort (matches reliable and best-effort publishers) with a deep queue for bursts
         joint_qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.BEST_EFFORT)
@@ -363,6 +369,14 @@ class KinematicsNode(Node):
         pose = pose_msg_of_rows(rows, model.chain.base_link, msg.header.stamp)
         self.pose_pub.publish(pose)
         self.transform_pub.publish(transform_msg_of_pose(pose, model.chain.tip_link))
+        bounds = model.error_bounds(q)
+        if bounds is not None:
+            position, orientation = bounds
+            self.covariance_pub.publish(
+                pose_with_covariance_msg(
+                    pose, float(position[0]), None if orientation is None else float(orientation[0]), model.bounds.level
+                )
+            )
 
     def _on_fk(self, request: ComputeFK.Request, response: ComputeFK.Response) -> ComputeFK.Response:
         """The round trip costs a few hundred µs in rclpy alone and the process wakes up with cold caches,
@@ -388,6 +402,8 @@ class KinematicsNode(Node):
                 rows = model.fk_rows(q, analytic=analytic)
                 response.poses = [pose_msg_of_rows(rows, model.chain.base_link, stamp, out=self._fk_pose())]
                 response.in_calibrated_range = [model.in_calibrated_range_one(q)]
+                if not analytic:
+                    set_bounds(response, model, q)
             else:
                 q = np.array([joints_from_msg(js, names, f"joint_states[{i}]") for i, js in enumerate(states)])
                 if not analytic:
@@ -398,6 +414,8 @@ class KinematicsNode(Node):
                     stamps = [now if stamp_is_zero(stamp) else stamp for stamp in stamps]
                 response.poses = pose_msgs(model.fk(q, analytic=analytic), model.chain.base_link, stamps)
                 response.in_calibrated_range = model.in_calibrated_range(q).tolist()
+                if not analytic:
+                    set_bounds(response, model, q)
             response.success = True
             response.message = (
                 "ok"
@@ -486,6 +504,8 @@ class KinematicsNode(Node):
             response.position_error_mm = [float(r.position_error_mm) for r in shown]
             response.orientation_error_deg = [float(r.orientation_error_deg) for r in shown]
             response.in_calibrated_range = [bool(r.in_calibrated_range) for r in shown]
+            if shown and not request.analytic_only:
+                set_bounds(response, model, np.array([r.q for r in shown]))
             response.success = bool(good)
             if good:
                 response.message = f"{len(good)} solution(s)" + self._unset_note()
@@ -501,7 +521,7 @@ class KinematicsNode(Node):
             self._unexpected("compute_ik", exc, response)
         if not response.success and not nearest:
             response.solutions, response.position_error_mm, response.orientation_error_deg = [], [], []
-            response.in_calibrated_range = []
+            response.in_calibrated_range, response.position_bound_mm, response.orientation_bound_deg = [], [], []
         outside = response.in_calibrated_range.count(False) if model.nets else 0
         self.stats.record("ik", time.perf_counter() - start, response.success, outside)
         return response
@@ -544,6 +564,8 @@ class KinematicsNode(Node):
             response.position_error_mm = result.position_error_mm.tolist()
             response.orientation_error_deg = result.orientation_error_deg.tolist()
             response.in_calibrated_range = result.in_calibrated_range.tolist()
+            if keep:
+                set_bounds(response, model, result.positions[:keep])
             response.failed_index = result.failed_index
             response.success = result.success
             outside = int(np.sum(~result.in_calibrated_range)) if model.nets else 0

@@ -71,7 +71,7 @@ def test_report_renders_in_chromium(trained, test_bag, tmp_path):
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith(f"PASS: 95 % of test poses within {LOOSE_MM:g} mm and 1 deg (p95 ")
     page = out / "index.html"
-    for png in ("position_error_distribution.png", "orientation_error_distribution.png", "workspace.png"):
+    for png in ("position_error_distribution.png", "orientation_error_distribution.png", "workspace.png", "bounds.png"):
         assert (out / png).stat().st_size > 5000
     # the same test data judged against 1 µm, written in-process (the CLI's path is checked above)
     tight = tmp_path / "tight"
@@ -89,7 +89,7 @@ def test_report_renders_in_chromium(trained, test_bag, tmp_path):
         assert _on_first_screen(facts["summary"]), facts["summary"]
         assert facts["verdictInSummary"] and facts["verdictClass"] == "pass"
         assert facts["verdict"].startswith(f"PASS: 95 % of test poses within {LOOSE_MM:g} mm and 1 deg (p95 ")
-        assert len(facts["images"]) == 3
+        assert len(facts["images"]) == 4
         for image in facts["images"]:
             assert image["complete"] and image["width"] > 0, f"{image['src']} did not load"
         dom = facts["dom"]
@@ -99,12 +99,14 @@ def test_report_renders_in_chromium(trained, test_bag, tmp_path):
             "ISO 9283",
             "Referencing",
             "Parametric stage",
+            "Error bounds",
         ):
             assert heading in dom
         for figure in ("position p95 (mm)", "orientation max (deg)", "before: URDF model", "after: hybrid model"):
             assert figure in dom
         assert "pose accuracy AP up to" in dom and "Working range" in dom and "Capacity chosen from the data" in dom
-        assert dom.count("<img") == 3 and dom.count("<tr>") > 8 + 3
+        assert "errors under their bound" in dom
+        assert dom.count("<img") == 4 and dom.count("<tr>") > 8 + 3
         first = np.asarray(Image.open(io.BytesIO(chromium.screenshot())).convert("RGB"))
         assert first.shape[:2] == FIRST_SCREEN[::-1]
         # the verdict's green text is drawn on the first screen, not only laid out there

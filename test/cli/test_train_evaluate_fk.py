@@ -79,6 +79,19 @@ def test_train_evaluate_fk_workflow(tmp_path, capsys):
         np.testing.assert_allclose(
             se3.matrix_from_pose(rows[:, :3], rows[:, 3:]), model.fk(q, analytic=analytic), atol=1e-12
         )
+    # each pose with its error bounds, in mm and degrees, as the model gives them
+    out = tmp_path / "bounded.csv"
+    result = run("fk", "--model", str(model_dir), "--joints", str(joints), "--out", str(out), "--bounds")
+    assert result.returncode == 0, result.stderr
+    header = out.read_text().splitlines()[0].split(",")
+    assert header[-2:] == ["position_bound_mm", "orientation_bound_deg"]
+    rows = np.loadtxt(out, delimiter=",", skiprows=1)
+    position, orientation = model.error_bounds(q)
+    np.testing.assert_allclose(rows[:, -2], 1e3 * position, rtol=1e-9)
+    np.testing.assert_allclose(rows[:, -1], np.degrees(orientation), rtol=1e-9)
+    assert np.all(rows[:, -2] > 0.0)
+    refused = run("fk", "--model", str(model_dir), "--joints", str(joints), "--out", str(out), "--bounds", "--analytic")
+    assert refused.returncode != 0 and "--bounds: --analytic answers carry none" in refused.stderr
     outside = np.zeros(6)
     outside[2] = model.trained_upper[2] + 0.005
     far = tmp_path / "far.csv"

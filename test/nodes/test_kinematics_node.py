@@ -8,7 +8,8 @@ import time
 import numpy as np
 import pytest
 import rclpy
-from geometry_msgs.msg import PoseStamped, TransformStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TransformStamped
+from scipy.stats import chi2
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
@@ -74,10 +75,16 @@ def test_fk_matches_the_core(served):
     np.testing.assert_allclose(poses_of(resp), model.fk(q), atol=1e-9)
     assert resp.in_calibrated_range == [True] * 50
     assert {p.header.frame_id for p in resp.poses} == {"base_link"}
+    # every pose with its error bounds, as the core gives them (mm, deg)
+    position, orientation = model.error_bounds(q)
+    np.testing.assert_allclose(resp.position_bound_mm, 1e3 * position, rtol=1e-12)
+    np.testing.assert_allclose(resp.orientation_bound_deg, np.degrees(orientation), rtol=1e-12)
     one = client.call(fk, fk_request(q[:1], model.joint_names))
     np.testing.assert_allclose(poses_of(one)[0], model.fk_single(q[0]), atol=1e-9)
+    np.testing.assert_allclose(one.position_bound_mm, 1e3 * position[:1], rtol=1e-12)
     analytic = client.call(fk, fk_request(q[:3], model.joint_names, analytic=True))
     np.testing.assert_allclose(poses_of(analytic), model.fk(q[:3], analytic=True), atol=1e-9)
+    assert len(analytic.position_bound_mm) == 0 and len(analytic.orientation_bound_deg) == 0  # the URDF's: none
     # names select and order the joints
     order = [3, 1, 0, 5, 4, 2]
     shuffled = client.call(fk, fk_request(q[:2, order], [model.joint_names[i] for i in order]))
@@ -105,8 +112,10 @@ def test_ik_single_and_several_solutions(served):
     pos, rot = se3.pose_errors(model.fk_single(solution), T)
     assert pos < 1e-4 and rot < 1e-4
     assert resp.position_error_mm[0] == pytest.approx(pos, abs=1e-9)
+    assert resp.position_bound_mm[0] == pytest.approx(1e3 * model.error_bounds(solution)[0][0], rel=1e-12)
     many = client.call(ik, ik_request(T, q, model.joint_names, k=8))
     assert many.success and len(many.solutions) >= 2
+    assert len(many.position_bound_mm) == len(many.orientation_bound_deg) == len(many.solutions)
     dists = [np.linalg.norm(np.array(s.position) - q) for s in many.solutions]
     assert dists == sorted(dists)
 
@@ -203,13 +212,17 @@ def test_an_unreachable_target_gets_the_nearest_configuration_and_its_distance(s
 
 def test_corrected_pose_topic_rate_and_stamps(served):
     client, _, _, _, model, _, _ = served
-    received, transforms = [], []
+    received, transforms, covariances = [], [], []
     sub = client.node.create_subscription(PoseStamped, f"{NODE}/corrected_pose", received.append, 100)
     companion = client.node.create_subscription(TransformStamped, f"{NODE}/corrected_transform", transforms.append, 100)
+    with_cov = client.node.create_subscription(
+        PoseWithCovarianceStamped, f"{NODE}/corrected_pose_with_covariance", covariances.append, 100
+    )
     pub = client.node.create_publisher(JointState, "/joint_states", 100)
     deadline = time.monotonic() + 30.0
+    subs = (sub, companion, with_cov)
     while (
-        pub.get_subscription_count() < 1 or min(sub.get_publisher_count(), companion.get_publisher_count()) < 1
+        pub.get_subscription_count() < 1 or min(s.get_publisher_count() for s in subs) < 1
     ) and time.monotonic() < deadline:
         client.spin_for(0.1)  # discovery: both ends matched before anything is sent
     client.spin_for(0.5)
@@ -243,6 +256,18 @@ def test_corrected_pose_topic_rate_and_stamps(served):
             assert msg.transform.rotation.w == poses[key].orientation.w
         T = model.fk_single(sent[key])
         assert abs(msg.transform.translation.y - T[1, 3]) < 1e-9
+    # and with its error bounds as the covariance of a Gaussian whose error norm stays under them at 95 %
+    assert len(covariances) >= 0.95 * n
+    scale = chi2.ppf(model.bounds.level, 3)
+    for msg in covariances:
+        key = (msg.header.stamp.sec, msg.header.stamp.nanosec)
+        assert abs(msg.pose.pose.position.x - model.fk_single(sent[key])[0, 3]) < 1e-9
+        cov = np.array(msg.pose.covariance).reshape(6, 6)
+        position, orientation = model.error_bounds(sent[key])
+        np.testing.assert_allclose(
+            np.diag(cov), np.r_[[position[0] ** 2 / scale] * 3, [orientation[0] ** 2 / scale] * 3]
+        )
+        assert np.count_nonzero(cov - np.diag(np.diag(cov))) == 0
 
 
 def test_reload_is_atomic(served):

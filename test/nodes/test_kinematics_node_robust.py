@@ -192,6 +192,9 @@ def test_compensate_trajectory_service(ros, trained):
         sent = trajectory_request(t, q, model.joint_names).trajectory.points
         assert stamps == [(p.time_from_start.sec, p.time_from_start.nanosec) for p in sent]
         assert max(resp.position_error_mm) <= 1e-5 and all(resp.in_calibrated_range)
+        position, orientation = model.error_bounds(expected.positions)
+        np.testing.assert_allclose(resp.position_bound_mm, 1e3 * position, rtol=1e-12)
+        np.testing.assert_allclose(resp.orientation_bound_deg, np.degrees(orientation), rtol=1e-12)
         # the wrist crosses its singularity: corrected, or the first point that cannot be is named
         a, b = A.copy(), B.copy()
         a[4], b[4] = 0.6, -0.6
