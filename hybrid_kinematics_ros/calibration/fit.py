@@ -344,7 +344,7 @@ def fit(
     stage_options = result.options if parametric else {"kinds": capacity_module.ELASTIC["geometry"], "harmonics": 0}
     try:
         bounds = calibrate_bounds(chain, model, train_pairs, val_pairs, stage_options, payload, gravity)
-    except CalibrationError as exc:  # too few pairs to measure the growth: the model serves without bounds
+    except (CalibrationError, np.linalg.LinAlgError) as exc:  # too few pairs to measure the growth: no bounds
         log(f"no error bounds: {exc}")
     else:
         manifest["bounds"] = bounds.manifest()
