@@ -29,7 +29,7 @@ from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.parametric import ORIENTATION_LENGTH, Linearisation
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import Chain
-from hybrid_kinematics_ros.model.bounds import Bounds, ErrorBound, embed
+from hybrid_kinematics_ros.model.bounds import Bounds, ErrorBound, embed, growth
 
 LEVEL = 0.95  # the share of errors meant to lie under their bounds
 REGIONS = 8  # regions of joint space held out in turn to watch the error grow
@@ -71,9 +71,9 @@ def extrapolation_errors(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Held-out errors of the stage with each part of joint space (:func:`held_out_sets`) left out of its
     fit in turn: the distances (m, :func:`model.bounds.embed` with ``lever_arms``) to the configurations
-    fitted on, the position errors (m) and the
-    orientation errors (rad, None for position-only pairs). ``ridge (P,)``: the stage's prior on each
-    column of ``lin``, in normal-equation units (:func:`capacity.harmonic_ridge`)."""
+    fitted on, the position errors (m) and the orientation errors (rad, None for position-only pairs).
+    ``ridge (P,)``: the stage's prior on each column of ``lin``, in normal-equation units
+    (:func:`capacity.harmonic_ridge`)."""
     cols = np.flatnonzero(lin.identifiable)
     jac, res, q = lin.jacobian[:, :, cols], lin.residual, lin.q
     points = embed(q, lever_arms, revolute)
@@ -91,10 +91,6 @@ def extrapolation_errors(
         if res.shape[1] == 6:
             rot.append(np.linalg.norm(after[:, 3:], axis=1) / ORIENTATION_LENGTH)
     return np.concatenate(dist), np.concatenate(pos), np.concatenate(rot) if rot else None
-
-
-def growth(distance: np.ndarray, length: float) -> np.ndarray:
-    return np.sqrt(1.0 + (distance / length) ** 2)
 
 
 def growth_length(distance: np.ndarray, error: np.ndarray) -> float:
@@ -124,9 +120,8 @@ def calibrate(
     level: float = LEVEL,
 ) -> Bounds:
     """The bounds, from the linearised stage problem over the training pairs (``lin`` with its ``ridge``,
-    for the growth) and
-    the hybrid model's validation errors (m, rad; None: position only) at their ``distance`` (m) from
-    the stored training configurations, both measured with ``lever_arms`` (:func:`lever_arms`)."""
+    for the growth) and the hybrid model's validation errors (m, rad; None: position only) at their
+    ``distance`` (m) from the stored training configurations, both measured with ``lever_arms``."""
     d_far, pos_far, rot_far = extrapolation_errors(lin, ridge, lever_arms, revolute)
     kinds = {"position": (pos_far, position_error)}
     if orientation_error is not None and rot_far is not None:

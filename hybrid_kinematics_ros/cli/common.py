@@ -11,6 +11,7 @@ import numpy as np
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.model.bounds import COLUMNS, in_report_units
 from hybrid_kinematics_ros.model.hybrid import RANGE_POLICIES, HybridModel
 
 POSE_COLUMNS = ("x", "y", "z", "qx", "qy", "qz", "qw")
@@ -86,6 +87,21 @@ def payload_from_args(args: argparse.Namespace) -> tuple[float, np.ndarray]:
         return cfg.payload_mass, cfg.payload_com
     com = np.zeros(3) if args.payload_com is None else np.asarray(args.payload_com, dtype=float)
     return float(args.payload_mass or 0.0), com
+
+
+def bound_names(model: HybridModel, args: argparse.Namespace) -> list[str]:
+    """The CSV columns of the answers' error bounds (``--bounds``); a user error when the answers carry none
+    (``--analytic``, or a model trained before bounds)."""
+    if args.analytic or model.bounds is None:
+        why = "--analytic answers carry none" if args.analytic else f"model {args.model or '(none)'} carries none"
+        raise DataError(f"--bounds: {why}; give a model trained with this version, without --analytic")
+    return list(COLUMNS[: 1 if model.bounds.orientation is None else 2])
+
+
+def bound_columns(model: HybridModel, q: np.ndarray) -> np.ndarray:
+    """``(B, k)``: the error bounds of the model's answers at ``q (B, n)``, in the columns of
+    :func:`bound_names` (mm, degrees)."""
+    return np.column_stack(list(in_report_units(model.error_bounds(q)).values()))
 
 
 def read_csv(path: Path, columns: tuple[str, ...] | None = None) -> tuple[list[str], np.ndarray]:

@@ -14,11 +14,12 @@ from hybrid_kinematics_ros.cli.common import (
     add_range_args,
     add_robot_args,
     apply_range_args,
+    bound_columns,
+    bound_names,
     chain_from_args,
     read_csv,
     write_csv,
 )
-from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
@@ -45,20 +46,11 @@ def run(args: argparse.Namespace) -> int:
     _, q = read_csv(args.joints, model.joint_names)
     if not args.analytic:
         model.check_range(q)
-    columns, bounds = list(POSE_COLUMNS), []
-    if args.bounds:
-        if args.analytic or model.bounds is None:
-            why = "--analytic answers carry none" if args.analytic else f"model {args.model or '(none)'} carries none"
-            raise DataError(f"--bounds: {why}; give a model trained with this version, without --analytic")
-        position_bound, orientation_bound = model.error_bounds(q)
-        columns.append("position_bound_mm")
-        bounds.append(1e3 * position_bound[:, None])
-        if orientation_bound is not None:
-            columns.append("orientation_bound_deg")
-            bounds.append(np.degrees(orientation_bound)[:, None])
+    names = bound_names(model, args) if args.bounds else []
     T = model.fk(q, analytic=args.analytic)
     position, quat = pose_from_matrix(T)
-    write_csv(args.out, columns, np.hstack([position, quat, *bounds]))
+    bounds = bound_columns(model, q) if names else np.zeros((len(q), 0))
+    write_csv(args.out, [*POSE_COLUMNS, *names], np.hstack([position, quat, bounds]))
     outside = int(np.sum(~model.in_calibrated_range(q))) if model.nets and not args.analytic else 0
     print(f"wrote {len(q)} poses to {args.out}")
     if outside:

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from hybrid_kinematics_ros.cli.common import POSE_COLUMNS, read_csv, write_csv
+from hybrid_kinematics_ros.cli.common import POSE_COLUMNS, bound_columns, bound_names, read_csv, write_csv
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.se3 import matrix_from_pose
@@ -53,11 +53,8 @@ def run(args: argparse.Namespace) -> int:
     if args.solutions < 1:
         raise DataError(f"--solutions must be at least 1, got {args.solutions}")
     bounded = args.bounds or args.rank_by_bound
-    if bounded and (args.analytic or model.bounds is None):
-        why = "--analytic answers carry none" if args.analytic else f"model {args.model} carries none"
-        raise DataError(f"--bounds: {why}; give a model trained with this version, without --analytic")
+    names = bound_names(model, args) if bounded else []
     solver = IKSolver(model, IKOptions(timeout_s=args.timeout_ms / 1e3))
-    width = 2 if bounded and model.bounds.orientation is not None else int(bounded)
     out_rows = []
     failed = 0
     for i, target in enumerate(tqdm(targets, desc="ik", unit="pose")):
@@ -69,19 +66,17 @@ def run(args: argparse.Namespace) -> int:
         results = [r for r in results if r.success]
         if not results:
             failed += 1
-            nan = [float("nan")] * (model.chain.dof + 2 + width)
-            out_rows.append([i, 0, *nan[: model.chain.dof + 2], "false", *nan[:width]])
+            nan = float("nan")
+            out_rows.append([i, 0, *[nan] * (model.chain.dof + 2), "false", *[nan] * len(names)])
             continue
-        bounds = np.zeros((len(results), 0))
-        if bounded:
-            position, orientation = model.error_bounds(np.array([r.q for r in results]))
-            bounds = np.column_stack([1e3 * position, *([] if orientation is None else [np.degrees(orientation)])])
+        q = np.array([r.q for r in results])
+        bounds = bound_columns(model, q) if bounded else np.zeros((len(results), 0))
         order = np.argsort(bounds[:, 0], kind="stable") if args.rank_by_bound else range(len(results))
         for k, j in enumerate(order):
             r = results[j]
             out_rows.append([i, k, *r.q, r.position_error_mm, r.orientation_error_deg, "true", *bounds[j]])
     header = ["pose_index", "solution", *model.joint_names, "position_error_mm", "orientation_error_deg", "success"]
-    header += ["position_bound_mm", "orientation_bound_deg"][:width]
+    header += names
     write_csv(args.out, header, out_rows)
     print(f"wrote {len(out_rows)} rows for {len(targets)} poses to {args.out}; {failed} without a solution")
     return 1 if failed else 0

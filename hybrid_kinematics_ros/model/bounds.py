@@ -25,15 +25,20 @@ from scipy.spatial import cKDTree
 from hybrid_kinematics_ros.model.errors import ModelError
 
 
+def growth(distance: np.ndarray, length: float) -> np.ndarray:
+    """``√(1 + (d / length)²)``: how much a bound has grown at ``distance`` from the data."""
+    return np.sqrt(1.0 + (np.asarray(distance, dtype=float) / length) ** 2)
+
+
 @dataclass(frozen=True)
 class ErrorBound:
-    """One kind's bound: ``quantile · √(1 + (d / length)²)``."""
+    """One kind's bound: ``quantile · growth(d, length)``."""
 
     quantile: float  # m or rad: the bound on the data (d = 0)
     length: float  # m: the distance (:func:`embed`) at which the bound has grown by √2
 
     def __call__(self, distance: np.ndarray) -> np.ndarray:
-        return self.quantile * np.sqrt(1.0 + (np.asarray(distance, dtype=float) / self.length) ** 2)
+        return self.quantile * growth(distance, self.length)
 
 
 @dataclass(frozen=True)
@@ -74,6 +79,19 @@ class Bounds:
         return self.position(distance), None if self.orientation is None else self.orientation(distance)
 
 
+COLUMNS = ("position_bound_mm", "orientation_bound_deg")  # the bounds' names in the units users read
+
+
+def in_report_units(bounds: tuple[np.ndarray, np.ndarray | None]) -> dict[str, np.ndarray]:
+    """:meth:`HybridModel.error_bounds`'s answer (m, rad) by column name of :data:`COLUMNS`, in mm and
+    degrees (no orientation column for a position-only model)."""
+    position, orientation = bounds
+    out = {COLUMNS[0]: 1e3 * position}
+    if orientation is not None:
+        out[COLUMNS[1]] = np.degrees(orientation)
+    return out
+
+
 def embed(q: np.ndarray, lever_arms: np.ndarray, revolute: np.ndarray) -> np.ndarray:
     """``(B, 2n)``: configurations as points whose Euclidean distance is the bound's: a revolute joint on a
     circle of its lever arm's radius (a move of Δq counts ``2 r sin(Δq / 2)``, about ``r Δq``, and a whole
@@ -95,13 +113,3 @@ class Distance:
 
     def __call__(self, q: np.ndarray) -> np.ndarray:
         return self.tree.query(embed(q, self.lever_arms, self.revolute))[0]
-
-
-def describe(bounds: Bounds) -> dict[str, Any]:
-    """The bound's figures for a report, in mm and degrees."""
-    out = {"level": bounds.level, "position_bound_mm_on_data": 1e3 * bounds.position.quantile}
-    out["position_growth_length_m"] = bounds.position.length
-    if bounds.orientation is not None:
-        out["orientation_bound_deg_on_data"] = float(np.degrees(bounds.orientation.quantile))
-        out["orientation_growth_length_m"] = bounds.orientation.length
-    return out | bounds.figures

@@ -14,6 +14,7 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from hybrid_kinematics_ros.kinematics.se3 import matrix_from_pose, pose_from_matrix, quat_of_rows
+from hybrid_kinematics_ros.model.bounds import in_report_units
 
 QUAT_TOLERANCE = 1e-3  # |‖q‖ − 1| accepted (and normalised) in requests
 
@@ -116,12 +117,9 @@ def set_bounds(response, model, q: np.ndarray | Sequence[float]) -> None:
     """Fill a response's ``position_bound_mm`` and ``orientation_bound_deg`` with the error bounds of the
     model's answers at ``q`` (one configuration or ``(B, n)``); left empty when the model carries none."""
     bounds = model.error_bounds(np.atleast_2d(np.asarray(q, dtype=float)))
-    if bounds is None:
-        return
-    position, orientation = bounds
-    response.position_bound_mm = (1e3 * position).tolist()
-    if orientation is not None:
-        response.orientation_bound_deg = np.degrees(orientation).tolist()
+    if bounds is not None:
+        for name, values in in_report_units(bounds).items():
+            setattr(response, name, values.tolist())
 
 
 def pose_with_covariance_msg(

@@ -369,7 +369,7 @@ class KinematicsNode(Node):
         pose = pose_msg_of_rows(rows, model.chain.base_link, msg.header.stamp)
         self.pose_pub.publish(pose)
         self.transform_pub.publish(transform_msg_of_pose(pose, model.chain.tip_link))
-        bounds = model.error_bounds(q)
+        bounds = model.error_bounds(q) if self.covariance_pub.get_subscription_count() else None
         if bounds is not None:
             position, orientation = bounds
             self.covariance_pub.publish(
