@@ -1,5 +1,6 @@
 """The kinematics node under measurement: FK round trips against a server that does no work (in the same
-run), batch FK, IK requests, 8 client processes under a 110 Hz joint stream, and trajectory compensation.
+run), batch FK, IK requests, 8 client processes under a 110 Hz joint stream, trajectory compensation, and FK
+with and without error bounds.
 
 ``--only latency,compensate`` measures some parts and keeps the others' text in BENCHMARKS.md (each part
 says when and how it was measured)."""
@@ -79,7 +80,8 @@ def client(calls: int, batch: int = 1, kinds: str = "fk", depth: int = 10) -> di
             srv = node.create_client(ComputeIK, "/kinematics_node/compute_ik", qos_profile=qos)
             return srv, ComputeIK.Request(target=pose_msg(target, "base_link", stamp), max_solutions=int(kind[2:] or 1))
         q = np.random.default_rng(os.getpid()).uniform(-1, 0, (batch, 6))
-        srv = node.create_client(ComputeFK, "/kinematics_node/compute_fk", qos_profile=qos)
+        namespace = kind.partition("@")[2]  # fk@/ns: the node started in namespace /ns
+        srv = node.create_client(ComputeFK, f"{namespace}/kinematics_node/compute_fk", qos_profile=qos)
         return srv, ComputeFK.Request(joint_states=[joint_state_msg(qi, names, stamp) for qi in q])
 
     endpoints = {kind: endpoint(kind) for kind in kinds.split(",")}
@@ -164,8 +166,8 @@ def load(node_pid: int, depth: int) -> tuple[list[dict], dict, float, float]:
     return results, lag, rss_before, rss_mb(node_pid)
 
 
-PARTS = ("latency", "fk_batch", "ik", "load", "compensate")
-TITLE = "Kinematics node: latency, batch FK, IK, load and trajectory compensation"
+PARTS = ("latency", "fk_batch", "ik", "load", "compensate", "bounds")
+TITLE = "Kinematics node: latency, batch FK, IK, load, trajectory compensation and error bounds"
 FK_TARGET = 1.15  # FK round trip / a zero-work ComputeFK server returning one prebuilt pose (#18)
 COMPENSATE_POINTS = 1000
 PLAN_FROM = np.array([0.3, -1.5, 1.6, -1.2, 0.9, 0.4])  # a rest-to-rest move as the tests plan it
@@ -254,7 +256,7 @@ def small_model(out: Path) -> Path:
     return out
 
 
-def start_node(model_dir: str | None, log: Path) -> subprocess.Popen:
+def start_node(model_dir: str | None, log: Path, namespace: str = "") -> subprocess.Popen:
     return subprocess.Popen(
         [
             str(LIB / "kinematics_node"),
@@ -264,6 +266,7 @@ def start_node(model_dir: str | None, log: Path) -> subprocess.Popen:
             "-p",
             f"urdf_path:={ROOT / 'config/ur10.urdf'}",
             *(["-p", f"model_dir:={model_dir}"] if model_dir else []),
+            *(["-r", f"__ns:={namespace}"] if namespace else []),
         ],
         stdout=log.open("w"),
         stderr=subprocess.STDOUT,
@@ -402,6 +405,67 @@ def compensate_part(model_dir: str | None, tmp: Path, calls: int = 10) -> str:
     )
 
 
+def bounds_part(model_dir: str | None, tmp: Path, repeat: int, rounds: int) -> str:
+    """FK round trips of one model served twice, with its error bounds and without them (the same
+    model.json less its ``bounds`` section), called in turn by each client with the zero-work server."""
+    import shutil
+
+    from bench.report import table
+
+    start = time.perf_counter()
+    if model_dir is None:
+        model_dir = str(small_model(tmp / "model"))
+        about = f"a UR10 model trained for this run ({time.perf_counter() - start:.0f} s; see `small_model`)"
+    else:
+        about = f"model {model_dir}"
+    plain = tmp / "without_bounds"
+    shutil.copytree(model_dir, plain)
+    manifest = json.loads((plain / "model.json").read_text())
+    if manifest.pop("bounds", None) is None:
+        raise SystemExit(f"{model_dir} has no error bounds: retrain it with this version")
+    (plain / "model.json").write_text(json.dumps(manifest))
+    nodes = [
+        start_node(model_dir, tmp / "bounded_node.log", "/bounded"),
+        start_node(str(plain), tmp / "plain_node.log", "/plain"),
+    ]
+    trivial = subprocess.Popen([sys.executable, "-m", "bench.bench_nodes", "--serve-trivial", "pose"], cwd=ROOT)
+    kinds = "fk@/bounded,fk@/plain,fk_pose"
+    try:
+        runs = [result_of(run_client(rounds, kinds=kinds)) for _ in range(repeat)]
+    finally:
+        stop([*nodes, trivial])
+    ms = {k: [np.array(r["times"][k]) * 1e3 for r in runs] for k in kinds.split(",")}
+
+    def ratios(a: str, b: str) -> np.ndarray:
+        return np.array([np.median(x) / np.median(y) for x, y in zip(ms[a], ms[b], strict=True)])
+
+    with_without, with_zero, without_zero = (
+        ratios("fk@/bounded", "fk@/plain"),
+        ratios("fk@/bounded", "fk_pose"),
+        ratios("fk@/plain", "fk_pose"),
+    )
+    pooled = {k: np.concatenate(v) for k, v in ms.items()}
+    rows = [
+        ["FK, one configuration, with its error bounds", *stats(pooled["fk@/bounded"])],
+        ["FK, one configuration, the same model without bounds", *stats(pooled["fk@/plain"])],
+        ["ComputeFK to a zero-work server, one prebuilt pose", *stats(pooled["fk_pose"])],
+    ]
+
+    def spread(r: np.ndarray) -> str:
+        return f"**{np.median(r):.2f}×** (spread {r.min():.2f}-{r.max():.2f})"
+
+    return (
+        f"kinematics_node serving {about} twice, in two namespaces: with the model's error bounds, and with the "
+        f"same model.json less its `bounds` section. Each client process calls both and the zero-work server in "
+        f"turn, {rounds:,} rounds; {repeat} clients one after the other (the table pools their calls; the "
+        "ratios are the median of the clients' ratios of medians).\n\n"
+        + table(HEADERS, rows)
+        + f"\n\nFK round trip with bounds against without: {spread(with_without)}. Against the zero-work server: "
+        f"with bounds {spread(with_zero)}, without {spread(without_zero)}; target ≤ {FK_TARGET}× with bounds: "
+        f"{'met' if np.median(with_zero) <= FK_TARGET else 'not met'}."
+    )
+
+
 def write_parts(new: dict[str, str]) -> None:
     """Replace the measured parts of the nodes section of BENCHMARKS.md and keep the others."""
     import re
@@ -438,7 +502,7 @@ def main(only: list[str], model_dir: str | None, repeat: int, rounds: int) -> No
             f"{load_before:.1f} before and {os.getloadavg()[0]:.1f} after (2 cores, shared).*\n\n{body}"
         )
 
-    node_parts = [p for p in only if p != "compensate"]
+    node_parts = [p for p in only if p not in ("compensate", "bounds")]
     if node_parts:
         node = start_node(model_dir, tmp / "node.log")
         trivial = [
@@ -460,6 +524,8 @@ def main(only: list[str], model_dir: str | None, repeat: int, rounds: int) -> No
             stop([node, *trivial])
     if "compensate" in only:
         measured("compensate", lambda: compensate_part(model_dir, tmp), "trajectory compensation")
+    if "bounds" in only:
+        measured("bounds", lambda: bounds_part(model_dir, tmp, repeat, rounds), "FK with and without error bounds")
     write_parts(parts)
 
 

@@ -36,7 +36,7 @@ from hybrid_kinematics_ros.io.raw_bag import RawRecording, read_raw
 from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
 from hybrid_kinematics_ros.model import approach
-from hybrid_kinematics_ros.model.bounds import Bounds, Distance
+from hybrid_kinematics_ros.model.bounds import Bounds, excess
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.model.referencing import Referencing, to_base_frame
 
@@ -348,9 +348,11 @@ def fit(
         log(f"no error bounds: {exc}")
     else:
         manifest["bounds"] = bounds.manifest()
+        steepest = int(np.argmax(bounds.position.rates))
         log(
-            f"error bounds ({bounds.level:.0%}): {1e3 * bounds.position.quantile:.4f} mm on the data, "
-            f"growing by √2 at {bounds.position.length:.3g} m from it"
+            f"error bounds ({bounds.level:.0%}): {1e3 * bounds.position.quantile:.4f} mm inside the trained range, "
+            f"growing beyond it by up to {1e3 * bounds.position.rates[steepest]:.3g} mm per rad "
+            f"({chain.joint_names[steepest]})"
         )
     metrics = evaluate(model, test_pairs)  # eager nets here; the saved TorchScript is checked against them
     manifest.update(
@@ -387,9 +389,9 @@ def calibrate_bounds(
     payload: tuple[float, np.ndarray],
     gravity: np.ndarray | None,
 ) -> Bounds:
-    """The bound on each answer's error (:mod:`calibration.bounds`): its growth from the stage, linearised
-    over the base-frame training pairs with the options it was identified with, and its size on the data
-    from ``model``'s errors on the validation pairs."""
+    """The bound on each answer's error (:mod:`calibration.bounds`): its growth beyond the trained range from
+    the stage, linearised over the base-frame training pairs with the options it was identified with, and
+    its size inside from ``model``'s errors on the validation pairs."""
     options = {k: v for k, v in stage_options.items() if k in ("kinds", "harmonics", "harmonic_prior")}
     lin = linearise(
         chain,
@@ -407,14 +409,11 @@ def calibrate_bounds(
     tip = model.fk(val_pairs.q, conditions=model.conditions_of(val_pairs.conditions, len(val_pairs)))
     pos_mm, rot_deg = target_errors(val_pairs, tip)
     ridge = capacity_module.harmonic_ridge(lin, float(options.get("harmonic_prior", HARMONIC_PRIOR)))
-    arms = bounds_module.lever_arms(chain, train_pairs.q)
-    distance = Distance(model.coverage, arms, chain.revolute)
     return bounds_module.calibrate(
         lin,
         ridge,
-        arms,
         chain.revolute,
-        distance(val_pairs.q),
+        excess(val_pairs.q, model.trained_lower, model.trained_upper, chain.revolute),
         1e-3 * pos_mm,
         None if val_pairs.position_only else np.radians(rot_deg),
     )

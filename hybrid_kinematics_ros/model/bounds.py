@@ -1,17 +1,22 @@
 """A bound on the error of each answer: how far the robot may really be from what the model says.
 
-For each configuration the bound is ``quantile · √(1 + (d / length)²)``, in m (position) or rad
-(orientation), where ``d`` is the distance to the nearest training configuration in joint space, each
-joint's move weighed by its lever arm (the typical distance from its axis to the tip, m per rad) and taken
-the short way round (:func:`embed`): a metre of ``d`` moves the tip about a metre, and a wrist that turns
-or a joint one turn away counts for what it changes, not for its radians.
-Near the data it is the error that ``level`` of the validation pairs stay under; it grows where the model
-extrapolates, at the rate the calibration measured (:mod:`calibration.bounds` holds out whole regions of
-joint space from the stage and watches its error grow with the distance). ``quantile`` is split conformal:
-about ``level`` of errors on data like the validation blocks lie under their bounds by construction.
+For each configuration the bound is ``quantile + ‖rates ⊙ x‖``, in m (position) or rad (orientation),
+where ``x`` is how far each joint lies beyond the range the model was trained on (rad, the short way round
+for a revolute joint; m for a prismatic one; 0 inside, :func:`excess`) and ``rates`` how fast the error grows
+per unit of each joint's excess. Inside the trained range it is the error that ``level`` of the validation
+pairs stay under: split conformal, so about ``level`` of errors on data like the validation blocks lie under
+their bounds by construction. Beyond it the bound grows at the rates the calibration measured
+(:mod:`calibration.bounds` holds each end of each joint's range out of the stage's fit and watches its
+error grow as it extrapolates): a shoulder that extrapolates costs more than a flange that turns further.
+
+Why the trained range and not the distance to the nearest training configuration: in six dimensions the
+training data leave gaps everywhere, and a model interpolates across them as well as it does on the data;
+beyond the end of a joint's range it extrapolates, and there its error grows (a virtual UR10 trained with
+its shoulder in one radian: 0.0017 mm inside, 0.041 mm half a radian beyond, at the same nearest-neighbour
+distance as gaps inside with no growth).
 
 The bound is a property of the model directory (``model.json``'s ``bounds`` section); a model without one
-(trained before, or without stored training configurations) gives none.
+(trained before this version) gives none.
 """
 
 from __future__ import annotations
@@ -20,31 +25,38 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from hybrid_kinematics_ros.model.errors import ModelError
 
+DISTANCE = "joint_range_excess"  # what the section's rates are per (a section without it is of an older kind)
 
-def growth(distance: np.ndarray, length: float) -> np.ndarray:
-    """``√(1 + (d / length)²)``: how much a bound has grown at ``distance`` from the data."""
-    return np.sqrt(1.0 + (np.asarray(distance, dtype=float) / length) ** 2)
+
+def excess(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, revolute: np.ndarray) -> np.ndarray:
+    """``(B, n)``: how far each joint of ``q (B, n)`` lies beyond ``[lower, upper]``: 0 inside; a revolute
+    joint whose range spans less than a turn the short way round to the nearer end (a turn or more: 0); a
+    prismatic joint the distance to the nearer end."""
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    width = upper - lower
+    straight = np.maximum(0.0, np.maximum(lower - q, q - upper))
+    turn = np.mod(q - lower, 2.0 * np.pi)  # from the lower end upwards, within one turn
+    around = np.where(turn <= width, 0.0, np.minimum(turn - width, 2.0 * np.pi - turn))
+    return np.where(revolute, np.where(width >= 2.0 * np.pi, 0.0, around), straight)
 
 
 @dataclass(frozen=True)
 class ErrorBound:
-    """One kind's bound: ``quantile · growth(d, length)``."""
+    """One kind's bound: ``quantile + ‖rates ⊙ excess‖``."""
 
-    quantile: float  # m or rad: the bound on the data (d = 0)
-    length: float  # m: the distance (:func:`embed`) at which the bound has grown by √2
+    quantile: float  # m or rad: the bound inside the trained range
+    rates: np.ndarray  # (n,) m or rad of error per rad (per m, prismatic) of each joint's excess
 
-    def __call__(self, distance: np.ndarray) -> np.ndarray:
-        return self.quantile * growth(distance, self.length)
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        return self.quantile + np.linalg.norm(np.atleast_2d(x) * self.rates, axis=1)
 
 
 @dataclass(frozen=True)
 class Bounds:
     level: float  # the share of errors meant to lie under their bounds
-    lever_arms: np.ndarray  # (n,) m per rad (per m for a prismatic joint: 1): the distance's weights
     position: ErrorBound  # m
     orientation: ErrorBound | None  # rad; None for a position-only model
     figures: dict[str, Any]  # how they were calibrated (model.json, the report)
@@ -56,9 +68,10 @@ class Bounds:
             ori = section.get("orientation")
             return cls(
                 level=float(section["level"]),
-                lever_arms=np.asarray(section["lever_arms_m"], dtype=float),
-                position=ErrorBound(float(pos["quantile_m"]), float(pos["length_m"])),
-                orientation=None if ori is None else ErrorBound(float(ori["quantile_rad"]), float(ori["length_m"])),
+                position=ErrorBound(float(pos["quantile_m"]), np.asarray(pos["growth_m_per_rad"], dtype=float)),
+                orientation=None
+                if ori is None
+                else ErrorBound(float(ori["quantile_rad"]), np.asarray(ori["growth_rad_per_rad"], dtype=float)),
                 figures=dict(section.get("figures", {})),
             )
         except (KeyError, TypeError, ValueError) as exc:
@@ -67,16 +80,20 @@ class Bounds:
     def manifest(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "level": self.level,
-            "lever_arms_m": self.lever_arms.tolist(),
-            "position": {"quantile_m": self.position.quantile, "length_m": self.position.length},
+            "distance": DISTANCE,
+            "position": {"quantile_m": self.position.quantile, "growth_m_per_rad": self.position.rates.tolist()},
         }
         if self.orientation is not None:
-            out["orientation"] = {"quantile_rad": self.orientation.quantile, "length_m": self.orientation.length}
+            out["orientation"] = {
+                "quantile_rad": self.orientation.quantile,
+                "growth_rad_per_rad": self.orientation.rates.tolist(),
+            }
         return out | {"figures": self.figures}
 
-    def of(self, distance: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """Position bounds (m) and orientation bounds (rad, or None) at distances ``(B,)`` (:func:`embed`)."""
-        return self.position(distance), None if self.orientation is None else self.orientation(distance)
+    def of(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Position bounds (m) and orientation bounds (rad, or None) at joint excesses ``x (B, n)``
+        (:func:`excess`)."""
+        return self.position(x), None if self.orientation is None else self.orientation(x)
 
 
 COLUMNS = ("position_bound_mm", "orientation_bound_deg")  # the bounds' names in the units users read
@@ -90,26 +107,3 @@ def in_report_units(bounds: tuple[np.ndarray, np.ndarray | None]) -> dict[str, n
     if orientation is not None:
         out[COLUMNS[1]] = np.degrees(orientation)
     return out
-
-
-def embed(q: np.ndarray, lever_arms: np.ndarray, revolute: np.ndarray) -> np.ndarray:
-    """``(B, 2n)``: configurations as points whose Euclidean distance is the bound's: a revolute joint on a
-    circle of its lever arm's radius (a move of Δq counts ``2 r sin(Δq / 2)``, about ``r Δq``, and a whole
-    turn nothing), a prismatic joint on a line."""
-    q = np.atleast_2d(np.asarray(q, dtype=float))
-    rev = np.asarray(revolute, dtype=bool)
-    first = np.where(rev, lever_arms * np.cos(q), q)
-    second = np.where(rev, lever_arms * np.sin(q), 0.0)
-    return np.concatenate([first, second], axis=1)
-
-
-class Distance:
-    """The distance (:func:`embed`) from configurations to the nearest of ``coverage``, by a k-d tree."""
-
-    def __init__(self, coverage: np.ndarray, lever_arms: np.ndarray, revolute: np.ndarray) -> None:
-        self.lever_arms = np.asarray(lever_arms, dtype=float)
-        self.revolute = np.asarray(revolute, dtype=bool)
-        self.tree = cKDTree(embed(coverage, self.lever_arms, self.revolute))
-
-    def __call__(self, q: np.ndarray) -> np.ndarray:
-        return self.tree.query(embed(q, self.lever_arms, self.revolute))[0]

@@ -39,7 +39,7 @@ from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
 from hybrid_kinematics_ros.kinematics.se3 import exp_so3, skew
 from hybrid_kinematics_ros.kinematics.unrolled import Rows, unrolled_fk
 from hybrid_kinematics_ros.model import approach
-from hybrid_kinematics_ros.model.bounds import Bounds, Distance
+from hybrid_kinematics_ros.model.bounds import DISTANCE, Bounds, excess
 from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.model.nets import NumpyResidual
 from hybrid_kinematics_ros.model.parametric import model_from_manifest
@@ -111,9 +111,9 @@ class HybridModel:
             np.array([self.condition_names.index(n) for n in names]) if names[0] in self.condition_names else None
         )
         section = self.manifest.get("bounds")
-        # the bound grows with the distance to the stored training configurations: without them, none
-        self.bounds = Bounds.from_manifest(section) if section and self.coverage is not None else None
-        self._bound_distance: Distance | None = None
+        # a section of the first kind (grown with the distance to the nearest training configuration, before
+        # 2026-11-26) is not read: its numbers mean something else; such a model serves without bounds
+        self.bounds = Bounds.from_manifest(section) if section and section.get("distance") == DISTANCE else None
 
     @property
     def range_policy(self) -> str:
@@ -158,9 +158,7 @@ class HybridModel:
         (:mod:`model.bounds`); None when the model carries no bounds."""
         if self.bounds is None:
             return None
-        if self._bound_distance is None:
-            self._bound_distance = Distance(self.coverage, self.bounds.lever_arms, self.chain.revolute)
-        return self.bounds.of(self._bound_distance(q))
+        return self.bounds.of(excess(q, self.trained_lower, self.trained_upper, self.chain.revolute))
 
     @property
     def is_corrected(self) -> bool:

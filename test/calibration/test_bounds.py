@@ -1,15 +1,21 @@
-"""Error bounds on each answer: the conformal quantile, the distance they grow with, and their coverage on
-pairs the model never saw."""
+"""Error bounds on each answer: the conformal quantile, how far a joint lies beyond the trained range, the rate
+the bound grows at there, and their coverage on pairs the model never saw, inside its range and beyond."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from hybrid_kinematics_ros.calibration import bounds as calibration_bounds
+from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.evaluate import pose_errors_of
-from hybrid_kinematics_ros.model.bounds import Bounds, Distance
+from hybrid_kinematics_ros.calibration.fit import fit, split
+from hybrid_kinematics_ros.io.pairs import Pairs
+from hybrid_kinematics_ros.model.bounds import DISTANCE, Bounds, ErrorBound, excess
 from hybrid_kinematics_ros.model.errors import ModelError
+from hybrid_kinematics_ros.simulation.cell import VirtualCell
 
 
 def test_conformal_quantile_is_the_finite_sample_order_statistic():
@@ -19,37 +25,37 @@ def test_conformal_quantile_is_the_finite_sample_order_statistic():
     assert calibration_bounds.conformal_quantile(scores[:10], 0.95) == scores[:10].max()  # too few: the largest
 
 
-def test_growth_length_recovers_the_trend_of_the_errors():
-    d = np.random.default_rng(1).uniform(0.0, 0.4, 4000)
-    true = 0.12
-    error = 1e-4 * np.sqrt(1.0 + (d / true) ** 2) * np.random.default_rng(2).uniform(0.5, 1.5, len(d))
-    length = calibration_bounds.growth_length(d, error)
-    assert 0.8 * true < length < 1.25 * true
-    # errors that do not grow with the distance give no growth within a robot's reach
-    assert calibration_bounds.growth_length(d, np.random.default_rng(3).uniform(0.5, 1.5, len(d))) > 5.0
+def test_growth_rate_recovers_the_slope_of_the_quantile():
+    rng = np.random.default_rng(1)
+    x = rng.uniform(0.0, 0.5, 4000)
+    floor, slope = 1e-5, 2e-4  # m, and m per rad beyond the range
+    error = (floor + slope * x) * rng.uniform(0.0, 1.0, len(x))  # the 95 % quantile: 0.95 (floor + slope x)
+    rate = calibration_bounds.growth_rate(x, error, 0.95 * floor, 0.95)
+    assert 0.85 * 0.95 * slope < rate < 1.15 * 0.95 * slope
+    # errors that do not grow beyond the range give no growth; pairs inside it give none either
+    assert calibration_bounds.growth_rate(x, rng.uniform(0.0, floor, len(x)), floor, 0.95) < 0.05 * slope
+    assert calibration_bounds.growth_rate(np.zeros(100), error[:100], floor, 0.95) == 0.0
 
 
-def test_distance_weighs_each_joint_by_its_lever_arm_and_a_whole_turn_is_no_move(ur10):
-    chain = ur10.chain
-    q0 = np.array([0.3, -1.2, 1.0, -0.5, 0.7, 0.2])
-    arms = calibration_bounds.lever_arms(chain, np.random.default_rng(0).uniform(-2.0, 2.0, (500, 6)))
-    assert arms[0] > 0.5 and arms[1] > 0.5 and arms[5] < 0.2  # the shoulder moves the tip most, the flange least
-    distance = Distance(q0[None], arms, chain.revolute)
-    for j in range(6):
-        moved = q0.copy()
-        moved[j] += 1e-3
-        np.testing.assert_allclose(distance(moved), 1e-3 * arms[j], rtol=1e-6)
-        moved[j] = q0[j] + 2 * np.pi
-        assert distance(moved)[0] < 1e-12
+def test_excess_is_zero_inside_the_range_and_goes_the_short_way_round():
+    lower, upper = np.array([-1.0, 0.0, -4.0]), np.array([1.0, 0.5, 4.0])
+    revolute = np.array([True, False, True])
+    x = excess(np.array([[0.3, 0.2, 0.0], [1.2, 0.7, 0.0], [-1.0 + 2 * np.pi, -0.1, 3.0]]), lower, upper, revolute)
+    np.testing.assert_allclose(x[0], 0.0)
+    np.testing.assert_allclose(x[1], [0.2, 0.2, 0.0])  # beyond the upper end; a range over a turn: never beyond
+    np.testing.assert_allclose(x[2], [0.0, 0.1, 0.0], atol=1e-12)  # a whole turn on is the same joint angle
+    # beyond the upper end of [-1, 1] by 2.5 rad is nearer to the lower end, the other way round: 2π − 2 − 2.5
+    np.testing.assert_allclose(excess(np.array([[3.5, 0.0, 0.0]]), lower, upper, revolute)[0, 0], 2 * np.pi - 4.5)
 
 
 def test_manifest_round_trip_and_a_malformed_section_names_the_fix():
-    made = Bounds(0.95, np.array([1.0, 0.5]), calibration_bounds.ErrorBound(1e-4, 0.3), None, {"validation_pairs": 7})
+    made = Bounds(0.95, ErrorBound(1e-4, np.array([2e-4, 1e-5])), None, {"validation_pairs": 7})
     again = Bounds.from_manifest(made.manifest())
-    assert again.position == made.position and again.orientation is None and again.figures == made.figures
-    np.testing.assert_array_equal(again.lever_arms, made.lever_arms)
+    assert again.position.quantile == made.position.quantile and again.orientation is None
+    np.testing.assert_array_equal(again.position.rates, made.position.rates)
+    assert again.figures == made.figures
     with pytest.raises(ModelError, match="retrain"):
-        Bounds.from_manifest({"level": 0.95, "position": {"quantile_m": 1e-4}})
+        Bounds.from_manifest({"level": 0.95, "distance": DISTANCE, "position": {"quantile_m": 1e-4}})
 
 
 def test_bounds_hold_on_pairs_the_model_never_saw(trained):
@@ -61,4 +67,41 @@ def test_bounds_hold_on_pairs_the_model_never_saw(trained):
     # calibrated at 95 % on the validation blocks; these test blocks never reached the model
     assert min(covered) >= 0.85, covered
     assert np.median(1e3 * position) < 5.0 * np.median(pos_mm)  # a bound, not a wall
-    # growth away from the data is measured on the real UR10 (trained on C, tested on B) by bench_bounds
+
+
+def shoulder_pairs(cell: VirtualCell, count: int, shoulder: tuple[float, float], seed: int) -> Pairs:
+    """Configurations with every joint anywhere but the shoulder and elbow, measured in the cell."""
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(-np.pi, np.pi, (count, 6))
+    q[:, 1] = rng.uniform(*shoulder, count)
+    q[:, 2] = rng.uniform(0.5, 2.0, count)
+    T = cell.measure(q, rng)
+    return Pairs(q, T, 10**9 + 10**7 * np.arange(count), cell.config.chain.joint_names, cell.frame_id)
+
+
+@pytest.fixture(scope="module")
+def shoulder_model(ur10, tmp_path_factory):
+    """A model trained with the shoulder within one radian, and pairs with it up to 0.8 rad beyond."""
+    cell = VirtualCell.from_config(ur10, noise=False)
+    tr, va, te = split(shoulder_pairs(cell, 2000, (-2.0, -1.0), seed=1), seed=0)
+    beyond = shoulder_pairs(cell, 400, (-0.8, -0.2), seed=2)
+    preset = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=400)
+    payload = (ur10.payload_mass, ur10.payload_com)
+    out = tmp_path_factory.mktemp("shoulder")
+    model, _ = fit(ur10.chain, tr, va, te, out, preset, 5.0, parametric=True, payload=payload)
+    return model, te, beyond
+
+
+def test_bounds_grow_beyond_the_trained_range_with_the_error(shoulder_model):
+    model, inside, beyond = shoulder_model
+    assert model.bounds is not None
+    # the stage extrapolates the shoulder worst: its rate is the steepest
+    assert int(np.argmax(model.bounds.position.rates)) == 1
+    errors = {name: pose_errors_of(model, pairs)["hybrid"] for name, pairs in (("inside", inside), ("beyond", beyond))}
+    bounds = {name: model.error_bounds(pairs.q) for name, pairs in (("inside", inside), ("beyond", beyond))}
+    pos_mm, rot_deg = errors["beyond"]
+    position, orientation = bounds["beyond"]
+    assert np.median(pos_mm) > 10 * np.median(errors["inside"][0])  # the model is far worse beyond its range
+    covered = np.mean(pos_mm <= 1e3 * position), np.mean(rot_deg <= np.degrees(orientation))
+    assert min(covered) >= 0.9, covered
+    assert np.median(position) > 10 * np.median(bounds["inside"][0])  # and says so
