@@ -67,8 +67,8 @@ def held_out_slabs(q: np.ndarray) -> list[tuple[int, np.ndarray]]:
 def extrapolation_errors(
     lin: Linearisation, ridge: np.ndarray, revolute: np.ndarray
 ) -> tuple[np.ndarray, list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]]]:
-    """The stage's errors where it extrapolates. Returns the errors of its fit on all pairs (m, rad ×
-    :data:`ORIENTATION_LENGTH`; ``(N, 2)``, orientation NaN for position-only pairs), and for each held-out
+    """The stage's errors where it extrapolates. Returns the errors of its fit on all pairs ``(N, 2)``
+    (position m, orientation rad; NaN for position-only pairs), and for each held-out
     slab (:func:`held_out_slabs`): its joint, each held-out pair's excess beyond the rest's range of that
     joint, and their position (m) and orientation (rad, None for position-only pairs) errors after a fit on
     the rest. ``ridge (P,)``: the stage's prior on each column of ``lin``, in normal-equation units
@@ -77,8 +77,11 @@ def extrapolation_errors(
     jac, res, q = lin.jacobian[:, :, cols], lin.residual, lin.q
     flat = jac.reshape(-1, len(cols))
     whole, gradient = flat.T @ flat + np.diag(ridge[cols]), flat.T @ res.reshape(-1)
-    whole_reg = whole + 1e-9 * max(float(np.mean(np.diag(whole))), 1e-300) * np.eye(len(cols))
-    fitted = res + jac @ -np.linalg.solve(whole_reg, gradient)
+
+    def solve(normal: np.ndarray, rhs: np.ndarray) -> np.ndarray:  # a relative jitter keeps it regular
+        return np.linalg.solve(normal + 1e-9 * max(float(np.mean(np.diag(normal))), 1e-300) * np.eye(len(rhs)), rhs)
+
+    fitted = res + jac @ -solve(whole, gradient)
 
     def norms(after: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         rot = np.linalg.norm(after[:, 3:], axis=1) / ORIENTATION_LENGTH if after.shape[1] == 6 else None
@@ -88,9 +91,7 @@ def extrapolation_errors(
     slabs = []
     for joint, held in held_out_slabs(q):
         a = jac[held].reshape(-1, len(cols))  # the rest's normal equations: all pairs' less the held-out ones'
-        normal = whole - a.T @ a
-        normal += 1e-9 * max(float(np.mean(np.diag(normal))), 1e-300) * np.eye(len(cols))
-        z = -np.linalg.solve(normal, gradient - a.T @ res[held].reshape(-1))
+        z = -solve(whole - a.T @ a, gradient - a.T @ res[held].reshape(-1))
         rest = q[~held, joint]
         x = excess(q[held, joint : joint + 1], rest.min()[None], rest.max()[None], revolute[joint : joint + 1])[:, 0]
         slabs.append((joint, x, *norms(res[held] + jac[held] @ z)))
