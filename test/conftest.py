@@ -73,6 +73,31 @@ def trained(ur10, virtual_pairs, tmp_path_factory):
     return out, model, manifest, te
 
 
+# A model that knows one radian of the UR10's shoulder: its error bounds grow beyond it.
+def shoulder_pairs(cell: VirtualCell, count: int, shoulder: tuple[float, float], seed: int) -> Pairs:
+    """Configurations with every joint anywhere but the shoulder and elbow, measured in the cell."""
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(-np.pi, np.pi, (count, 6))
+    q[:, 1] = rng.uniform(*shoulder, count)
+    q[:, 2] = rng.uniform(0.5, 2.0, count)
+    T = cell.measure(q, rng)
+    return Pairs(q, T, 10**9 + 10**7 * np.arange(count), cell.config.chain.joint_names, cell.frame_id)
+
+
+@pytest.fixture(scope="session")
+def shoulder_model(ur10, tmp_path_factory):
+    """A model trained with the shoulder within one radian (its directory and the model), its test pairs, and
+    pairs with the shoulder 0.2-0.8 rad beyond that range."""
+    cell = VirtualCell.from_config(ur10, noise=False)
+    tr, va, te = split(shoulder_pairs(cell, 2000, (-2.0, -1.0), seed=1), seed=0)
+    beyond = shoulder_pairs(cell, 400, (-0.8, -0.2), seed=2)
+    preset = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=400)
+    payload = (ur10.payload_mass, ur10.payload_com)
+    out = tmp_path_factory.mktemp("shoulder")
+    model, _ = fit(ur10.chain, tr, va, te, out, preset, 5.0, parametric=True, payload=payload)
+    return out, model, te, beyond
+
+
 # A cell whose robot grows with its temperature: models trained with and without that channel.
 EXPANSION_PER_K = 2e-4  # a strong thermal growth of the whole arm about its base, so the test is quick
 THERMAL_PRESET = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=300)

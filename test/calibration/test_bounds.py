@@ -3,19 +3,13 @@ the bound grows at there, and their coverage on pairs the model never saw, insid
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 
 from hybrid_kinematics_ros.calibration import bounds as calibration_bounds
-from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.evaluate import pose_errors_of
-from hybrid_kinematics_ros.calibration.fit import fit, split
-from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.model.bounds import DISTANCE, Bounds, ErrorBound, excess
 from hybrid_kinematics_ros.model.errors import ModelError
-from hybrid_kinematics_ros.simulation.cell import VirtualCell
 
 
 def test_conformal_quantile_is_the_finite_sample_order_statistic():
@@ -69,31 +63,8 @@ def test_bounds_hold_on_pairs_the_model_never_saw(trained):
     assert np.median(1e3 * position) < 5.0 * np.median(pos_mm)  # a bound, not a wall
 
 
-def shoulder_pairs(cell: VirtualCell, count: int, shoulder: tuple[float, float], seed: int) -> Pairs:
-    """Configurations with every joint anywhere but the shoulder and elbow, measured in the cell."""
-    rng = np.random.default_rng(seed)
-    q = rng.uniform(-np.pi, np.pi, (count, 6))
-    q[:, 1] = rng.uniform(*shoulder, count)
-    q[:, 2] = rng.uniform(0.5, 2.0, count)
-    T = cell.measure(q, rng)
-    return Pairs(q, T, 10**9 + 10**7 * np.arange(count), cell.config.chain.joint_names, cell.frame_id)
-
-
-@pytest.fixture(scope="module")
-def shoulder_model(ur10, tmp_path_factory):
-    """A model trained with the shoulder within one radian, and pairs with it up to 0.8 rad beyond."""
-    cell = VirtualCell.from_config(ur10, noise=False)
-    tr, va, te = split(shoulder_pairs(cell, 2000, (-2.0, -1.0), seed=1), seed=0)
-    beyond = shoulder_pairs(cell, 400, (-0.8, -0.2), seed=2)
-    preset = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=400)
-    payload = (ur10.payload_mass, ur10.payload_com)
-    out = tmp_path_factory.mktemp("shoulder")
-    model, _ = fit(ur10.chain, tr, va, te, out, preset, 5.0, parametric=True, payload=payload)
-    return model, te, beyond
-
-
 def test_bounds_grow_beyond_the_trained_range_with_the_error(shoulder_model):
-    model, inside, beyond = shoulder_model
+    _, model, inside, beyond = shoulder_model
     assert model.bounds is not None
     # the stage extrapolates the shoulder worst: its rate is the steepest
     assert int(np.argmax(model.bounds.position.rates)) == 1
