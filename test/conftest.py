@@ -80,8 +80,7 @@ def shoulder_pairs(cell: VirtualCell, count: int, shoulder: tuple[float, float],
     q = rng.uniform(-np.pi, np.pi, (count, 6))
     q[:, 1] = rng.uniform(*shoulder, count)
     q[:, 2] = rng.uniform(0.5, 2.0, count)
-    T = cell.measure(q, rng)
-    return Pairs(q, T, 10**9 + 10**7 * np.arange(count), cell.config.chain.joint_names, cell.frame_id)
+    return cell.pairs(q, seed)
 
 
 @pytest.fixture(scope="session")

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics.robot_config import RobotConfig
 from hybrid_kinematics_ros.simulation.sampling import sample_joints
 from hybrid_kinematics_ros.simulation.tracker import Tracker
@@ -30,6 +31,11 @@ class VirtualCell:
     def measure(self, q: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Tracker measurements ``(B, 4, 4)`` of the robot at commanded joints ``q``."""
         return self.tracker.measure(self.robot.fk(q), rng)
+
+    def pairs(self, q: np.ndarray, seed: int) -> Pairs:
+        """The cell's measurements at commanded joints ``q (N, n)`` as pairs, 10 ms apart."""
+        T = self.measure(q, np.random.default_rng(seed))
+        return Pairs(q, T, 10**9 + 10**7 * np.arange(len(q)), self.config.chain.joint_names, self.frame_id)
 
     def samples(
         self, count: int, seed: int, fraction: float = 1.0, block: int = 50_000
