@@ -23,6 +23,10 @@ from hybrid_kinematics_ros.simulation.tracker import Tracker
 
 TARGET = {"xyz": [0.02, -0.03, 0.09], "rpy": [0.1, 0.0, 0.4]}
 SHARED = [["tracker_a", "tracker_b"]]  # the target stayed on the flange while the tracker moved
+# What the capacity selection chooses for these pairs, with and without orientation (2026-11-26); fixed here
+# because the stations are under test, not the capacity (test_portfolio tests that): 3 s an identification
+# instead of 28, with the same held-out errors.
+FIXED = {"capacity": {"elastic": "bending", "harmonics": 2, "harmonic_prior": 3.0, "map_step": 0.0}, "choose": False}
 STATIONS = {  # frame: (tracker placement, the half of the shoulder's range its poses used)
     "tracker_a": ({"xyz": [2.4, -1.1, 0.35], "rpy": [0.01, -0.02, 2.2]}, (-2.8, -1.6)),
     "tracker_b": ({"xyz": [-1.8, 1.5, 0.1], "rpy": [0.0, 0.02, -0.7]}, (-1.6, -0.4)),
@@ -71,7 +75,7 @@ def _held_out_errors(ur10, cells, refs, result, points: bool = False) -> dict[st
 def test_station_corrections_make_the_stations_agree(ur10, stations, monkeypatch):
     cells, train = stations
     payload = (ur10.payload_mass, ur10.payload_com)
-    refs, result = identify_stations(ur10.chain, train, reference_all(ur10.chain, train, SHARED), payload)
+    refs, result = identify_stations(ur10.chain, train, reference_all(ur10.chain, train, SHARED), payload, **FIXED)
     assert result.placements.shape == (1, 4, 4) and result.mounts.shape == (0, 4, 4)  # the target is shared
     assert "refined" in refs["tracker_b"].method and "refined" not in refs["tracker_a"].method
     corrected = _held_out_errors(ur10, cells, refs, result)
@@ -82,12 +86,12 @@ def test_station_corrections_make_the_stations_agree(ur10, stations, monkeypatch
 
     # the same without the station corrections: every station labelled as the reference
     monkeypatch.setattr(calibration_fit, "station_labels", lambda refs, _: {f: (-1, -1) for f in refs})
-    refs0, result0 = identify_stations(ur10.chain, train, reference_all(ur10.chain, train, SHARED), payload)
+    refs0, result0 = identify_stations(ur10.chain, train, reference_all(ur10.chain, train, SHARED), payload, **FIXED)
     uncorrected = _held_out_errors(ur10, cells, refs0, result0)
     found0 = se3.inverse(refs0["tracker_a"].base_to_tracker) @ refs0["tracker_b"].base_to_tracker
     pos0, _ = se3.pose_errors(found0[None], (se3.inverse(truth["tracker_a"]) @ truth["tracker_b"])[None])
 
-    assert max(corrected.values()) < 0.08, (corrected, uncorrected)  # mm; measured 0.043 (0.28 uncorrected)
+    assert max(corrected.values()) < 0.08, (corrected, uncorrected)  # mm; measured 0.003 (0.27 uncorrected)
     assert min(uncorrected.values()) > 3 * max(corrected.values()), (corrected, uncorrected)
     # measured: 0.009 mm and 0.0002° from the truth (1.16 mm uncorrected)
     assert pos[0] < 0.05 and rot[0] < 0.002 and pos0[0] > 5 * pos[0], (pos, rot, pos0)  # mm, deg
@@ -97,13 +101,13 @@ def test_plain_reflectors_at_two_stations_are_corrected_too(ur10, stations, monk
     cells, train = stations
     points = [_points(p) for p in train]  # each frame its own target: a mount correction for the second
     payload = (ur10.payload_mass, ur10.payload_com)
-    refs, result = identify_stations(ur10.chain, points, reference_all(ur10.chain, points), payload)
+    refs, result = identify_stations(ur10.chain, points, reference_all(ur10.chain, points), payload, **FIXED)
     assert result.placements.shape == (1, 4, 4) and result.mounts.shape == (1, 4, 4)
     corrected = _held_out_errors(ur10, cells, refs, result, points=True)
     monkeypatch.setattr(calibration_fit, "station_labels", lambda refs, _: {f: (-1, -1) for f in refs})
-    refs0, result0 = identify_stations(ur10.chain, points, reference_all(ur10.chain, points), payload)
+    refs0, result0 = identify_stations(ur10.chain, points, reference_all(ur10.chain, points), payload, **FIXED)
     uncorrected = _held_out_errors(ur10, cells, refs0, result0, points=True)
-    assert max(corrected.values()) < 0.08, (corrected, uncorrected)  # mm; measured 0.044 (0.30 uncorrected)
+    assert max(corrected.values()) < 0.08, (corrected, uncorrected)  # mm; measured 0.006 (0.28 uncorrected)
     assert min(uncorrected.values()) > 3 * max(corrected.values()), (corrected, uncorrected)
 
 
