@@ -364,16 +364,26 @@ def load_part(node_pid: int) -> str:
     )
 
 
+TRAINING_SECONDS: dict[Path, float] = {}  # small_model's, per run folder
+
+
+def served_model(model_dir: str | None, tmp: Path) -> tuple[str, str]:
+    """The model a part serves and how to describe it: ``model_dir``, or else :func:`small_model`, trained
+    once per run (the parts that need it share it)."""
+    if model_dir is not None:
+        return model_dir, f"model {model_dir}"
+    out = tmp / "model"
+    if out not in TRAINING_SECONDS:
+        start = time.perf_counter()
+        small_model(out)
+        TRAINING_SECONDS[out] = time.perf_counter() - start
+    return str(out), f"a UR10 model trained for this run ({TRAINING_SECONDS[out]:.0f} s; see `small_model`)"
+
+
 def compensate_part(model_dir: str | None, tmp: Path, calls: int = 10) -> str:
     from bench.report import table
 
-    trained = model_dir is None
-    if trained:
-        start = time.perf_counter()
-        model_dir = str(small_model(tmp / "model"))
-        about = f"a UR10 model trained for this run ({time.perf_counter() - start:.0f} s; see `small_model`)"
-    else:
-        about = f"model {model_dir}"
+    model_dir, about = served_model(model_dir, tmp)
     node = start_node(model_dir, tmp / "compensate_node.log")
     try:
         proc = subprocess.Popen(
@@ -412,12 +422,7 @@ def bounds_part(model_dir: str | None, tmp: Path, repeat: int, rounds: int) -> s
 
     from bench.report import table
 
-    start = time.perf_counter()
-    if model_dir is None:
-        model_dir = str(small_model(tmp / "model"))
-        about = f"a UR10 model trained for this run ({time.perf_counter() - start:.0f} s; see `small_model`)"
-    else:
-        about = f"model {model_dir}"
+    model_dir, about = served_model(model_dir, tmp)
     plain = tmp / "without_bounds"
     shutil.copytree(model_dir, plain)
     manifest = json.loads((plain / "model.json").read_text())

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bench.bench_bounds import shoulder_configurations
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.fit import fit, split
 from hybrid_kinematics_ros.io.pairs import Pairs
@@ -74,22 +75,13 @@ def trained(ur10, virtual_pairs, tmp_path_factory):
 
 
 # A model that knows one radian of the UR10's shoulder: its error bounds grow beyond it.
-def shoulder_pairs(cell: VirtualCell, count: int, shoulder: tuple[float, float], seed: int) -> Pairs:
-    """Configurations with every joint anywhere but the shoulder and elbow, measured in the cell."""
-    rng = np.random.default_rng(seed)
-    q = rng.uniform(-np.pi, np.pi, (count, 6))
-    q[:, 1] = rng.uniform(*shoulder, count)
-    q[:, 2] = rng.uniform(0.5, 2.0, count)
-    return cell.pairs(q, seed)
-
-
 @pytest.fixture(scope="session")
 def shoulder_model(ur10, tmp_path_factory):
     """A model trained with the shoulder within one radian (its directory and the model), its test pairs, and
     pairs with the shoulder 0.2-0.8 rad beyond that range."""
     cell = VirtualCell.from_config(ur10, noise=False)
-    tr, va, te = split(shoulder_pairs(cell, 2000, (-2.0, -1.0), seed=1), seed=0)
-    beyond = shoulder_pairs(cell, 400, (-0.8, -0.2), seed=2)
+    tr, va, te = split(cell.pairs(shoulder_configurations(2000, (-2.0, -1.0), seed=1), seed=1), seed=0)
+    beyond = cell.pairs(shoulder_configurations(400, (-0.8, -0.2), seed=2), seed=2)
     preset = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=400)
     payload = (ur10.payload_mass, ur10.payload_com)
     out = tmp_path_factory.mktemp("shoulder")

@@ -8,7 +8,7 @@ Two things are measured, each from the training run's own pairs (the test pairs 
    problem of capacity selection (:class:`calibration.parametric.Linearisation`), one solve per slab. Each
    held-out pair lies some way beyond the rest's range of that joint (:func:`model.bounds.excess`); the
    joint's rate is the slope of the held-out errors' ``level`` quantile over that excess, above the fit's
-   own error (:func:`growth_rates`).
+   own error (:func:`growth_rate`).
 2. **The bound inside the range.** The hybrid model's errors on the validation blocks, less the growth at
    their excess (nearly all lie inside: none), and their split conformal quantile (the
    ⌈(n + 1)·level⌉-th smallest), so about ``level`` of errors on data like the validation blocks lie
@@ -66,9 +66,9 @@ def held_out_slabs(q: np.ndarray) -> list[tuple[int, np.ndarray]]:
 
 def extrapolation_errors(
     lin: Linearisation, ridge: np.ndarray, revolute: np.ndarray
-) -> tuple[np.ndarray, list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]]]:
-    """The stage's errors where it extrapolates. Returns the errors of its fit on all pairs ``(N, 2)``
-    (position m, orientation rad; NaN for position-only pairs), and for each held-out
+) -> tuple[tuple[np.ndarray, np.ndarray | None], list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]]]:
+    """The stage's errors where it extrapolates. Returns the errors of its fit on all pairs (position m,
+    orientation rad or None for position-only pairs), and for each held-out
     slab (:func:`held_out_slabs`): its joint, each held-out pair's excess beyond the rest's range of that
     joint, and their position (m) and orientation (rad, None for position-only pairs) errors after a fit on
     the rest. ``ridge (P,)``: the stage's prior on each column of ``lin``, in normal-equation units
@@ -95,7 +95,7 @@ def extrapolation_errors(
         rest = q[~held, joint]
         x = excess(q[held, joint : joint + 1], rest.min()[None], rest.max()[None], revolute[joint : joint + 1])[:, 0]
         slabs.append((joint, x, *norms(res[held] + jac[held] @ z)))
-    return np.column_stack([on_data[0], on_data[1] if on_data[1] is not None else np.full(len(q), np.nan)]), slabs
+    return on_data, slabs
 
 
 def growth_rate(x: np.ndarray, error: np.ndarray, floor: float, level: float) -> float:
@@ -132,7 +132,7 @@ def calibrate(
     on_data, slabs = extrapolation_errors(lin, ridge, revolute)
     n = len(revolute)
     kinds = {"position": (0, position_error)}
-    if orientation_error is not None and not np.isnan(on_data[:, 1]).any():
+    if orientation_error is not None and on_data[1] is not None:
         kinds["orientation"] = (1, orientation_error)
     made: dict[str, ErrorBound] = {}
     figures: dict[str, float | int] = {
@@ -142,7 +142,7 @@ def calibrate(
         "held_out_pairs": int(sum(len(s[1]) for s in slabs)),
     }
     for kind, (column, validation) in kinds.items():
-        floor = conformal_quantile(on_data[:, column], level)
+        floor = conformal_quantile(on_data[column], level)
         rates = np.zeros(n)
         for j in range(n):
             mine = [(x, err[column]) for joint, x, *err in slabs if joint == j]
