@@ -147,6 +147,8 @@ class _Folds:
     normal: list[np.ndarray]
     gradient: list[np.ndarray]
     columns: np.ndarray  # identifiable columns (indices into lin.params) the normal equations hold
+    held: list[np.ndarray]  # per fold: the held-out pairs (bool over the linearisation's pairs)
+    held_jacobian: list[np.ndarray]  # per fold: the Jacobian of its held-out pairs over ``columns``
     jacobian: np.ndarray  # (N, width, len(columns)): the linearisation's Jacobian over those columns
 
     @classmethod
@@ -161,17 +163,23 @@ class _Folds:
         z = _solve(flat.T @ flat, flat.T @ res.ravel())
         fitted = res + jac @ z
         weight = 1.0 / np.sqrt(1.0 + (fitted / ROBUST_SCALE) ** 2)
+        # each fold's normal equations: all pairs' less its held-out pairs' (one product over every pair,
+        # then one over each fold's fifth, instead of one over four fifths per fold)
+        w_all = weight.reshape(-1)
+        normal_all = flat.T @ (w_all[:, None] * flat)
+        gradient_all = flat.T @ (w_all * res.reshape(-1))
+        held = [(block % FOLDS) == f for f in range(FOLDS)]
+        held_jacobian = [jac[h] for h in held]
         normal, gradient = [], []
-        for f in range(FOLDS):
-            train = (block % FOLDS) != f
-            a = jac[train].reshape(-1, len(columns))
-            w = weight[train].reshape(-1)
-            normal.append(a.T @ (w[:, None] * a))
-            gradient.append(a.T @ (w * res[train].reshape(-1)))
-        return cls(lin, block, normal, gradient, columns, jac)
+        for h, jh in zip(held, held_jacobian, strict=True):
+            a = jh.reshape(-1, len(columns))
+            w = weight[h].reshape(-1)
+            normal.append(normal_all - a.T @ (w[:, None] * a))
+            gradient.append(gradient_all - a.T @ (w * res[h].reshape(-1)))
+        return cls(lin, block, normal, gradient, columns, held, held_jacobian, jac)
 
     def held_out(self, f: int) -> np.ndarray:
-        return (self.block % FOLDS) == f
+        return self.held[f]
 
     def solve(self, f: int, use: np.ndarray, prior: np.ndarray) -> np.ndarray:
         """Scaled parameter values (over ``columns``, zero where not ``use``) fitted on fold ``f``'s training
@@ -184,7 +192,8 @@ class _Folds:
 
     def residual(self, f: int, z: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         """``(M, width)``: the residuals of fold ``f``'s held-out pairs (or ``rows``) after ``z``."""
-        rows = self.held_out(f) if rows is None else rows
+        if rows is None:
+            return self.lin.residual[self.held[f]] + self.held_jacobian[f] @ z
         return self.lin.residual[rows] + self.jacobian[rows] @ z
 
 
@@ -333,16 +342,17 @@ def select_capacity(
     # approach directions, of the backlash they explain: the nets will carry that part).
     use = stage_columns(elastic, harmonics, backlash)
     stage = [folds.solve(f, use, prior(settings["harmonic_prior"])) for f in range(FOLDS)]
+    # what each fold's stage leaves of its held-out and of its training pairs (the same for every map)
+    left = [(folds.residual(f, stage[f]), folds.residual(f, stage[f], ~folds.held_out(f))) for f in range(FOLDS)]
     ridge = {} if map_ridge is None else {"ridge": map_ridge}
 
     def mapped(step: float, smoothness: float) -> np.ndarray:
         out = np.zeros_like(lin.residual)
         for f in range(FOLDS):
             held = folds.held_out(f)
-            res_val = folds.residual(f, stage[f])
+            res_val, res_train = left[f]
             if step > 0:
                 train = ~held
-                res_train = folds.residual(f, stage[f], train)
                 q = lin.q[train]
                 lower = q.min(axis=0) - step
                 knots = int(np.floor((q.max(axis=0) - lower) / step).max()) + 2

@@ -72,6 +72,7 @@ MAP_STEP = 0.0  # rad between the joint error map's knots (0: no map)
 MAP_SMOOTHNESS = 0.03
 MAP_RIDGE = 1e-3  # the same for the map's values themselves: where no data is, the map stays at zero
 MAP_MAX_PAIRS = 50_000  # a random draw of at most this many pairs fits the map (memory and time stay bounded)
+DENSE_MAP_UNKNOWNS = 10_000  # map values (joints × knots) up to which the map is solved dense (800 MB)
 SCALE = {
     "zero": 1e-3,
     "compliance": 1e-4,
@@ -297,10 +298,16 @@ def solve_joint_map(
     curvature = sparse.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(knots - 2, knots))
     smooth = sparse.block_diag([curvature] * n)
     # The normal equations are sparse (a pair couples two knots of each joint) and the priors keep them well
-    # conditioned: a sparse direct solve takes a fraction of a second where LSQR iterated for seconds.
+    # conditioned. A pair couples every joint's knots with every other's, though: a factorisation fills in
+    # nearly completely, and a dense Cholesky is 6x faster than a sparse LU (0.85 against 5.3 s at 3,786
+    # unknowns, 4,000 pairs, 0.01 rad knots; both 1e-14 apart). Beyond DENSE_MAP_UNKNOWNS the sparse solve
+    # keeps the memory bounded.
     normal = (design.T @ design + pairs * smoothness**2 * (smooth.T @ smooth)).tocsc()
     normal = normal + pairs * ridge**2 * sparse.identity(n * knots, format="csc")
-    return spsolve(normal, design.T @ res).reshape(n, knots)
+    rhs = design.T @ res
+    if n * knots > DENSE_MAP_UNKNOWNS:
+        return spsolve(normal, rhs).reshape(n, knots)
+    return cho_solve(cho_factor(normal.toarray()), rhs).reshape(n, knots)
 
 
 @dataclass
