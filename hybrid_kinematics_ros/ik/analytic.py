@@ -157,6 +157,20 @@ class AnalyticIK:
         q = np.array(exact, dtype=float).reshape(-1, 6)
         return q[np.all(np.isfinite(q), axis=1)]
 
+    def approximations(self, target: np.ndarray, seed: np.ndarray, miss_m: float, miss_rad: float) -> np.ndarray:
+        """IK-Geo's least-squares answers ``(k, 6)`` within the limits that our FK takes to within ``miss_m``
+        and ``miss_rad`` of the target, nearest the seed first. A hybrid model's target can lie just beyond
+        its URDF model's reach (a UR arm's wrist a fraction of a millimetre inside the cylinder its shoulder
+        offset leaves around axis 1): no exact branch exists, and these are where the URDF model gets
+        nearest, next to the hybrid solutions."""
+        q = np.array([q for q, least_squares in self._answers(target) if least_squares], dtype=float).reshape(-1, 6)
+        q = fold(q[np.all(np.isfinite(q), axis=1)], seed, self.lower, self.upper)
+        if not len(q):
+            return q
+        e = _errors(target, fk.fk(self.chain, q))
+        q = q[(np.linalg.norm(e[:, :3], axis=1) < miss_m) & (np.linalg.norm(e[:, 3:], axis=1) < miss_rad)]
+        return q[np.argsort(np.linalg.norm(q - seed, axis=1), kind="stable")]
+
     def nearest(self, target: np.ndarray, seed: np.ndarray) -> np.ndarray | None:
         """The exact branch within the limits nearest the seed, unchecked (the caller checks it on the model it
         solves for), or None."""

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import itertools
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -70,6 +71,10 @@ PATH_JUMP_RAD = 0.5
 # The closed forms' fixed point (2.): the hybrid corrections move a solution by milliradians and change little
 # over that, so each round cuts the error by orders of magnitude; a round costs one hybrid FK.
 FIXED_POINT_ROUNDS = 12
+# Beyond the URDF model's reach, a round that cuts the error by less than this has stalled: the branch does not
+# reach the target (at the fold where it does, the error halves each round). Elsewhere rounds can rise before
+# they fall, and the fixed point runs its rounds (rx160, elbow stretched: 49 of 60 solved, 43 with the rule).
+STALLED = 0.9
 VALLEY_SHARE = 0.5  # of the budget, still left, for the search along a singular valley (ik/valley.py)
 SINGULAR = 1e-6  # the URDF Jacobian's smallest singular value (m or rad per rad) at a singular target's answer
 
@@ -239,8 +244,22 @@ class IKSolver:
             restarts = 2 * seeding.TABLE_RESTARTS
             q, _, _, stats["attempts"] = self.classical(target, seed, deadline, restarts, closed)
             return self._singular(self.result(q, target, analytic, start, stats))
-        q0, _, _, attempts = self.classical(target, seed, start + CLASSICAL_SHARE * o.timeout_s, branches=closed)
-        stats["attempts"] += attempts
+        near = self._beyond_reach(target, seed, closed)
+        if len(near):  # the closed forms are complete: no URDF-model restart would find an exact branch
+            stats["beyond_urdf_reach"] = True
+            # the hybrid model reaches the target on some of these branches only (the edge of its workspace
+            # moved by the corrections): the cheap fixed point on each first, nearest the seed first
+            nearest_miss = None
+            for q in near:
+                result = self._from_branch(target, q, analytic, start, deadline, stats, origin, self._fixed_point_only)
+                if result.success:
+                    return self._singular(result)
+                if nearest_miss is None or result.position_error_mm < nearest_miss.position_error_mm:
+                    nearest_miss = result
+            q0 = nearest_miss.q  # the refinements go on from the branch that came nearest
+        else:
+            q0, _, _, attempts = self.classical(target, seed, start + CLASSICAL_SHARE * o.timeout_s, branches=closed)
+            stats["attempts"] += attempts
         best = self._from_branch(target, q0, analytic, start, deadline, stats, origin)
         if best.success:
             return self._singular(best)
@@ -249,12 +268,18 @@ class IKSolver:
         tol_m, tol_rad = self.inner_tol
         starts = [*closed, *self.seeds.nearest(target, 2 * seeding.TABLE_RESTARTS)]
         valley = [] if analytic else seeding.valley_seeds(self.model, best.q, best.position_error_mm, self.limits)
+        others = [q for q in near[1:] if seeding.is_new_branch(q, tried)]
         for i in itertools.count():
             if time.perf_counter() > deadline:
                 break
             if valley:  # straight to the hybrid LM: these start next to a hybrid near-solution
                 result = self._other_branch(target, valley.pop(0), analytic, start, deadline, stats, origin)
                 stats["valley"] = stats.get("valley", 0) + 1
+            elif others:  # the URDF model's nearest answers of the other branches, beyond its reach
+                q0 = others.pop(0)
+                tried.append(q0)
+                result = self._other_branch(target, q0, analytic, start, deadline, stats, origin)
+                valley = seeding.valley_seeds(self.model, result.q, result.position_error_mm, self.limits)
             else:
                 s = starts[i] if i < len(starts) else self.seeds.random()
                 q0, ep, er, _ = lm_solve(
@@ -274,6 +299,14 @@ class IKSolver:
         best.stats["branches"] = len(tried)
         best.seconds = time.perf_counter() - start
         return self._singular(best)
+
+    def _beyond_reach(self, target: np.ndarray, seed: np.ndarray, closed: np.ndarray) -> np.ndarray:
+        """Where the closed forms give no exact branch within the limits: their least-squares answers within
+        NEAR_M / NEAR_RAD of the target (a hybrid target just beyond the URDF model's reach), nearest the seed
+        first; else none. Every classical restart there fails, and took half the budget (650d758)."""
+        if self.closed_form is None or len(closed):
+            return np.empty((0, self.model.chain.dof))
+        return self.closed_form.approximations(target, seed, seeding.NEAR_M, seeding.NEAR_RAD)
 
     def _rank_lost(self, q: np.ndarray) -> bool:
         """The URDF Jacobian at ``q`` has lost rank: ``q`` is at a singularity."""
@@ -333,31 +366,35 @@ class IKSolver:
         deadline: float,
         stats: dict,
         origin: np.ndarray | None = None,
+        refine: Callable[..., IKResult] | None = None,
     ) -> IKResult:
-        """:meth:`_refine_branch` with the directions of the move from ``origin`` (4.): once more if the
-        refinement moved a joint to the other side of the origin."""
+        """:meth:`_refine_branch` (or ``refine``, with its arguments) with the directions of the move from
+        ``origin`` (4.): once more if the refinement moved a joint to the other side of the origin."""
+        refine = refine or self._refine_branch
         directions = self._arrival(origin, q0)
         with self.model.approaching(directions):
-            result = self._refine_branch(target, q0, analytic, start, deadline, stats)
+            result = refine(target, q0, analytic, start, deadline, stats)
         if directions is None:
             return result
         again = self._arrival(origin, result.q)
         if not np.array_equal(again, directions):
             directions = again
             with self.model.approaching(directions):
-                result = self._refine_branch(target, result.q, analytic, start, deadline, stats)
+                result = refine(target, result.q, analytic, start, deadline, stats)
         result.stats["approach"] = directions.tolist()
         return result
 
     def fixed_point(
-        self, target: np.ndarray, q0: np.ndarray, deadline: float
+        self, target: np.ndarray, q0: np.ndarray, deadline: float, stop_stalled: bool = False
     ) -> tuple[np.ndarray, tuple[float, float] | None]:
         """The hybrid solution from ``q0`` through the closed forms alone (module docstring, 2.), each round on
         the branch nearest the last answer (near a singularity that can be another: every round is checked on
         the hybrid FK):
-        ``q = IK(compensated_target(q))`` on the branch; at the fixed point hybrid(q) = target.
-        Returns the round nearest the target (``q0`` if none comes nearer) and its hybrid errors (mm, deg;
-        None without closed forms); it stops within the solver's inner tolerance."""
+        ``q = IK(compensated_target(q))`` on the branch; at the fixed point hybrid(q) = target. Where the
+        compensated target lies beyond the URDF model's reach, the round takes the closed forms' nearest
+        least-squares answer instead. Returns the round nearest the target (``q0`` if none comes nearer) and its
+        hybrid errors (mm, deg; None without closed forms); it stops within the solver's inner tolerance, or
+        with ``stop_stalled`` at a round that cuts the error by less than STALLED."""
         if self.closed_form is None:
             return q0, None
         tol_m, tol_rad = self.inner_tol
@@ -367,16 +404,30 @@ class IKSolver:
             e = error6(target, hybrid)
             cost = float(np.linalg.norm(e))  # m and rad, as LM weighs them
             ep, er = float(np.linalg.norm(e[:3])), float(np.linalg.norm(e[3:]))
+            stalled = stop_stalled and cost > STALLED * best_cost
             if cost < best_cost:
                 best, best_cost, best_errors = q, cost, (1e3 * ep, float(np.degrees(er)))
             if ep <= tol_m and er <= tol_rad:
                 break
-            if round_ == FIXED_POINT_ROUNDS or time.perf_counter() > deadline:
+            if round_ == FIXED_POINT_ROUNDS or time.perf_counter() > deadline or stalled:
                 break
-            q = self.closed_form.nearest(compensated_target(self.model, target, q, hybrid), q)
-            if q is None:
+            moved = compensated_target(self.model, target, q, hybrid)
+            q_next = self.closed_form.nearest(moved, q)
+            if q_next is None:  # beyond the URDF model's reach: its nearest answer on this branch
+                near = self.closed_form.approximations(moved, q, seeding.NEAR_M, seeding.NEAR_RAD)
+                q_next = near[0] if len(near) else None
+            if q_next is None:
                 break
+            q = q_next
         return best, best_errors
+
+    def _fixed_point_only(
+        self, target: np.ndarray, q0: np.ndarray, analytic: bool, start: float, deadline: float, stats: dict
+    ) -> IKResult:
+        """The closed forms' fixed point alone, stopped where it stalls: the cheap first try of each branch of a
+        target beyond the URDF model's reach."""
+        q, errors = self.fixed_point(target, q0, deadline, stop_stalled=True)
+        return self.result(q, target, analytic, start, dict(stats, method="closed-form fixed point"), errors)
 
     def _refine_branch(
         self, target: np.ndarray, q0: np.ndarray, analytic: bool, start: float, deadline: float, stats: dict

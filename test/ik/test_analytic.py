@@ -11,9 +11,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from hybrid_kinematics_ros.ik.analytic import AnalyticIK, _errors, classify, fold, geometry
+from bench.bench_ik_singular import cases
+from hybrid_kinematics_ros.ik.analytic import CHECK_M, AnalyticIK, _errors, classify, fold, geometry
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.lm import error6
+from hybrid_kinematics_ros.ik.seeds import NEAR_M, NEAR_RAD
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
@@ -197,6 +199,35 @@ def test_hybrid_targets_near_a_shoulder_singularity_take_the_fixed_point(trained
         assert result.success, result.message
         methods.append(result.stats.get("method"))
     assert methods.count("closed-form fixed point") >= 2, methods
+
+
+def test_hybrid_targets_beyond_the_urdf_models_reach_start_from_its_nearest_answers(trained):
+    """The UR10's wrist on the cylinder its shoulder offset leaves around axis 1 (its shoulder singularity): a
+    hybrid target there lies beyond the URDF model's reach about half the time, with no exact branch. The
+    closed forms' least-squares answers, a correction's size away, start the hybrid solutions: no URDF-model
+    restart runs (they all failed, and took half the budget)."""
+    _, model, _, _ = trained
+    solver = IKSolver(model, GENEROUS)
+    qs = cases(model.chain, 20, np.random.default_rng(7))["wrist centre on axis 1"]
+    beyond = 0
+    for q, target in zip(qs, model.fk(qs), strict=True):
+        if len(solver.branches(target, q)):  # within the URDF model's reach: the usual path
+            continue
+        beyond += 1
+        near = solver.closed_form.approximations(target, q, NEAR_M, NEAR_RAD)
+        assert len(near), "a least-squares answer within a correction's size of the target"
+        assert np.all(np.linalg.norm(_errors(target, fk.fk(model.chain, near))[:, :3], axis=1) > CHECK_M)
+        result = solver.solve(target)
+        assert result.success, (result.position_error_mm, result.stats)
+        assert result.stats["beyond_urdf_reach"] and result.stats["attempts"] == 0
+        assert max(hybrid_error(model, result.q, target)) < 1e-4
+    assert beyond >= 5, beyond
+
+
+def hybrid_error(model, q: np.ndarray, target: np.ndarray) -> tuple[float, float]:
+    """Position (mm) and orientation (deg) errors of the hybrid pose at ``q``."""
+    e = error6(target, model.fk_single(q))
+    return 1e3 * float(np.linalg.norm(e[:3])), float(np.degrees(np.linalg.norm(e[3:])))
 
 
 def test_a_chain_of_five_joints_gets_one_clear_line(example_robot_data):
