@@ -71,9 +71,10 @@ PATH_JUMP_RAD = 0.5
 # The closed forms' fixed point (2.): the hybrid corrections move a solution by milliradians and change little
 # over that, so each round cuts the error by orders of magnitude; a round costs one hybrid FK.
 FIXED_POINT_ROUNDS = 12
-# Beyond the URDF model's reach, a round that cuts the error by less than this has stalled: the branch does not
-# reach the target (at the fold where it does, the error halves each round). Elsewhere rounds can rise before
-# they fall, and the fixed point runs its rounds (rx160, elbow stretched: 49 of 60 solved, 43 with the rule).
+# A least-squares round (the compensated target beyond the URDF model's reach) that cuts the error by less than
+# this has stalled: the branch does not reach the target (at the fold where it does, the error halves each round).
+# The rule does not apply to exact rounds, which can rise before they fall (rx160, elbow stretched: 43 of 60
+# solved with it, 49 without).
 STALLED = 0.9
 VALLEY_SHARE = 0.5  # of the budget, still left, for the search along a singular valley (ik/valley.py)
 SINGULAR = 1e-6  # the URDF Jacobian's smallest singular value (m or rad per rad) at a singular target's answer
@@ -350,9 +351,9 @@ class IKSolver:
         if analytic or not self.model.is_corrected:
             return self.result(q0, target, analytic, start, dict(stats))
         with self.model.approaching(self._arrival(origin, q0)):
-            q0, errors = self.fixed_point(target, q0, deadline)
+            q0, errors, beyond = self.fixed_point(target, q0, deadline)
             result = self.result(q0, target, analytic, start, dict(stats), errors)
-            if result.success:
+            if result.success or beyond:
                 return result
             q, *_ = self.refiner.unbounded(target, q0, deadline, chord_first=True)
             return self.result(q, target, analytic, start, dict(stats))
@@ -385,48 +386,54 @@ class IKSolver:
         return result
 
     def fixed_point(
-        self, target: np.ndarray, q0: np.ndarray, deadline: float, stop_stalled: bool = False
-    ) -> tuple[np.ndarray, tuple[float, float] | None]:
+        self, target: np.ndarray, q0: np.ndarray, deadline: float
+    ) -> tuple[np.ndarray, tuple[float, float] | None, bool]:
         """The hybrid solution from ``q0`` through the closed forms alone (module docstring, 2.), each round on
         the branch nearest the last answer (near a singularity that can be another: every round is checked on
         the hybrid FK):
         ``q = IK(compensated_target(q))`` on the branch; at the fixed point hybrid(q) = target. Where the
         compensated target lies beyond the URDF model's reach, the round takes the closed forms' nearest
-        least-squares answer instead. Returns the round nearest the target (``q0`` if none comes nearer) and its
-        hybrid errors (mm, deg; None without closed forms); it stops within the solver's inner tolerance, or
-        with ``stop_stalled`` at a round that cuts the error by less than STALLED."""
+        least-squares answer instead.
+        Returns the round nearest the target (``q0`` if none comes nearer), its hybrid errors (mm, deg; None
+        without closed forms), and whether it stalled beyond the branch's reach: after a least-squares round
+        the error fell by less than STALLED, so the branch's nearest point to the target is found, and the
+        branch has no hybrid solution here. It stops within the solver's inner tolerance."""
         if self.closed_form is None:
-            return q0, None
+            return q0, None, False
         tol_m, tol_rad = self.inner_tol
         best, best_cost, best_errors, q = q0, np.inf, None, q0
+        least_squares = False
         for round_ in range(FIXED_POINT_ROUNDS + 1):
             hybrid = self.model.fk_single(q)
             e = error6(target, hybrid)
             cost = float(np.linalg.norm(e))  # m and rad, as LM weighs them
             ep, er = float(np.linalg.norm(e[:3])), float(np.linalg.norm(e[3:]))
-            stalled = stop_stalled and cost > STALLED * best_cost
+            stalled = least_squares and cost > STALLED * best_cost
             if cost < best_cost:
                 best, best_cost, best_errors = q, cost, (1e3 * ep, float(np.degrees(er)))
             if ep <= tol_m and er <= tol_rad:
                 break
-            if round_ == FIXED_POINT_ROUNDS or time.perf_counter() > deadline or stalled:
+            if stalled:
+                return best, best_errors, True
+            if round_ == FIXED_POINT_ROUNDS or time.perf_counter() > deadline:
                 break
             moved = compensated_target(self.model, target, q, hybrid)
             q_next = self.closed_form.nearest(moved, q)
-            if q_next is None:  # beyond the URDF model's reach: its nearest answer on this branch
+            least_squares = q_next is None
+            if least_squares:  # beyond the URDF model's reach: its nearest answer on this branch
                 near = self.closed_form.approximations(moved, q, seeding.NEAR_M, seeding.NEAR_RAD)
                 q_next = near[0] if len(near) else None
             if q_next is None:
                 break
             q = q_next
-        return best, best_errors
+        return best, best_errors, False
 
     def _fixed_point_only(
         self, target: np.ndarray, q0: np.ndarray, analytic: bool, start: float, deadline: float, stats: dict
     ) -> IKResult:
         """The closed forms' fixed point alone, stopped where it stalls: the cheap first try of each branch of a
         target beyond the URDF model's reach."""
-        q, errors = self.fixed_point(target, q0, deadline, stop_stalled=True)
+        q, errors, _ = self.fixed_point(target, q0, deadline)
         return self.result(q, target, analytic, start, dict(stats, method="closed-form fixed point"), errors)
 
     def _refine_branch(
@@ -438,10 +445,13 @@ class IKSolver:
         q, errors = q0, None
         corrected = not analytic and self.model.is_corrected
         if corrected and self.closed_form is not None:
-            q0, errors = self.fixed_point(target, q0, deadline)
+            q0, errors, beyond = self.fixed_point(target, q0, deadline)
             q = q0
             result = self.result(q, target, analytic, start, dict(stats, method="closed-form fixed point"), errors)
             if result.success:
+                return result
+            if beyond:  # this branch gets no nearer: the other branches get the time (solve's loop)
+                result.stats["beyond_branch_reach"] = True
                 return result
             found = self._valley(target, q0, start, deadline, stats)
             if found is not None:
@@ -558,10 +568,11 @@ class IKSolver:
             corrected = not analytic and self.model.is_corrected
             with self.model.approaching(self._arrival(origin, q0)):
                 result = None
+                beyond = False
                 if corrected and self.closed_form is not None:
-                    q0, errors = self.fixed_point(target, q0, end)
+                    q0, errors, beyond = self.fixed_point(target, q0, end)
                     result = self.result(q0, target, analytic, start, {"method": "closed-form fixed point"}, errors)
-                if result is None or not result.success:
+                if result is None or not (result.success or beyond):
                     q, stats = self.refiner.refine(target, q0, deadline=end) if corrected else (q0, {})
                     result = self.result(q, target, analytic, start, stats, stats.pop("errors", None))
             result.stats["path"] = self.path
