@@ -8,13 +8,20 @@ composes the parts, with ``solve``, ``solve_many`` and ``solve_trajectory``.
    iterative IK (:mod:`~hybrid_kinematics_ros.ik.lm`, joint limits enforced) runs from the seed, which
    decides which solution is found. If the seed fails, restarts follow within the time budget from the
    table's configurations nearest the target, then from random ones (:mod:`~hybrid_kinematics_ros.ik.seeds`).
+   A hybrid target can lie just beyond the URDF model's reach (a UR arm's wrist a fraction of a millimetre
+   inside the cylinder its shoulder offset leaves around axis 1, an elbow stretched past the URDF's reach):
+   the closed forms then give no exact branch, and since they give every one, no restart would; their
+   least-squares answers (the URDF model's nearest) start the hybrid stages instead, each branch first by
+   the fixed point of 2., nearest the seed first.
 2. The hybrid refinement around the classical answer. With closed forms, first a fixed point on the
    classical answer's branch: the closed forms solve the target moved by the hybrid correction at the
    current answer (the URDF pose to the hybrid pose), until the correction stops changing; then the hybrid
-   pose is the target. Near a singularity of the URDF model, where its chord Jacobian loses rank and the
-   fixed point wanders along the singular valley, a root search along that valley follows
-   (:mod:`~hybrid_kinematics_ros.ik.valley`). What they leave goes to bounded LM through the hybrid FK in a
-   box (:mod:`~hybrid_kinematics_ros.ik.refine`).
+   pose is the target (a round whose moved target is beyond the URDF model's reach takes its least-squares
+   answer; when such rounds stop cutting the error, the branch's nearest point is found and the branch
+   cannot reach the target: 3. follows at once). Near a singularity of the URDF model, where its chord
+   Jacobian loses rank and the fixed point wanders along the singular valley, a root search along that
+   valley follows (:mod:`~hybrid_kinematics_ros.ik.valley`). What they leave goes to bounded LM through the
+   hybrid FK in a box (:mod:`~hybrid_kinematics_ros.ik.refine`).
 3. When the seed's branch has no hybrid solution near it (near a singularity the nets' tenths of a
    millimetre move the solution by tenths of a radian, or the target lies just beyond the URDF model's
    reach), the other analytic branches follow: the closed forms' other branches, nearest the seed first,
