@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from hybrid_kinematics_ros.calibration import parametric
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.parametric import GEOMETRY_KINDS, fit_joint_map, identify
 from hybrid_kinematics_ros.kinematics import fk, se3
@@ -211,6 +212,11 @@ def test_joint_error_map_learns_errors_too_short_for_the_harmonics():
     assert after.mean() < before.mean() / 10
     # the map is the error itself: joint 2's at held-out angles, to a tenth of its amplitude
     np.testing.assert_allclose(joint_map(qt)[0][:, 1], 3e-5 * np.sin(70 * qt[:, 1]), atol=3e-6)
+    # the dense Cholesky solve of its normal equations is scipy's sparse one, where the map is large
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(parametric, "DENSE_MAP_UNKNOWNS", 0)
+        sparse_map = fit_joint_map(nominal, q, truth.fk(q), position_only=False)
+    np.testing.assert_allclose(sparse_map.values, joint_map.values, rtol=0, atol=1e-9 * np.abs(joint_map.values).max())
 
 
 def test_a_wall_mounted_robot_is_identified_with_its_own_gravity(cell, tmp_path):
