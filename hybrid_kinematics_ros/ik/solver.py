@@ -90,6 +90,7 @@ PROBE_ROUNDS = 4  # the other branches' rounds while the seed's branch is not so
 STALLED = 0.9
 VALLEY_SHARE = 0.5  # of the budget, still left, for the search along a singular valley (ik/valley.py)
 SINGULAR = 1e-6  # the URDF Jacobian's smallest singular value (m or rad per rad) at a singular target's answer
+OTHER_BRANCH = "on another branch than the seed's, which found no solution within the budget"  # said with it
 
 
 def compensated_target(
@@ -286,7 +287,7 @@ class IKSolver:
             reserve.seconds = time.perf_counter() - start
             reserve.stats["other_branch"] = True
             reserve = self._singular(reserve)
-            reserve.message += "; on another branch than the seed's, which found no solution within the budget"
+            reserve.message += f"; {OTHER_BRANCH}"
             return reserve
         # the other branches (module docstring, 3.)
         tried = [q0]

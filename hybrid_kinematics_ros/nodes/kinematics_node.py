@@ -32,7 +32,7 @@ from std_srvs.srv import Trigger
 from hybrid_kinematics_interfaces.srv import CompensateTrajectory, ComputeFK, ComputeIK
 from hybrid_kinematics_ros.ik.compensate import MAX_JOINT_CORRECTION_RAD, compensate
 from hybrid_kinematics_ros.ik.errors import IKError
-from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
+from hybrid_kinematics_ros.ik.solver import OTHER_BRANCH, IKOptions, IKSolver
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
@@ -509,6 +509,8 @@ class KinematicsNode(Node):
             response.success = bool(good)
             if good:
                 response.message = f"{len(good)} solution(s)" + self._unset_note()
+                if good[0].stats.get("other_branch"):
+                    response.message += f"; {OTHER_BRANCH}"
             else:
                 response.message = (
                     results[0].message if results else "no solution found from any seed within the time budget"
