@@ -144,8 +144,7 @@ class AnalyticIK:
         squares; it reaches the target's position, and its wrist misses the orientation (the branch's
         solutions form a continuum, which the iterative solver samples nearest the seed). Least-squares
         answers of a branch out of reach miss the position by centimetres."""
-        q = np.array([q for q, least_squares in self._answers(target) if least_squares], dtype=float).reshape(-1, 6)
-        q = q[np.all(np.isfinite(q), axis=1)]
+        q = self._answers_of(target, least_squares=True)
         if not len(q):
             return False
         reached = fk.fk(self.chain, q)[:, :3, 3]
@@ -153,8 +152,11 @@ class AnalyticIK:
 
     def raw_branches(self, target: np.ndarray) -> np.ndarray:
         """IK-Geo's exact answers ``(k, 6)`` in (-π, π], unchecked."""
-        exact = [q for q, least_squares in self._answers(target) if not least_squares]
-        q = np.array(exact, dtype=float).reshape(-1, 6)
+        return self._answers_of(target, least_squares=False)
+
+    def _answers_of(self, target: np.ndarray, least_squares: bool) -> np.ndarray:
+        """IK-Geo's exact (or least-squares) answers ``(k, 6)`` in (-π, π], the NaN ones (a wrong family) dropped."""
+        q = np.array([q for q, ls in self._answers(target) if ls == least_squares], dtype=float).reshape(-1, 6)
         return q[np.all(np.isfinite(q), axis=1)]
 
     def approximations(self, target: np.ndarray, seed: np.ndarray, miss_m: float, miss_rad: float) -> np.ndarray:
@@ -163,8 +165,7 @@ class AnalyticIK:
         its URDF model's reach (a UR arm's wrist a fraction of a millimetre inside the cylinder its shoulder
         offset leaves around axis 1): no exact branch exists, and these are where the URDF model gets
         nearest, next to the hybrid solutions."""
-        q = np.array([q for q, least_squares in self._answers(target) if least_squares], dtype=float).reshape(-1, 6)
-        q = fold(q[np.all(np.isfinite(q), axis=1)], seed, self.lower, self.upper)
+        q = fold(self._answers_of(target, least_squares=True), seed, self.lower, self.upper)
         if not len(q):
             return q
         e = _errors(target, fk.fk(self.chain, q))

@@ -52,6 +52,7 @@ corrections (or ``analytic=True``) has no hybrid stages: its classical stage get
 
 from __future__ import annotations
 
+import functools
 import itertools
 import time
 from collections.abc import Callable
@@ -341,21 +342,15 @@ class IKSolver:
         the members of a continuum): the other closed-form branches' fixed points, PROBE_ROUNDS each, nearest
         the seed first. The first that solves waits in reserve while the seed's branch gets the budget."""
         tried = [q0]
+        probe = functools.partial(self._fixed_point_only, rounds=PROBE_ROUNDS)  # converging ones take 3
         for q in closed:
             if time.perf_counter() > deadline or not seeding.is_new_branch(q, tried):
                 continue
             tried.append(q)
-            result = self._from_branch(target, q, analytic, start, deadline, stats, origin, self._probe)
+            result = self._from_branch(target, q, analytic, start, deadline, stats, origin, probe)
             if result.success:
                 return result
         return None
-
-    def _probe(
-        self, target: np.ndarray, q0: np.ndarray, analytic: bool, start: float, deadline: float, stats: dict
-    ) -> IKResult:
-        """A branch's fixed point for PROBE_ROUNDS: where it converges it does so in three."""
-        q, errors, _ = self.fixed_point(target, q0, deadline, PROBE_ROUNDS)
-        return self.result(q, target, analytic, start, dict(stats, method="closed-form fixed point"), errors)
 
     def _beyond_reach(self, target: np.ndarray, seed: np.ndarray, closed: np.ndarray) -> np.ndarray:
         """Where the closed forms give no exact branch within the limits: their least-squares answers within
@@ -485,11 +480,18 @@ class IKSolver:
         return best, best_errors, False
 
     def _fixed_point_only(
-        self, target: np.ndarray, q0: np.ndarray, analytic: bool, start: float, deadline: float, stats: dict
+        self,
+        target: np.ndarray,
+        q0: np.ndarray,
+        analytic: bool,
+        start: float,
+        deadline: float,
+        stats: dict,
+        rounds: int = FIXED_POINT_ROUNDS,
     ) -> IKResult:
-        """The closed forms' fixed point alone, stopped where it stalls: the cheap first try of each branch of a
-        target beyond the URDF model's reach."""
-        q, errors, _ = self.fixed_point(target, q0, deadline)
+        """The closed forms' fixed point alone (``rounds`` at most), stopped where it stalls: the cheap first
+        try of a branch."""
+        q, errors, _ = self.fixed_point(target, q0, deadline, rounds)
         return self.result(q, target, analytic, start, dict(stats, method="closed-form fixed point"), errors)
 
     def _refine_branch(

@@ -21,6 +21,7 @@ from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.hybrid import HybridModel
+from test.ik.test_valley import hybrid_errors
 
 GENEROUS = IKOptions(timeout_s=5.0)  # tests check paths and answers; bench_ik_singular measures time
 
@@ -220,14 +221,8 @@ def test_hybrid_targets_beyond_the_urdf_models_reach_start_from_its_nearest_answ
         result = solver.solve(target)
         assert result.success, (result.position_error_mm, result.stats)
         assert result.stats["beyond_urdf_reach"] and result.stats["attempts"] == 0
-        assert max(hybrid_error(model, result.q, target)) < 1e-4
+        assert max(hybrid_errors(model, result.q, target)) < 1e-4
     assert beyond >= 5, beyond
-
-
-def hybrid_error(model, q: np.ndarray, target: np.ndarray) -> tuple[float, float]:
-    """Position (mm) and orientation (deg) errors of the hybrid pose at ``q``."""
-    e = error6(target, model.fk_single(q))
-    return 1e3 * float(np.linalg.norm(e[:3])), float(np.degrees(np.linalg.norm(e[3:])))
 
 
 def test_a_chain_of_five_joints_gets_one_clear_line(example_robot_data):
