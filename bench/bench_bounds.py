@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 
 import numpy as np
 from scipy.stats import spearmanr
@@ -41,6 +42,9 @@ HEAD = [
     "Spearman ori. bound / error",
     "beyond the trained range (%)",
     "steepest growth pos. (mm per rad)",
+    "without the scale: pos. bound median (mm)",
+    "without the scale: pos. under bound (%)",
+    "without the scale: Spearman pos. / ori.",
 ]
 
 
@@ -56,34 +60,64 @@ def shoulder_configurations(count: int, shoulder: tuple[float, float], seed: int
     return q
 
 
+def unscaled(model, q: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """The same model's bounds without the scale: one quantile inside the range (as before the scale), from
+    the same validation errors (``figures``' ``*_quantile_without_scale``)."""
+    revolute = model.chain.revolute
+    x = excess(q, model.trained_lower, model.trained_upper, revolute)
+    figures = model.bounds.figures
+    out = []
+    for kind, bound in (("position", model.bounds.position), ("orientation", model.bounds.orientation)):
+        flat = None if bound is None else replace(bound, quantile=figures[f"{kind}_quantile_without_scale"], scale=None)
+        out.append(None if flat is None else flat(q, x, revolute))
+    return out[0], out[1]
+
+
 def checked(model, pairs) -> dict:
     pos_mm, rot_deg = pose_errors_of(model, pairs)["hybrid"]
     bound_pos, bound_rot = model.error_bounds(pairs.q)  # joints are the same in any frame
+    flat_pos, flat_rot = unscaled(model, pairs.q)
     beyond = excess(pairs.q, model.trained_lower, model.trained_upper, model.chain.revolute) > 0
     out = {
         "pairs": len(pos_mm),
         "beyond": float(np.mean(beyond.any(axis=1))),
         "pos": (np.median(pos_mm), np.median(1e3 * bound_pos), np.mean(pos_mm <= 1e3 * bound_pos)),
         "pos_rho": spearmanr(1e3 * bound_pos, pos_mm)[0],
+        "flat_pos": (np.median(1e3 * flat_pos), np.mean(pos_mm <= 1e3 * flat_pos)),
+        "flat_rho": [spearmanr(1e3 * flat_pos, pos_mm)[0]],
     }
     if bound_rot is not None:
         deg = np.degrees(bound_rot)
         out["ori"] = (np.median(rot_deg), np.median(deg), np.mean(rot_deg <= deg))
         out["ori_rho"] = spearmanr(deg, rot_deg)[0]
+        out["flat_rho"].append(spearmanr(flat_rot, rot_deg)[0])
     return out
 
 
 def row(label: str, tested: str, c: dict, model) -> list:
+    def spearman(rho: float) -> str:  # undefined where every bound is the same (all inside the trained range)
+        return "— (one bound)" if np.isnan(rho) else f"{rho:.2f}"
+
     def part(key: str) -> list:
         if key not in c:
             return ["—"] * 4
         err, bound, covered = c[key]
-        rho = c[key + "_rho"]  # undefined where every bound is the same (all inside the trained range)
-        spearman = "— (one bound)" if np.isnan(rho) else f"{rho:.2f}"
-        return [f"{err:.4f}", f"{bound:.4f}", f"{100 * covered:.1f}", spearman]
+        return [f"{err:.4f}", f"{bound:.4f}", f"{100 * covered:.1f}", spearman(c[key + "_rho"])]
 
     steepest = 1e3 * float(model.bounds.position.rates.max())
-    return [label, tested, c["pairs"], *part("pos"), *part("ori"), f"{100 * c['beyond']:.0f}", f"{steepest:.3g}"]
+    flat_median, flat_covered = c["flat_pos"]
+    return [
+        label,
+        tested,
+        c["pairs"],
+        *part("pos"),
+        *part("ori"),
+        f"{100 * c['beyond']:.0f}",
+        f"{steepest:.3g}",
+        f"{flat_median:.4f}",
+        f"{100 * flat_covered:.1f}",
+        " / ".join(spearman(r) for r in c["flat_rho"]),
+    ]
 
 
 def cost(model, q: np.ndarray) -> tuple[float, float]:
@@ -144,6 +178,9 @@ def main() -> None:
         "the test pairs with a joint outside the range the model was trained on, where the bound grows. "
         "*Steepest growth*: the fastest of the per-joint rates at which the bound grows there, measured on the "
         "stage's errors with each end of each joint's range held out of its fit (`calibration/bounds.py`). "
+        "Inside the range the bound is a conformal quantile times the configuration's *scale*, how large the "
+        "stage's training errors are around it (`model/bounds.py`); *without the scale*: the same model with "
+        "one quantile for every configuration, as before the scale, from the same validation errors. "
         "Real cells: the held-out fifth of each series in contiguous blocks; series B lies elsewhere in the "
         "workspace than C, beyond C's range. The virtual UR10 with its shoulder in one radian: its own truth and "
         "tracker noise, trained on 1,600 poses, asked about its held-out blocks and about 600 poses beyond.\n\n"

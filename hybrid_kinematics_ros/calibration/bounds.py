@@ -9,10 +9,14 @@ Two things are measured, each from the training run's own pairs (the test pairs 
    held-out pair lies some way beyond the rest's range of that joint (:func:`model.bounds.excess`); the
    joint's rate is the slope of the held-out errors' ``level`` quantile over that excess, above the fit's
    own error (:func:`growth_rate`).
-2. **The bound inside the range.** The hybrid model's errors on the validation blocks, less the growth at
-   their excess (nearly all lie inside: none), and their split conformal quantile (the
-   ⌈(n + 1)·level⌉-th smallest), so about ``level`` of errors on data like the validation blocks lie
-   under it.
+2. **How hard each configuration is** (:class:`model.bounds.Scale`): the logarithm of the identified
+   stage's errors on the training pairs, regressed on the joints' sines and cosines (:func:`fit_scale`).
+   The stage's, not the hybrid's: the nets fit their training pairs closer than they predict, the stage
+   barely does. The bound then follows the error more closely (BENCHMARKS.md, "bounds").
+3. **The bound inside the range.** The hybrid model's errors on the validation blocks, less the growth at
+   their excess (nearly all lie inside: none), divided by their scale, and the split conformal quantile of
+   that (the ⌈(n + 1)·level⌉-th smallest), so about ``level`` of errors on data like the validation blocks
+   lie under their bounds whatever the scale.
 
 The nets' early stopping reads the validation blocks too; that choice of one epoch leaks little into the
 quantile, and the bench (``bench/bench_bounds.py``) checks the coverage on held-out test blocks. The nets'
@@ -30,7 +34,7 @@ import numpy as np
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.parametric import ORIENTATION_LENGTH, Linearisation
-from hybrid_kinematics_ros.model.bounds import Bounds, ErrorBound, excess
+from hybrid_kinematics_ros.model.bounds import Bounds, ErrorBound, Scale, excess, features
 
 LEVEL = 0.95  # the share of errors meant to lie under their bounds
 # Each end of each joint's range held out in slabs of these shares of its values: the widest extrapolates
@@ -39,6 +43,7 @@ SLABS = (0.15, 0.3, 0.45)
 BINS = 10  # the held-out pairs beyond a joint's range, in bins of equal count, for the quantile's slope
 MIN_BIN = 5  # pairs: a bin with fewer gives no quantile
 MIN_PAIRS = 40  # too few pairs to hold a slab out of the stage's fit
+SCALE_RIDGE = 1e-3  # per pair, on the scale's weights (features of order 1): for joints that never move
 
 
 def conformal_quantile(scores: np.ndarray, level: float) -> float:
@@ -117,25 +122,44 @@ def growth_rate(x: np.ndarray, error: np.ndarray, floor: float, level: float) ->
     return max(0.0, float(at @ above / (at @ at))) if len(at) else 0.0
 
 
+def fit_scale(q: np.ndarray, error: np.ndarray, revolute: np.ndarray) -> Scale:
+    """:class:`Scale` from the stage's errors ``(N,)`` on the training configurations ``q (N, n)``: the
+    least-squares fit of ``log(error)`` on :func:`model.bounds.features`, 1 at the median configuration,
+    clipped to the range it takes on these pairs. An error of zero counts as a hundredth of the median (a
+    logarithm needs a floor, and one relative to the errors is the same for every unit and robot)."""
+    typical = float(np.median(error))
+    if not typical > 0.0:  # a noise-free fit: every configuration alike
+        return Scale(np.zeros(1 + 2 * q.shape[1]), 1.0, 1.0)
+    a = features(q, revolute)
+    y = np.log(np.maximum(error, 0.01 * typical))
+    w = np.linalg.solve(a.T @ a + SCALE_RIDGE * len(a) * np.eye(a.shape[1]), a.T @ y)
+    w[0] -= float(np.median(a @ w))  # 1 at the median configuration
+    fitted = np.exp(a @ w)
+    return Scale(w, float(fitted.min()), float(fitted.max()))
+
+
 def calibrate(
     lin: Linearisation,
     ridge: np.ndarray,
     revolute: np.ndarray,
+    training: tuple[np.ndarray, np.ndarray, np.ndarray | None],
+    validation_q: np.ndarray,
     validation_excess: np.ndarray,
     position_error: np.ndarray,
     orientation_error: np.ndarray | None,
     level: float = LEVEL,
 ) -> Bounds:
     """The bounds, from the linearised stage problem over the training pairs (``lin`` with its ``ridge``,
-    for the rates) and the hybrid model's validation errors (m, rad; None: position only) at their excess
-    ``(N, n)`` beyond the trained range."""
+    for the rates), the stage's errors on them (``training``: configurations, position m, orientation rad or
+    None; for the scale) and the hybrid model's validation errors (m, rad; None: position only) at their
+    configurations ``validation_q (N, n)`` and excess ``(N, n)`` beyond the trained range."""
     on_data, slabs = extrapolation_errors(lin, ridge, revolute)
     n = len(revolute)
     kinds = {"position": (0, position_error)}
-    if orientation_error is not None and on_data[1] is not None:
+    if orientation_error is not None and on_data[1] is not None and training[2] is not None:
         kinds["orientation"] = (1, orientation_error)
     made: dict[str, ErrorBound] = {}
-    figures: dict[str, float | int] = {
+    figures: dict[str, float | int | list[float]] = {
         "validation_pairs": len(validation_excess),
         "validation_beyond_range": int((validation_excess > 0).any(axis=1).sum()),
         "held_out_slabs": len(slabs),
@@ -149,7 +173,12 @@ def calibrate(
             if mine:
                 x = np.concatenate([m[0] for m in mine])
                 rates[j] = growth_rate(x, np.concatenate([m[1] for m in mine]), floor, level)
+        scale = fit_scale(training[0], training[1 + column], revolute)
+        at = scale(validation_q, revolute)
+        figures[f"{kind}_scale_p5_p95"] = [float(v) for v in np.percentile(scale(training[0], revolute), [5, 95])]
         # a validation pair beyond the range counts for what its error exceeds the growth there
         grown = np.linalg.norm(validation_excess * rates, axis=1)
-        made[kind] = ErrorBound(conformal_quantile(np.maximum(validation - grown, 0.0), level), rates)
+        left = np.maximum(validation - grown, 0.0)
+        made[kind] = ErrorBound(conformal_quantile(left / at, level), rates, scale)
+        figures[f"{kind}_quantile_without_scale"] = conformal_quantile(left, level)  # what it was with none
     return Bounds(level, made["position"], made.get("orientation"), figures)

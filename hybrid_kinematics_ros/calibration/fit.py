@@ -350,7 +350,8 @@ def fit(
         manifest["bounds"] = bounds.manifest()
         steepest = int(np.argmax(bounds.position.rates))
         log(
-            f"error bounds ({bounds.level:.0%}): {1e3 * bounds.position.quantile:.4f} mm inside the trained range, "
+            f"error bounds ({bounds.level:.0%}): {1e3 * bounds.position.quantile:.4f} mm inside the trained range "
+            "at a typical configuration, "
             f"growing beyond it by up to {1e3 * bounds.position.rates[steepest]:.3g} mm per rad "
             f"({chain.joint_names[steepest]})"
         )
@@ -390,8 +391,9 @@ def calibrate_bounds(
     gravity: np.ndarray | None,
 ) -> Bounds:
     """The bound on each answer's error (:mod:`calibration.bounds`): its growth beyond the trained range from
-    the stage, linearised over the base-frame training pairs with the options it was identified with, and
-    its size inside from ``model``'s errors on the validation pairs."""
+    the stage, linearised over the base-frame training pairs with the options it was identified with, its
+    scale from the stage's errors on them, and its size inside from ``model``'s errors on the validation
+    pairs."""
     options = {k: v for k, v in stage_options.items() if k in ("kinds", "harmonics", "harmonic_prior")}
     lin = linearise(
         chain,
@@ -408,11 +410,16 @@ def calibrate_bounds(
     )
     tip = model.fk(val_pairs.q, conditions=model.conditions_of(val_pairs.conditions, len(val_pairs)))
     pos_mm, rot_deg = target_errors(val_pairs, tip)
+    conditions = model.conditions_of(train_pairs.conditions, len(train_pairs))
+    stage_mm, stage_deg = target_errors(train_pairs, model.fk(train_pairs.q, nets=False, conditions=conditions))
+    stage = (train_pairs.q, 1e-3 * stage_mm, None if train_pairs.position_only else np.radians(stage_deg))
     ridge = capacity_module.harmonic_ridge(lin, float(options.get("harmonic_prior", HARMONIC_PRIOR)))
     return bounds_module.calibrate(
         lin,
         ridge,
         chain.revolute,
+        stage,
+        val_pairs.q,
         excess(val_pairs.q, model.trained_lower, model.trained_upper, chain.revolute),
         1e-3 * pos_mm,
         None if val_pairs.position_only else np.radians(rot_deg),

@@ -91,6 +91,14 @@ def _workspace_plot(errors: dict[str, tuple[np.ndarray, np.ndarray]], pairs: Pai
     return path
 
 
+def _scale_words(figures: dict[str, Any]) -> str:
+    """How much the bound's scale varies over the training configurations, if the model has one."""
+    spread = figures.get("position_scale_p5_p95")
+    if spread is None:
+        return ""
+    return f" ({spread[0]:.2f}-{spread[1]:.2f}× that over 90 % of the training configurations: where the stage fits)"
+
+
 def _bounds_section(model: HybridModel, pairs: Pairs, errors: dict[str, Any], out_dir: Path) -> list[str]:
     """Each test pair's error against its bound (:mod:`model.bounds`), with the share under it."""
     bounds = model.error_bounds(pairs.q)
@@ -127,8 +135,9 @@ def _bounds_section(model: HybridModel, pairs: Pairs, errors: dict[str, Any], ou
     return [
         "<h2>Error bounds</h2>",
         f"<p>Each answer of the model carries a bound meant to hold for {100 * level:.0f} % of real errors: "
-        f"{1e3 * model.bounds.position.quantile:.4f} mm inside the trained joint range (calibrated on the "
-        "validation blocks), growing beyond it at rates measured on the stage's extrapolation, at most "
+        f"{1e3 * model.bounds.position.quantile:.4f} mm inside the trained joint range at a typical "
+        f"configuration{_scale_words(model.bounds.figures)} (calibrated on the validation blocks), growing beyond "
+        "it at rates measured on the stage's extrapolation, at most "
         f"{1e3 * rates[steepest]:.3g} mm per rad ({model.joint_names[steepest]}). On these test pairs:</p>",
         _table(["kind", "median bound", "median error", "errors under their bound"], rows),
         f"<img src='{path.name}' alt='bounds'>",

@@ -1,11 +1,15 @@
 """A bound on the error of each answer: how far the robot may really be from what the model says.
 
-For each configuration the bound is ``quantile + ‖rates ⊙ x‖``, in m (position) or rad (orientation),
-where ``x`` is how far each joint lies beyond the range the model was trained on (rad, the short way round
-for a revolute joint; m for a prismatic one; 0 inside, :func:`excess`) and ``rates`` how fast the error grows
-per unit of each joint's excess. Inside the trained range it is the error that ``level`` of the validation
-pairs stay under: split conformal, so about ``level`` of errors on data like the validation blocks lie under
-their bounds by construction. Beyond it the bound grows at the rates the calibration measured
+For each configuration ``q`` the bound is ``quantile · scale(q) + ‖rates ⊙ x‖``, in m (position) or rad
+(orientation), where ``x`` is how far each joint lies beyond the range the model was trained on (rad, the
+short way round for a revolute joint; m for a prismatic one; 0 inside, :func:`excess`) and ``rates`` how fast
+the error grows per unit of each joint's excess. Inside the trained range it is the error that ``level`` of
+the validation pairs stay under, scaled by how hard the configuration is: split conformal on the validation
+errors divided by their scale (normalised conformal prediction), so about ``level`` of errors on data like
+the validation blocks lie under their bounds by construction, whatever the scale. The **scale** is
+:class:`Scale`: how large the stage's errors are on the training pairs around ``q``, relative to their
+median (1 at a typical configuration), a smooth function of the joints. Beyond the range the bound grows at
+the rates the calibration measured
 (:mod:`calibration.bounds` holds each end of each joint's range out of the stage's fit and watches its
 error grow as it extrapolates): a shoulder that extrapolates costs more than a flange that turns further.
 
@@ -43,15 +47,61 @@ def excess(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, revolute: np.nda
     return np.where(revolute, np.where(width >= 2.0 * np.pi, 0.0, around), straight)
 
 
+def features(q: np.ndarray, revolute: np.ndarray) -> np.ndarray:
+    """``(B, 1 + 2n)``: what :class:`Scale` is linear in: a constant, and each joint's sine and cosine (a
+    prismatic joint: its value and its square), so the scale is periodic where the joints are."""
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    first = np.where(revolute, np.sin(q), q)
+    second = np.where(revolute, np.cos(q), q * q)
+    return np.column_stack([np.ones(len(q)), first, second])
+
+
+@dataclass(frozen=True)
+class Scale:
+    """How hard a configuration is: ``exp(features(q) · weights)``, clipped to ``[lower, upper]`` (the range it
+    takes on the training pairs: the fit is not trusted to extrapolate), 1 at a typical configuration."""
+
+    weights: np.ndarray  # (1 + 2n,)
+    lower: float
+    upper: float
+
+    def __call__(self, q: np.ndarray, revolute: np.ndarray) -> np.ndarray:
+        return np.clip(np.exp(features(q, revolute) @ self.weights), self.lower, self.upper)
+
+    def manifest(self) -> dict[str, Any]:
+        return {"features": "sin_cos", "weights": self.weights.tolist(), "clip": [self.lower, self.upper]}
+
+    @classmethod
+    def from_manifest(cls, section: dict[str, Any] | None) -> Scale | None:
+        if section is None:
+            return None
+        lower, upper = section["clip"]
+        return cls(np.asarray(section["weights"], dtype=float), float(lower), float(upper))
+
+
 @dataclass(frozen=True)
 class ErrorBound:
-    """One kind's bound: ``quantile + ‖rates ⊙ excess‖``."""
+    """One kind's bound: ``quantile · scale(q) + ‖rates ⊙ excess‖``."""
 
-    quantile: float  # m or rad: the bound inside the trained range
+    quantile: float  # m or rad: the bound inside the trained range at a typical configuration (scale 1)
     rates: np.ndarray  # (n,) m or rad of error per rad (per m, prismatic) of each joint's excess
+    scale: Scale | None = None  # None: the same everywhere (a section written before the scale)
 
-    def __call__(self, x: np.ndarray) -> np.ndarray:
-        return self.quantile + np.linalg.norm(np.atleast_2d(x) * self.rates, axis=1)
+    def __call__(self, q: np.ndarray, x: np.ndarray, revolute: np.ndarray) -> np.ndarray:
+        inside = self.quantile if self.scale is None else self.quantile * self.scale(q, revolute)
+        return inside + np.linalg.norm(np.atleast_2d(x) * self.rates, axis=1)
+
+    def manifest(self, unit: str) -> dict[str, Any]:
+        out = {f"quantile_{unit}": self.quantile, f"growth_{unit}_per_rad": self.rates.tolist()}
+        return out if self.scale is None else out | {"scale": self.scale.manifest()}
+
+    @classmethod
+    def from_manifest(cls, section: dict[str, Any], unit: str) -> ErrorBound:
+        return cls(
+            float(section[f"quantile_{unit}"]),
+            np.asarray(section[f"growth_{unit}_per_rad"], dtype=float),
+            Scale.from_manifest(section.get("scale")),
+        )
 
 
 @dataclass(frozen=True)
@@ -68,32 +118,24 @@ class Bounds:
             ori = section.get("orientation")
             return cls(
                 level=float(section["level"]),
-                position=ErrorBound(float(pos["quantile_m"]), np.asarray(pos["growth_m_per_rad"], dtype=float)),
-                orientation=None
-                if ori is None
-                else ErrorBound(float(ori["quantile_rad"]), np.asarray(ori["growth_rad_per_rad"], dtype=float)),
+                position=ErrorBound.from_manifest(pos, "m"),
+                orientation=None if ori is None else ErrorBound.from_manifest(ori, "rad"),
                 figures=dict(section.get("figures", {})),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelError(f"model.json: the 'bounds' section is malformed ({exc}); retrain the model") from exc
 
     def manifest(self) -> dict[str, Any]:
-        out: dict[str, Any] = {
-            "level": self.level,
-            "distance": DISTANCE,
-            "position": {"quantile_m": self.position.quantile, "growth_m_per_rad": self.position.rates.tolist()},
-        }
+        out: dict[str, Any] = {"level": self.level, "distance": DISTANCE, "position": self.position.manifest("m")}
         if self.orientation is not None:
-            out["orientation"] = {
-                "quantile_rad": self.orientation.quantile,
-                "growth_rad_per_rad": self.orientation.rates.tolist(),
-            }
+            out["orientation"] = self.orientation.manifest("rad")
         return out | {"figures": self.figures}
 
-    def of(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """Position bounds (m) and orientation bounds (rad, or None) at joint excesses ``x (B, n)``
-        (:func:`excess`)."""
-        return self.position(x), None if self.orientation is None else self.orientation(x)
+    def of(self, q: np.ndarray, x: np.ndarray, revolute: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Position bounds (m) and orientation bounds (rad, or None) at configurations ``q (B, n)`` whose
+        joints lie ``x (B, n)`` beyond the trained range (:func:`excess`)."""
+        orientation = None if self.orientation is None else self.orientation(q, x, revolute)
+        return self.position(q, x, revolute), orientation
 
 
 COLUMNS = ("position_bound_mm", "orientation_bound_deg")  # the bounds' names in the units users read

@@ -158,7 +158,8 @@ class HybridModel:
         (:mod:`model.bounds`); None when the model carries no bounds."""
         if self.bounds is None:
             return None
-        return self.bounds.of(excess(q, self.trained_lower, self.trained_upper, self.chain.revolute))
+        revolute = self.chain.revolute
+        return self.bounds.of(q, excess(q, self.trained_lower, self.trained_upper, revolute), revolute)
 
     @property
     def is_corrected(self) -> bool:

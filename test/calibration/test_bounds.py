@@ -8,7 +8,7 @@ import pytest
 
 from hybrid_kinematics_ros.calibration import bounds as calibration_bounds
 from hybrid_kinematics_ros.calibration.evaluate import pose_errors_of
-from hybrid_kinematics_ros.model.bounds import DISTANCE, Bounds, ErrorBound, excess
+from hybrid_kinematics_ros.model.bounds import DISTANCE, Bounds, ErrorBound, Scale, excess
 from hybrid_kinematics_ros.model.errors import ModelError
 
 
@@ -42,12 +42,47 @@ def test_excess_is_zero_inside_the_range_and_goes_the_short_way_round():
     np.testing.assert_allclose(excess(np.array([[3.5, 0.0, 0.0]]), lower, upper, revolute)[0, 0], 2 * np.pi - 4.5)
 
 
+def test_the_scale_follows_errors_that_depend_on_the_configuration():
+    """Errors twice as large where one joint's sine is high: the fitted scale finds it, and the conformal
+    quantile of the errors over their scale covers the hard and the easy configurations alike, where one
+    quantile for all over-covers the easy ones and under-covers the hard ones."""
+    rng = np.random.default_rng(2)
+    revolute = np.ones(6, dtype=bool)
+    q = rng.uniform(-np.pi, np.pi, (6000, 6))
+    truth = np.exp(0.5 * np.sin(q[:, 1]) + 0.3 * np.cos(q[:, 3]))
+    error = 1e-5 * truth * np.linalg.norm(rng.normal(size=(len(q), 3)), axis=1)
+    fit, val, test = slice(0, 3000), slice(3000, 4000), slice(4000, None)
+    scale = calibration_bounds.fit_scale(q[fit], error[fit], revolute)
+    assert np.corrcoef(np.log(scale(q[test], revolute)), np.log(truth[test]))[0, 1] > 0.95
+    assert np.median(scale(q[fit], revolute)) == pytest.approx(1.0, abs=0.02)
+    assert scale(q[fit], revolute).max() == pytest.approx(scale.upper)  # clipped to the range it took
+    k = calibration_bounds.conformal_quantile(error[val] / scale(q[val], revolute), 0.95)
+    flat = calibration_bounds.conformal_quantile(error[val], 0.95)
+    hard = truth[test] > np.quantile(truth[test], 0.75)
+    covered = error[test] <= k * scale(q[test], revolute)
+    assert 0.92 < covered.mean() < 0.98
+    assert covered[hard].mean() > 0.9 and covered[~hard].mean() > 0.9
+    assert np.mean(error[test][hard] <= flat) < 0.88  # one quantile for all misses the hard ones
+    # errors of zero (a noise-free fit): one scale everywhere
+    assert np.all(calibration_bounds.fit_scale(q[fit], np.zeros(3000), revolute)(q[test], revolute) == 1.0)
+
+
 def test_manifest_round_trip_and_a_malformed_section_names_the_fix():
-    made = Bounds(0.95, ErrorBound(1e-4, np.array([2e-4, 1e-5])), None, {"validation_pairs": 7})
+    scale = Scale(np.array([0.1, 0.2, -0.3, 0.0, 0.5]), 0.7, 1.6)
+    made = Bounds(0.95, ErrorBound(1e-4, np.array([2e-4, 1e-5]), scale), None, {"validation_pairs": 7})
     again = Bounds.from_manifest(made.manifest())
     assert again.position.quantile == made.position.quantile and again.orientation is None
     np.testing.assert_array_equal(again.position.rates, made.position.rates)
+    np.testing.assert_array_equal(again.position.scale.weights, scale.weights)
+    assert (again.position.scale.lower, again.position.scale.upper) == (0.7, 1.6)
     assert again.figures == made.figures
+    q, revolute = np.array([[0.3, 1.2], [-2.0, 0.1]]), np.array([True, False])
+    x = np.array([[0.0, 0.0], [0.1, 0.0]])
+    np.testing.assert_allclose(again.of(q, x, revolute)[0], made.of(q, x, revolute)[0])
+    # a section written before the scale: one quantile inside the range
+    older = made.manifest()
+    del older["position"]["scale"]
+    np.testing.assert_allclose(Bounds.from_manifest(older).of(q, x, revolute)[0], [1e-4, 1e-4 + 2e-5])
     with pytest.raises(ModelError, match="retrain"):
         Bounds.from_manifest({"level": 0.95, "distance": DISTANCE, "position": {"quantile_m": 1e-4}})
 
