@@ -26,7 +26,7 @@ lint: bootstrap
 test: bootstrap
 	$(ENV)
 	ruff check .
-	python -m pytest -q
+	python -m pytest -q -n auto --dist loadfile --no-loadscope-reorder
 
 demo: bootstrap
 	$(ENV)

@@ -11,6 +11,10 @@ import os
 # share the cores, and multithreaded OpenBLAS then makes least squares 10-20× slower (measured on the
 # alignment tests: 280 s against 26 s). Set before numpy loads; subprocesses inherit it.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# Under pytest-xdist (``make test`` runs a worker per core) torch's intra-op threads would oversubscribe the
+# cores the same way: one thread per worker and per process it starts.
+if "PYTEST_XDIST_WORKER" in os.environ:
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 from dataclasses import replace
 from pathlib import Path
@@ -28,11 +32,62 @@ from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.simulation.backlash import BacklashCell
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 
-os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
+# Under pytest-xdist each worker is a process of its own, with its own domain: the parity of the number is the
+# worker's, so two workers of one run never share a domain (ROS_DOMAIN_ID must stay below 233 with Fast DDS).
+_worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
+os.environ.setdefault("ROS_DOMAIN_ID", str(100 + 2 * (os.getpid() % 50) + _worker % 2))
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE_ROBOT_DATA = "cmeel.prefix/share/example-robot-data/robots"
+
+
+# ``make test`` runs the suite on a pytest-xdist worker per core, a test module at a time (``--dist loadfile``:
+# a module's own module-scoped fixtures are built once), and these modules on one worker, one after the other
+# (``module_groups``):
+# - the recorder's: each test streams tracker poses at 3 kHz in real time, and two at once overload 2 cores;
+# - those that name the same expensive session fixture (each trains models for about a minute): each
+#   worker builds the session fixtures its own tests use.
+REAL_TIME_MODULES = ("test/nodes/test_recorder.py", "test/nodes/test_recorder_real_cell.py")
+ONE_WORKER_FIXTURES = ("shoulder_model", "thermal_models", "backlash_models")
+# the longest test (it runs every command of README.md and docs/ in turn) starts first, then the real-time
+# group, so that no worker waits for either at the end
+FIRST = "test_readme_and_docs_commands_run_as_written"
+
+
+def module_groups() -> dict[str, str]:
+    """Test module (its path from the repository root, as in node ids) → the group it runs in, for the modules
+    that share a worker; the others are their own."""
+    modules = {p.relative_to(ROOT).as_posix(): p.read_text() for p in sorted((ROOT / "test").rglob("test_*.py"))}
+    group = dict.fromkeys(REAL_TIME_MODULES, "real-time")
+    for name in ONE_WORKER_FIXTURES:
+        users = [m for m, text in modules.items() if name in text]
+        label = next((group[m] for m in users if m in group), name)
+        for old in {group[m] for m in users if m in group} - {label}:  # joins a group that shares another
+            group = {m: label if g == old else g for m, g in group.items()}
+        group.update(dict.fromkeys(users, label))
+    return group
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log):
+    """``--dist loadfile`` with the modules of :func:`module_groups` joined."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    groups = module_groups()
+
+    class ModuleGroups(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            module = nodeid.split("::")[0]
+            return groups.get(module, module)
+
+    return ModuleGroups(config, log)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    # stable: the rest keep their order (pytest-xdist's --no-loadscope-reorder keeps this one)
+    items.sort(key=lambda item: (item.name != FIRST, item.nodeid.split("::")[0] not in REAL_TIME_MODULES))
 
 
 @pytest.fixture(scope="session")

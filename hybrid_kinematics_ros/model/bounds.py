@@ -66,7 +66,11 @@ class Scale:
     upper: float
 
     def __call__(self, q: np.ndarray, revolute: np.ndarray) -> np.ndarray:
-        return np.clip(np.exp(features(q, revolute) @ self.weights), self.lower, self.upper)
+        return self.at(features(q, revolute))
+
+    def at(self, f: np.ndarray) -> np.ndarray:
+        """The scale at configurations whose :func:`features` are ``f (B, 1 + 2n)``."""
+        return np.clip(np.exp(f @ self.weights), self.lower, self.upper)
 
     def manifest(self) -> dict[str, Any]:
         return {"features": "sin_cos", "weights": self.weights.tolist(), "clip": [self.lower, self.upper]}
@@ -88,7 +92,11 @@ class ErrorBound:
     scale: Scale | None = None  # None: the same everywhere (a section written before the scale)
 
     def __call__(self, q: np.ndarray, x: np.ndarray, revolute: np.ndarray) -> np.ndarray:
-        inside = self.quantile if self.scale is None else self.quantile * self.scale(q, revolute)
+        return self.at(features(q, revolute), x)
+
+    def at(self, f: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """The bound at configurations whose :func:`features` are ``f (B, 1 + 2n)`` and excess ``x (B, n)``."""
+        inside = self.quantile if self.scale is None else self.quantile * self.scale.at(f)
         return inside + np.linalg.norm(np.atleast_2d(x) * self.rates, axis=1)
 
     def manifest(self, unit: str) -> dict[str, Any]:
@@ -134,8 +142,9 @@ class Bounds:
     def of(self, q: np.ndarray, x: np.ndarray, revolute: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """Position bounds (m) and orientation bounds (rad, or None) at configurations ``q (B, n)`` whose
         joints lie ``x (B, n)`` beyond the trained range (:func:`excess`)."""
-        orientation = None if self.orientation is None else self.orientation(q, x, revolute)
-        return self.position(q, x, revolute), orientation
+        f = features(q, revolute)  # once for both kinds: half the bound's cost on the node's hot path
+        orientation = None if self.orientation is None else self.orientation.at(f, x)
+        return self.position.at(f, x), orientation
 
 
 COLUMNS = ("position_bound_mm", "orientation_bound_deg")  # the bounds' names in the units users read

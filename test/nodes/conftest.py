@@ -15,7 +15,8 @@ import pytest
 from test.nodes.rosutil import LOGS, STARTED, stop
 
 SESSION_DOMAIN = int(os.environ["ROS_DOMAIN_ID"])  # set per session by test/conftest.py
-MODULE_DOMAINS = itertools.count(SESSION_DOMAIN + 1)
+# in steps of 2: the parity of the session's domain is its pytest-xdist worker's (test/conftest.py)
+MODULE_DOMAINS = itertools.count(SESSION_DOMAIN + 2, 2)
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -29,7 +30,7 @@ def pytest_runtest_makereport(item, call):
 @pytest.fixture(scope="module", autouse=True)
 def own_domain():
     """Read by ``rclpy.init`` in this process and inherited by every node a test starts."""
-    os.environ["ROS_DOMAIN_ID"] = str(next(MODULE_DOMAINS) % 233)
+    os.environ["ROS_DOMAIN_ID"] = str(next(MODULE_DOMAINS) % 232)  # even: a wrap keeps the parity
     yield
     os.environ["ROS_DOMAIN_ID"] = str(SESSION_DOMAIN)
 
