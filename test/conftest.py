@@ -32,10 +32,15 @@ from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.simulation.backlash import BacklashCell
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 
-# Under pytest-xdist each worker is a process of its own, with its own domain: the parity of the number is the
-# worker's, so two workers of one run never share a domain (ROS_DOMAIN_ID must stay below 233 with Fast DDS).
+# Under pytest-xdist each worker is a process of its own, with domains of its own: every domain a worker uses
+# (this one and test/nodes/conftest.py's per module) is its index modulo the number of workers, so two workers
+# of one run never share one. ROS_DOMAIN_ID must stay below 233 with Fast DDS: DOMAIN_WRAP keeps the residue.
+DOMAIN_STRIDE = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+DOMAIN_WRAP = DOMAIN_STRIDE * (232 // DOMAIN_STRIDE)
 _worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
-os.environ.setdefault("ROS_DOMAIN_ID", str(100 + 2 * (os.getpid() % 50) + _worker % 2))
+_slots = 232 // DOMAIN_STRIDE  # domains per worker; a session starts in the upper half, by its process id
+_slot = _slots // 2 + os.getpid() % (_slots - _slots // 2)
+os.environ["ROS_DOMAIN_ID"] = str(DOMAIN_STRIDE * _slot + _worker)  # a shell's own would be every worker's
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 ROOT = Path(__file__).resolve().parents[1]

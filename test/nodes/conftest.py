@@ -12,11 +12,12 @@ import time
 
 import pytest
 
+from test.conftest import DOMAIN_STRIDE, DOMAIN_WRAP
 from test.nodes.rosutil import LOGS, STARTED, stop
 
 SESSION_DOMAIN = int(os.environ["ROS_DOMAIN_ID"])  # set per session by test/conftest.py
-# in steps of 2: the parity of the session's domain is its pytest-xdist worker's (test/conftest.py)
-MODULE_DOMAINS = itertools.count(SESSION_DOMAIN + 2, 2)
+# in steps of the number of pytest-xdist workers: each worker keeps to its own residue (test/conftest.py)
+MODULE_DOMAINS = itertools.count(SESSION_DOMAIN + DOMAIN_STRIDE, DOMAIN_STRIDE)
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -30,7 +31,7 @@ def pytest_runtest_makereport(item, call):
 @pytest.fixture(scope="module", autouse=True)
 def own_domain():
     """Read by ``rclpy.init`` in this process and inherited by every node a test starts."""
-    os.environ["ROS_DOMAIN_ID"] = str(next(MODULE_DOMAINS) % 232)  # even: a wrap keeps the parity
+    os.environ["ROS_DOMAIN_ID"] = str(next(MODULE_DOMAINS) % DOMAIN_WRAP)  # a wrap keeps the residue
     yield
     os.environ["ROS_DOMAIN_ID"] = str(SESSION_DOMAIN)
 
