@@ -36,9 +36,9 @@ from hybrid_kinematics_ros.simulation.cell import VirtualCell
 # (this one and test/nodes/conftest.py's per module) is its index modulo the number of workers, so two workers
 # of one run never share one. ROS_DOMAIN_ID must stay below 233 with Fast DDS: DOMAIN_WRAP keeps the residue.
 DOMAIN_STRIDE = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
-DOMAIN_WRAP = DOMAIN_STRIDE * (232 // DOMAIN_STRIDE)
-_worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
 _slots = 232 // DOMAIN_STRIDE  # domains per worker; a session starts in the upper half, by its process id
+DOMAIN_WRAP = DOMAIN_STRIDE * _slots
+_worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
 _slot = _slots // 2 + os.getpid() % (_slots - _slots // 2)
 os.environ["ROS_DOMAIN_ID"] = str(DOMAIN_STRIDE * _slot + _worker)  # a shell's own would be every worker's
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
@@ -58,6 +58,11 @@ ONE_WORKER_FIXTURES = ("shoulder_model", "thermal_models", "backlash_models")
 # the longest test (it runs every command of README.md and docs/ in turn) starts first, then the real-time
 # group, so that no worker waits for either at the end
 FIRST = "test_readme_and_docs_commands_run_as_written"
+
+
+def module_of(nodeid: str) -> str:
+    """A test's module, as its node id names it (the path from the repository root)."""
+    return nodeid.split("::")[0]
 
 
 def module_groups() -> dict[str, str]:
@@ -84,15 +89,14 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log):
 
     class ModuleGroups(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
-            module = nodeid.split("::")[0]
-            return groups.get(module, module)
+            return groups.get(module_of(nodeid), module_of(nodeid))
 
     return ModuleGroups(config, log)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     # stable: the rest keep their order (pytest-xdist's --no-loadscope-reorder keeps this one)
-    items.sort(key=lambda item: (item.name != FIRST, item.nodeid.split("::")[0] not in REAL_TIME_MODULES))
+    items.sort(key=lambda item: (item.name != FIRST, module_of(item.nodeid) not in REAL_TIME_MODULES))
 
 
 @pytest.fixture(scope="session")
