@@ -20,8 +20,9 @@ composes the parts, with ``solve``, ``solve_many`` and ``solve_trajectory``.
    answer; when such rounds stop cutting the error, the branch's nearest point is found and the branch
    cannot reach the target: 3. follows at once). Near a singularity of the URDF model, where its chord
    Jacobian loses rank and the fixed point wanders along the singular valley, a root search along that
-   valley follows (:mod:`~hybrid_kinematics_ros.ik.valley`). What they leave goes to bounded LM through the
-   hybrid FK in a box (:mod:`~hybrid_kinematics_ros.ik.refine`).
+   valley and those of the other closed-form branches follows (:mod:`~hybrid_kinematics_ros.ik.valley`),
+   right after the seed's fixed point, before the other branches' fixed points. What they leave goes to
+   bounded LM through the hybrid FK in a box (:mod:`~hybrid_kinematics_ros.ik.refine`).
 3. When the seed's branch has no hybrid solution near it (near a singularity the nets' tenths of a
    millimetre move the solution by tenths of a radian, or the target lies just beyond the URDF model's
    reach), the other analytic branches follow: the closed forms' other branches, nearest the seed first,
@@ -276,12 +277,22 @@ class IKSolver:
             q0, _, _, attempts = self.classical(target, seed, start + CLASSICAL_SHARE * o.timeout_s, branches=closed)
             stats["attempts"] += attempts
         reserve = None
+        refine = None
         if len(closed) > 1:  # the seed's fixed point first: if it fails, the other branches' wait in reserve
             first = self._from_branch(target, q0, analytic, start, deadline, stats, origin, self._fixed_point_only)
             if first.success:
                 return self._singular(first)
+            # the rest of the seed's branch goes on from the fixed point's answer, which it does not repeat
+            classical_q, q0 = q0, first.q
+            refine = functools.partial(self._refine_branch, fixed=first)
+            if not first.stats.get("beyond_branch_reach"):
+                valley = functools.partial(self._valley_only, nearest=classical_q)
+                found = self._from_branch(target, q0, analytic, start, deadline, stats, origin, valley)
+                if found.success:
+                    return self._singular(found)
+                refine = functools.partial(self._refine_branch, fixed=first, valley=False)
             reserve = self._reserve(target, q0, closed, analytic, start, deadline, stats, origin)
-        best = self._from_branch(target, q0, analytic, start, deadline, stats, origin)
+        best = self._from_branch(target, q0, analytic, start, deadline, stats, origin, refine)
         if best.success:
             return self._singular(best)
         if reserve is not None:  # the seed's branch found nothing in the budget: another branch's answer
@@ -491,27 +502,56 @@ class IKSolver:
     ) -> IKResult:
         """The closed forms' fixed point alone (``rounds`` at most), stopped where it stalls: the cheap first
         try of a branch."""
-        q, errors, _ = self.fixed_point(target, q0, deadline, rounds)
-        return self.result(q, target, analytic, start, dict(stats, method="closed-form fixed point"), errors)
+        q, errors, beyond = self.fixed_point(target, q0, deadline, rounds)
+        stats = dict(stats, method="closed-form fixed point")
+        if beyond:
+            stats["beyond_branch_reach"] = True
+        return self.result(q, target, analytic, start, stats, errors)
+
+    def _valley_only(
+        self,
+        target: np.ndarray,
+        q0: np.ndarray,
+        analytic: bool,
+        start: float,
+        deadline: float,
+        stats: dict,
+        nearest: np.ndarray | None = None,
+    ) -> IKResult:
+        """The root search along the singular valleys alone (:meth:`_valley`; a miss where it finds nothing)."""
+        found = self._valley(target, q0, start, deadline, stats, nearest)
+        return found if found is not None else self.result(q0, target, analytic, start, dict(stats))
 
     def _refine_branch(
-        self, target: np.ndarray, q0: np.ndarray, analytic: bool, start: float, deadline: float, stats: dict
+        self,
+        target: np.ndarray,
+        q0: np.ndarray,
+        analytic: bool,
+        start: float,
+        deadline: float,
+        stats: dict,
+        fixed: IKResult | None = None,
+        valley: bool = True,
     ) -> IKResult:
         """The hybrid solution near the classical answer ``q0``: the closed forms' fixed point, then the box
         refinement, then, if that misses, damped LM on the hybrid model over the whole joint range (the bounded
-        boxes crawl near a singularity)."""
+        boxes crawl near a singularity). ``fixed``: the fixed point has run already, and ``q0`` is its answer;
+        ``valley``: False where the valley search has run already."""
         q, errors = q0, None
         corrected = not analytic and self.model.is_corrected
         if corrected and self.closed_form is not None:
-            q0, errors, beyond = self.fixed_point(target, q0, deadline)
-            q = q0
-            result = self.result(q, target, analytic, start, dict(stats, method="closed-form fixed point"), errors)
+            result = fixed
+            if result is None:
+                q0, errors, beyond = self.fixed_point(target, q0, deadline)
+                q = q0
+                result = self.result(q, target, analytic, start, dict(stats, method="closed-form fixed point"), errors)
+                if beyond:
+                    result.stats["beyond_branch_reach"] = True
             if result.success:
                 return result
-            if beyond:  # this branch gets no nearer: the other branches get the time (solve's loop)
-                result.stats["beyond_branch_reach"] = True
+            if result.stats.get("beyond_branch_reach"):  # no nearer on this branch: the others get the time
                 return result
-            found = self._valley(target, q0, start, deadline, stats)
+            found = self._valley(target, q0, start, deadline, stats) if valley else None
             if found is not None:
                 return found
         if corrected:
@@ -528,14 +568,23 @@ class IKSolver:
         return result
 
     def _valley(
-        self, target: np.ndarray, q0: np.ndarray, start: float, deadline: float, stats: dict
+        self,
+        target: np.ndarray,
+        q0: np.ndarray,
+        start: float,
+        deadline: float,
+        stats: dict,
+        nearest: np.ndarray | None = None,
     ) -> IKResult | None:
-        """The hybrid solution along the URDF model's singular valley through ``q0``, nearest ``q0`` first
-        (:mod:`~hybrid_kinematics_ros.ik.valley`); None when ``q0`` is not near a singularity or no root of
-        the valley reaches the target."""
+        """The hybrid solution along the URDF model's singular valleys through ``q0`` and the closed forms'
+        branches, nearest ``nearest`` (else ``q0``) first (:mod:`~hybrid_kinematics_ros.ik.valley`); None when
+        none is near a singularity or no root of the valleys reaches the target."""
         if not self.options.valley or deadline - time.perf_counter() < VALLEY_SHARE * self.options.timeout_s:
             return None  # the grid alone costs a few hybrid FKs of the whole grid: too late to start it
-        starts = valley_starts(self.model, target, q0, self.limits, deadline, self.inner_tol[0])
+        # the valleys of every closed-form branch at once: at a shoulder singularity the solution can lie on
+        # another branch's valley (the shoulder flipped), and the seed's wanders across the wrist's
+        near = np.vstack([*([] if nearest is None else [nearest]), q0, *self.branches(target, q0)])
+        starts = valley_starts(self.model, target, near, self.limits, deadline, self.inner_tol[0])
         if starts is None:
             return None
         stats["valley"] = len(starts)
