@@ -459,12 +459,14 @@ class IKSolver:
         Returns the round nearest the target (``q0`` if none comes nearer), its hybrid errors (mm, deg; None
         without closed forms), and whether it stalled beyond the branch's reach: after a least-squares round
         the error fell by less than STALLED, so the branch's nearest point to the target is found, and the
-        branch has no hybrid solution here. It stops within the solver's inner tolerance."""
+        branch has no hybrid solution here. It stops within the solver's inner tolerance, after one round more
+        where the answer is not yet within a tenth of it (the refiner's ``polish_tol``)."""
         if self.closed_form is None:
             return q0, None, False
         tol_m, tol_rad = self.inner_tol
+        polish_m, polish_rad = self.refiner.polish_tol
         best, best_cost, best_errors, q = q0, np.inf, None, q0
-        least_squares = False
+        least_squares = converged = False
         for round_ in range(rounds + 1):
             hybrid = self.model.fk_single(q)
             e = error6(target, hybrid)
@@ -474,7 +476,9 @@ class IKSolver:
             if cost < best_cost:
                 best, best_cost, best_errors = q, cost, (1e3 * ep, float(np.degrees(er)))
             if ep <= tol_m and er <= tol_rad:
-                break
+                if converged or (ep <= polish_m and er <= polish_rad):
+                    break
+                converged = True  # one round more (POLISH_SHARE)
             if stalled:
                 return best, best_errors, True
             if round_ == rounds or time.perf_counter() > deadline:
