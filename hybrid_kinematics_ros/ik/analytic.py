@@ -19,6 +19,7 @@ So every branch is checked against our own FK, and folded by 2π into the joint 
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -227,3 +228,17 @@ def fold(q: np.ndarray, seed: np.ndarray, lower: np.ndarray, upper: np.ndarray) 
     turns = np.clip(np.round((seed - q) / tau), first, last)
     inside = np.all(first <= last, axis=1)
     return (q + tau * turns)[inside]
+
+
+def turns(q: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Every copy of each row of ``q (k, n)`` with its joints shifted by multiples of 2π within ``[lower, upper]``
+    (the rows themselves included): the same pose for the URDF model, another problem for a hybrid model, whose
+    nets see raw joint values (on a UR arm's ±2π joints, 2⁶ copies of each branch)."""
+    tau = 2 * np.pi
+    first = np.ceil((lower - 1e-12 - q) / tau).astype(int)
+    last = np.floor((upper + 1e-12 - q) / tau).astype(int)
+    copies = [
+        itertools.product(*(row[j] + tau * np.arange(lo[j], hi[j] + 1) for j in range(len(row))))
+        for row, lo, hi in zip(q, first, last, strict=True)
+    ]
+    return np.array(list(itertools.chain.from_iterable(copies)), dtype=float).reshape(-1, q.shape[1])

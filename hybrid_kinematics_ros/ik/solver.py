@@ -54,7 +54,6 @@ corrections (or ``analytic=True``) has no hybrid stages: its classical stage get
 from __future__ import annotations
 
 import functools
-import itertools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -62,7 +61,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hybrid_kinematics_ros.ik import seeds as seeding
-from hybrid_kinematics_ros.ik.analytic import AnalyticIK
+from hybrid_kinematics_ros.ik.analytic import AnalyticIK, turns
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.lm import error6, joint_limits, lm_solve
 from hybrid_kinematics_ros.ik.refine import HybridRefiner
@@ -283,15 +282,15 @@ class IKSolver:
             if first.success:
                 return self._singular(first)
             # the rest of the seed's branch goes on from the fixed point's answer, which it does not repeat
-            classical_q, q0 = q0, first.q
+            closed_q, q0 = q0, first.q
             refine = functools.partial(self._refine_branch, fixed=first)
             if not first.stats.get("beyond_branch_reach"):
-                valley = functools.partial(self._valley_only, nearest=classical_q)
+                valley = functools.partial(self._valley_only, nearest=closed_q)
                 found = self._from_branch(target, q0, analytic, start, deadline, stats, origin, valley)
                 if found.success:
                     return self._singular(found)
                 refine = functools.partial(self._refine_branch, fixed=first, valley=False)
-            reserve = self._reserve(target, q0, closed, analytic, start, deadline, stats, origin)
+            reserve = self._reserve(target, first, closed_q, closed, analytic, start, deadline, stats, origin)
         best = self._from_branch(target, q0, analytic, start, deadline, stats, origin, refine)
         if best.success:
             return self._singular(best)
@@ -304,10 +303,19 @@ class IKSolver:
         # the other branches (module docstring, 3.)
         tried = [q0]
         tol_m, tol_rad = self.inner_tol
-        starts = [*closed, *self.seeds.nearest(target, 2 * seeding.TABLE_RESTARTS)]
+        # the branches' copies shifted by 2π next: another problem for the nets (an elbow stretched a few
+        # micrometres beyond one copy's reach can lie within another's), nearest the seed first
+        branches = np.vstack([closed, near])
+        copies = turns(branches, self.lower, self.upper)
+        copies = copies[np.argsort(np.linalg.norm(copies - seed, axis=1), kind="stable")]
+        copies = [q for q in copies if seeding.is_new_branch(q, list(branches))]
+        table = self.seeds.nearest(target, 2 * seeding.TABLE_RESTARTS)
+        # (start, whether LM on the hybrid model follows a fixed point that stalls beyond the branch's reach: on
+        # a copy, the nets' reach is what differs, and the hybrid Jacobian is what finds it)
+        starts = iter([(q, False) for q in closed] + [(q, True) for q in copies] + [(q, False) for q in table])
         valley = [] if analytic else seeding.valley_seeds(self.model, best.q, best.position_error_mm, self.limits)
         others = [q for q in near[1:] if seeding.is_new_branch(q, tried)]
-        for i in itertools.count():
+        while True:
             if time.perf_counter() > deadline:
                 break
             if valley:  # straight to the hybrid LM: these start next to a hybrid near-solution
@@ -319,7 +327,8 @@ class IKSolver:
                 result = self._other_branch(target, q0, analytic, start, deadline, stats, origin)
                 valley = seeding.valley_seeds(self.model, result.q, result.position_error_mm, self.limits)
             else:
-                s = starts[i] if i < len(starts) else self.seeds.random()
+                s, copy = next(starts, (None, False))
+                s = self.seeds.random() if s is None else s
                 q0, ep, er, _ = lm_solve(
                     self.analytic_fk_jac, target, s, self.limits, tol_m, tol_rad, o.max_iterations, deadline
                 )
@@ -327,7 +336,7 @@ class IKSolver:
                 if ep > seeding.NEAR_M or er > seeding.NEAR_RAD or not seeding.is_new_branch(q0, tried):
                     continue
                 tried.append(q0)
-                result = self._other_branch(target, q0, analytic, start, deadline, stats, origin)
+                result = self._other_branch(target, q0, analytic, start, deadline, stats, origin, copy)
                 if not analytic:
                     valley = seeding.valley_seeds(self.model, result.q, result.position_error_mm, self.limits)
             if result.position_error_mm < best.position_error_mm:
@@ -341,6 +350,7 @@ class IKSolver:
     def _reserve(
         self,
         target: np.ndarray,
+        first: IKResult,
         q0: np.ndarray,
         closed: np.ndarray,
         analytic: bool,
@@ -349,10 +359,14 @@ class IKSolver:
         stats: dict,
         origin: np.ndarray | None,
     ) -> IKResult | None:
-        """The seed's branch ``q0`` was not solved by its fixed point (near a wrist singularity it wanders among
-        the members of a continuum): the other closed-form branches' fixed points, PROBE_ROUNDS each, nearest
-        the seed first. The first that solves waits in reserve while the seed's branch gets the budget."""
+        """The seed's branch ``q0`` was not solved by its fixed point (``first``; near a wrist singularity it
+        wanders among the members of a continuum): the other closed-form branches' fixed points, PROBE_ROUNDS
+        each, nearest the seed first. Then, where fixed points stalled beyond their branch's reach (an elbow
+        stretched to the URDF model's reach), the copies of those branches shifted by 2π, the nearest miss's
+        first: the nets see raw joint values, so another copy can reach micrometres further. The first that
+        solves waits in reserve while the seed's branch gets the budget."""
         tried = [q0]
+        stalled = [(first.position_error_mm, q0)] if first.stats.get("beyond_branch_reach") else []
         probe = functools.partial(self._fixed_point_only, rounds=PROBE_ROUNDS)  # converging ones take 3
         for q in closed:
             if time.perf_counter() > deadline or not seeding.is_new_branch(q, tried):
@@ -361,6 +375,16 @@ class IKSolver:
             result = self._from_branch(target, q, analytic, start, deadline, stats, origin, probe)
             if result.success:
                 return result
+            if result.stats.get("beyond_branch_reach"):
+                stalled.append((result.position_error_mm, q))
+        for _, branch in sorted(stalled, key=lambda miss: miss[0]):
+            for q in turns(branch[None], self.lower, self.upper):
+                if time.perf_counter() > deadline or not seeding.is_new_branch(q, tried):
+                    continue
+                tried.append(q)  # the whole fixed point: a copy that reaches converges more slowly there
+                result = self._from_branch(target, q, analytic, start, deadline, stats, origin, self._fixed_point_only)
+                if result.success:
+                    return result
         return None
 
     def _beyond_reach(self, target: np.ndarray, seed: np.ndarray, closed: np.ndarray) -> np.ndarray:
@@ -406,16 +430,18 @@ class IKSolver:
         deadline: float,
         stats: dict,
         origin: np.ndarray | None = None,
+        lm_beyond: bool = False,
     ) -> IKResult:
         """A cheaper :meth:`_from_branch` for the fallback branches: unbounded LM with the chord Jacobian
         (one hybrid FK per step), then with the hybrid one. At an exact singularity the error only halves
-        per step; the floor and stall rules stop the runs that make no progress."""
+        per step; the floor and stall rules stop the runs that make no progress. ``lm_beyond``: LM follows a
+        fixed point that stalled beyond the branch's reach too."""
         if analytic or not self.model.is_corrected:
             return self.result(q0, target, analytic, start, dict(stats))
         with self.model.approaching(self._arrival(origin, q0)):
             q0, errors, beyond = self.fixed_point(target, q0, deadline)
             result = self.result(q0, target, analytic, start, dict(stats), errors)
-            if result.success or beyond:
+            if result.success or (beyond and not lm_beyond):
                 return result
             q, *_ = self.refiner.unbounded(target, q0, deadline, chord_first=True)
             return self.result(q, target, analytic, start, dict(stats))
