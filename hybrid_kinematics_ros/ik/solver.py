@@ -183,12 +183,14 @@ class IKSolver:
         deadline: float,
         restarts: int = seeding.TABLE_RESTARTS,
         branches: np.ndarray | None = None,
+        continuum: bool = True,
     ) -> tuple[np.ndarray, float, float, int]:
         """Stage 1: the joints, the errors (m, rad), the attempts. With closed forms, the branch nearest the seed
         (``branches``, when the caller has them); where the target has a branch at a singularity, LM from the
         seed too, and the nearer of the two. Otherwise, or when the closed forms give nothing, LM from the
         seed, then restarts while time remains, from the ``restarts`` table configurations nearest the
-        target, then random ones."""
+        target, then random ones. ``continuum``: False where the hybrid stages follow, whose valley search
+        walks the continuum itself (LM crawls there: it took half the budget)."""
         tol_m, tol_rad = self.inner_tol
         branches = self.branches(target, seed) if branches is None else branches
         for q in branches[:1]:  # nearest the seed; exact, or polished on our FK in a step
@@ -199,7 +201,7 @@ class IKSolver:
                     self.analytic_fk_jac, target, q, self.limits, tol_m, tol_rad, self.options.max_iterations, deadline
                 )
             if ep <= tol_m and er <= tol_rad:
-                if not (self._rank_lost(q) or self.closed_form.singular(target)):
+                if not continuum or not (self._rank_lost(q) or self.closed_form.singular(target)):
                     return q, ep, er, 1
                 # a branch at a singularity has no closed-form answer: its continuum's member nearest the seed
                 # comes from LM, and wins if nearer than the closed forms' nearest
@@ -273,7 +275,9 @@ class IKSolver:
                     nearest_miss = result
             q0 = nearest_miss.q  # the refinements go on from the branch that came nearest
         else:
-            q0, _, _, attempts = self.classical(target, seed, start + CLASSICAL_SHARE * o.timeout_s, branches=closed)
+            q0, _, _, attempts = self.classical(
+                target, seed, start + CLASSICAL_SHARE * o.timeout_s, branches=closed, continuum=False
+            )
             stats["attempts"] += attempts
         reserve = None
         refine = None

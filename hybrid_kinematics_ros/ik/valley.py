@@ -44,8 +44,9 @@ GRID_STEPS = 3
 BRACKET_STEPS = 6
 MAX_ROOTS = 4  # brackets refined (all at once), over all valleys, nearest the first q_near first
 TOUCH_STEPS = 3  # parabola steps at a double root
-SETTLE_STEPS = 2
+SETTLE_STEPS = 1  # a bracket's points lie between settled ones: one chord step (2 gave the same answers, slower)
 RINGS = 1  # rounds of restarts from settled neighbours, each reaching at least one grid step further
+SINGLE_ROWS = 2  # settle's rows evaluated one by one up to this many
 SAME_RAD = 1e-6  # rows of q_near this close start the same valley
 SETTLED = 1e-5  # m (or rad): a grid point whose five joints leave more across the valley brackets nothing
 # Where the URDF model counts as near-singular for this search: the Jacobian's smallest singular value (m or
@@ -70,10 +71,11 @@ def _normal(J5: np.ndarray) -> np.ndarray:
 
 
 def _poses_and_jacobians(model: HybridModel, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Hybrid poses and URDF Jacobians of ``Q (K, n)``: batched, or on the single-pose path for one row
-    (half the cost there)."""
-    if len(Q) == 1:
-        return model.fk_single(Q[0])[None], model.fk_and_jacobian_single(Q[0], analytic=True)[1][None]
+    """Hybrid poses and URDF Jacobians of ``Q (K, n)``: batched, or row by row on the single-pose path for a
+    few rows (a batch costs ~0.4 ms however small, a single pose 0.14 ms)."""
+    if len(Q) <= SINGLE_ROWS:
+        single = [(model.fk_single(q), model.fk_and_jacobian_single(q, analytic=True)[1]) for q in Q]
+        return np.stack([T for T, _ in single]), np.stack([J for _, J in single])
     return model.fk(Q), model.fk_and_jacobian(Q, analytic=True)[1]
 
 
