@@ -71,14 +71,16 @@ def client(calls: int, batch: int = 1, kinds: str = "fk", depth: int = 10) -> di
         if kind in ("fk_empty", "fk_pose"):  # the same request to a server that computes nothing
             srv = node.create_client(ComputeFK, f"/bench_trivial/{kind[3:]}", qos_profile=qos)
             return srv, ComputeFK.Request(joint_states=[joint_state_msg(np.zeros(6), names, stamp)])
-        if kind.startswith("ik"):
+        if kind.startswith("ik"):  # ik<solutions>[@/namespace]
             from hybrid_kinematics_ros.kinematics import fk
             from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 
             chain = load_robot_config("ur10").chain
             target = fk.fk_single(chain, np.array([0.3, -1.2, 1.3, -0.9, 1.1, 0.2]))
-            srv = node.create_client(ComputeIK, "/kinematics_node/compute_ik", qos_profile=qos)
-            return srv, ComputeIK.Request(target=pose_msg(target, "base_link", stamp), max_solutions=int(kind[2:] or 1))
+            solutions, _, namespace = kind[2:].partition("@")
+            srv = node.create_client(ComputeIK, f"{namespace}/kinematics_node/compute_ik", qos_profile=qos)
+            request = ComputeIK.Request(target=pose_msg(target, "base_link", stamp), max_solutions=int(solutions or 1))
+            return srv, request
         q = np.random.default_rng(os.getpid()).uniform(-1, 0, (batch, 6))
         namespace = kind.partition("@")[2]  # fk@/ns: the node started in namespace /ns
         srv = node.create_client(ComputeFK, f"{namespace}/kinematics_node/compute_fk", qos_profile=qos)
@@ -332,13 +334,36 @@ def fk_batch_part(calls: int = 50) -> str:
     )
 
 
-def ik_part() -> str:
+def ik_part(model_dir: str | None, tmp: Path, rounds: int = 500) -> str:
+    """IK round trips against FK round trips of the same node, called in turn by one client: a node serving the
+    URDF model and one serving a hybrid model, side by side."""
     from bench.report import table
 
-    ik1 = np.array(result_of(run_client(100, kinds="ik1"))["times"]["ik1"]) * 1e3
-    ik8 = np.array(result_of(run_client(30, kinds="ik8"))["times"]["ik8"]) * 1e3
-    rows = [["IK, one solution (100 calls)", *stats(ik1)], ["IK, up to 8 solutions (30 calls)", *stats(ik8)]]
-    return table(HEADERS, rows)
+    hybrid_dir, about = served_model(model_dir, tmp)
+    nodes = [
+        start_node(None, tmp / "urdf_node.log"),  # the parameters file names base and tip for this name only
+        start_node(hybrid_dir, tmp / "hybrid_node.log", "/hybrid"),
+    ]
+    try:
+        one = result_of(run_client(rounds, kinds="fk,ik1,fk@/hybrid,ik1@/hybrid"))
+        many = result_of(run_client(30, kinds="ik8,ik8@/hybrid"))
+    finally:
+        stop(nodes)
+    ms = {k: np.array(v) * 1e3 for k, v in {**one["times"], **many["times"]}.items()}
+    rows, ratios = [], []
+    for ns, label in (("", "the URDF model"), ("@/hybrid", "the hybrid model")):
+        rows += [
+            [f"FK, one configuration, {label} ({rounds} calls)", *stats(ms[f"fk{ns}"])],
+            [f"IK, one solution, {label} ({rounds} calls)", *stats(ms[f"ik1{ns}"])],
+            [f"IK, up to 8 solutions, {label} (30 calls)", *stats(ms[f"ik8{ns}"])],
+        ]
+        ratios.append(f"{np.median(ms[f'ik1{ns}']) / np.median(ms[f'fk{ns}']):.2f}× with {label}")
+    return (
+        f"Two kinematics_node processes, one serving the UR10's URDF model, one serving {about}; one client "
+        "calls FK and IK (one solution) of each in turn, so each pair sees the same machine state. IK of one "
+        f"solution against FK, ratio of the medians: **{'; '.join(ratios)}** (target ≤ 1.5×).\n\n"
+        + table(HEADERS, rows)
+    )
 
 
 def load_part(node_pid: int) -> str:
@@ -507,7 +532,7 @@ def main(only: list[str], model_dir: str | None, repeat: int, rounds: int) -> No
             f"{load_before:.1f} before and {os.getloadavg()[0]:.1f} after (2 cores, shared).*\n\n{body}"
         )
 
-    node_parts = [p for p in only if p not in ("compensate", "bounds")]
+    node_parts = [p for p in only if p not in ("ik", "compensate", "bounds")]
     if node_parts:
         node = start_node(model_dir, tmp / "node.log")
         trivial = [
@@ -521,12 +546,12 @@ def main(only: list[str], model_dir: str | None, repeat: int, rounds: int) -> No
                 measured("latency", lambda: latency_part(repeat, rounds), what)
             if "fk_batch" in only:
                 measured("fk_batch", fk_batch_part, what)
-            if "ik" in only:
-                measured("ik", ik_part, what)
             if "load" in only:
                 measured("load", lambda: load_part(node.pid), what)
         finally:
             stop([node, *trivial])
+    if "ik" in only:
+        measured("ik", lambda: ik_part(model_dir, tmp), "FK and IK round trips side by side")
     if "compensate" in only:
         measured("compensate", lambda: compensate_part(model_dir, tmp), "trajectory compensation")
     if "bounds" in only:
