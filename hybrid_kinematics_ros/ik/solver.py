@@ -574,13 +574,8 @@ class IKSolver:
         q, errors = q0, None
         corrected = not analytic and self.model.is_corrected
         if corrected and self.closed_form is not None:
-            result = fixed
-            if result is None:
-                q0, errors, beyond = self.fixed_point(target, q0, deadline)
-                q = q0
-                result = self.result(q, target, analytic, start, dict(stats, method="closed-form fixed point"), errors)
-                if beyond:
-                    result.stats["beyond_branch_reach"] = True
+            result = fixed or self._fixed_point_only(target, q0, analytic, start, deadline, stats)
+            q = q0 = result.q
             if result.success:
                 return result
             if result.stats.get("beyond_branch_reach"):  # no nearer on this branch: the others get the time
