@@ -90,6 +90,7 @@ PROBE_ROUNDS = 4  # the other branches' rounds while the seed's branch is not so
 # solved with it, 49 without).
 STALLED = 0.9
 VALLEY_SHARE = 0.5  # of the budget, still left, for the search along a singular valley (ik/valley.py)
+POLISH_ITERATIONS = 12  # LM steps on a least-squares answer beyond a fold (6-9 reach the URDF model's nearest point)
 SINGULAR = 1e-6  # the URDF Jacobian's smallest singular value (m or rad per rad) at a singular target's answer
 OTHER_BRANCH = "on another branch than the seed's, which found no solution within the budget"  # said with it
 
@@ -397,7 +398,19 @@ class IKSolver:
         first; else none. Every classical restart there fails, and took half the budget (650d758)."""
         if self.closed_form is None or len(closed):
             return np.empty((0, self.model.chain.dof))
-        return self.closed_form.approximations(target, seed, seeding.NEAR_M, seeding.NEAR_RAD)
+        near = self.closed_form.approximations(target, seed, seeding.NEAR_M, seeding.NEAR_RAD)
+        if len(near):
+            return near
+        # beyond a fold of the URDF model (a wrist straight, q5 = 0), IK-Geo's least-squares wrist misses: a
+        # few LM steps on the URDF model from each answer find its nearest point
+        polished = []
+        for q in self.closed_form.approximations(target, seed, np.inf, np.inf):
+            q, ep, er, _ = lm_solve(
+                self.analytic_fk_jac, target, q, self.limits, *self.inner_tol, POLISH_ITERATIONS, float("inf")
+            )
+            if ep < seeding.NEAR_M and er < seeding.NEAR_RAD:
+                polished.append(q)
+        return np.array(polished).reshape(-1, self.model.chain.dof)
 
     def _rank_lost(self, q: np.ndarray) -> bool:
         """The URDF Jacobian at ``q`` has lost rank: ``q`` is at a singularity."""
