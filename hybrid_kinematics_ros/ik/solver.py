@@ -582,12 +582,14 @@ class IKSolver:
     ) -> IKResult:
         """The hybrid solution near the classical answer ``q0``: the closed forms' fixed point, then the box
         refinement, then, if that misses, damped LM on the hybrid model over the whole joint range (the bounded
-        boxes crawl near a singularity). ``fixed``: the fixed point has run already, and ``q0`` is its answer;
-        ``valley``: False where the valley search has run already."""
+        boxes crawl near a singularity). ``fixed``: the fixed point's result where it has run already and ``q0``
+        is its answer; ``valley``: False where the valley search has run already."""
         q, errors = q0, None
         corrected = not analytic and self.model.is_corrected
         if corrected and self.closed_form is not None:
-            result = fixed or self._fixed_point_only(target, q0, analytic, start, deadline, stats)
+            # ``fixed`` holds for its own answer only (a rerun with other approach directions starts elsewhere)
+            ran = fixed is not None and np.array_equal(fixed.q, q0)
+            result = fixed if ran else self._fixed_point_only(target, q0, analytic, start, deadline, stats)
             q = q0 = result.q
             if result.success:
                 return result
