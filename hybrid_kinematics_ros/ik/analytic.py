@@ -222,23 +222,26 @@ def fold(q: np.ndarray, seed: np.ndarray, lower: np.ndarray, upper: np.ndarray) 
     """Each row's joints shifted by a multiple of 2π to the value within ``[lower, upper]`` nearest the seed;
     rows with a joint that has no such value are dropped."""
     q = np.asarray(q, dtype=float).reshape(-1, len(seed))
-    tau = 2 * np.pi
-    first = np.ceil((lower - 1e-12 - q) / tau)  # the fewest and the most turns that stay inside
-    last = np.floor((upper + 1e-12 - q) / tau)
-    turns = np.clip(np.round((seed - q) / tau), first, last)
+    first, last = _turn_range(q, lower, upper)
+    shift = np.clip(np.round((seed - q) / (2 * np.pi)), first, last)
     inside = np.all(first <= last, axis=1)
-    return (q + tau * turns)[inside]
+    return (q + 2 * np.pi * shift)[inside]
+
+
+def _turn_range(q: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The fewest and the most whole turns (ints, each ``q``'s shape) that keep each joint of ``q`` within
+    ``[lower, upper]``; first > last where none does."""
+    tau = 2 * np.pi
+    return np.ceil((lower - 1e-12 - q) / tau).astype(int), np.floor((upper + 1e-12 - q) / tau).astype(int)
 
 
 def turns(q: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
     """Every copy of each row of ``q (k, n)`` with its joints shifted by multiples of 2π within ``[lower, upper]``
     (the rows themselves included): the same pose for the URDF model, another problem for a hybrid model, whose
     nets see raw joint values (on a UR arm's ±2π joints, 2⁶ copies of each branch)."""
-    tau = 2 * np.pi
-    first = np.ceil((lower - 1e-12 - q) / tau).astype(int)
-    last = np.floor((upper + 1e-12 - q) / tau).astype(int)
+    first, last = _turn_range(q, lower, upper)
     copies = [
-        itertools.product(*(row[j] + tau * np.arange(lo[j], hi[j] + 1) for j in range(len(row))))
+        itertools.product(*(row[j] + 2 * np.pi * np.arange(lo[j], hi[j] + 1) for j in range(len(row))))
         for row, lo, hi in zip(q, first, last, strict=True)
     ]
     return np.array(list(itertools.chain.from_iterable(copies)), dtype=float).reshape(-1, q.shape[1])

@@ -32,6 +32,19 @@ def hybrid_errors(model, q: np.ndarray, target: np.ndarray) -> tuple[float, floa
     return float(position), float(np.degrees(np.arccos(cos)))
 
 
+def answered_methods(solver: IKSolver, targets: np.ndarray) -> list[str | None]:
+    """Every target solved from a mid-limits seed and reached within 1e-4 mm and 1e-4° on the hybrid FK;
+    returns the method of each answer."""
+    methods = []
+    for target in targets:
+        result = solver.solve(target)
+        assert result.success, result.message
+        position, rotation = hybrid_errors(solver.model, result.q, target)
+        assert position < 1e-4 and rotation < 1e-4
+        methods.append(result.stats.get("method"))
+    return methods
+
+
 def test_a_start_a_radian_along_the_valley_finds_a_hybrid_solution(trained):
     _, model, _, _ = trained
     limits = joint_limits(model.chain)
@@ -73,13 +86,5 @@ def test_the_solver_answers_wrist_singular_hybrid_targets_within_tolerance(train
     """Mid-limits seed, so the classical answer lies elsewhere on the valley: every answer reaches the target
     through the hybrid FK, and some of them come from the valley search."""
     _, model, _, _ = trained
-    solver = IKSolver(model, GENEROUS)
-    methods = []
-    for q_star in wrist_singular(model, 12, seed=4):
-        target = model.fk_single(q_star)
-        result = solver.solve(target)
-        assert result.success, result.message
-        position, rotation = hybrid_errors(model, result.q, target)
-        assert position < 1e-4 and rotation < 1e-4
-        methods.append(result.stats.get("method"))
+    methods = answered_methods(IKSolver(model, GENEROUS), model.fk(wrist_singular(model, 12, seed=4)))
     assert "singular valley" in methods, methods

@@ -19,7 +19,7 @@ from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.ik.valley import valley_starts
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
-from test.ik.test_valley import TOL_M, hybrid_errors
+from test.ik.test_valley import TOL_M, answered_methods, hybrid_errors
 
 TARGETS = 12
 
@@ -69,13 +69,7 @@ def test_the_valleys_of_all_branches_hold_solutions_the_seeds_alone_misses(rx160
 
 def test_the_solver_answers_shoulder_singular_targets(rx160_model, shoulder_targets):
     solver = IKSolver(rx160_model, IKOptions(timeout_s=5.0))  # tests check answers; bench_ik_singular times them
-    methods = []
-    for target in shoulder_targets:
-        result = solver.solve(target)
-        assert result.success, result.message
-        position, rotation = hybrid_errors(rx160_model, result.q, target)
-        assert position < 1e-4 and rotation < 1e-4
-        methods.append(result.stats.get("method"))
+    methods = answered_methods(solver, shoulder_targets)
     assert "singular valley" in methods, methods
 
 
@@ -85,13 +79,8 @@ def test_stretched_elbow_targets_are_answered(rx160_model):
     reach it where the branch does not (tried where fixed points stall beyond their reach). Every answer
     reaches the target on the hybrid FK. (With this budget the solver's random restarts would find the few
     such targets too: bench_ik_singular measures what the copies gain at 50 ms, 94.5 to 99.5 %.)"""
-    solver = IKSolver(rx160_model, IKOptions(timeout_s=5.0))
     q = cases(rx160_model.chain, 2 * TARGETS, np.random.default_rng(3))["elbow stretched"]
-    for target in rx160_model.fk(q):
-        result = solver.solve(target)
-        assert result.success, result.message
-        position, rotation = hybrid_errors(rx160_model, result.q, target)
-        assert position < 1e-4 and rotation < 1e-4
+    answered_methods(IKSolver(rx160_model, IKOptions(timeout_s=5.0)), rx160_model.fk(q))
 
 
 def test_copies_shifted_by_two_pi_are_every_one_within_the_limits():
