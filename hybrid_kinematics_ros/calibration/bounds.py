@@ -147,17 +147,20 @@ def calibrate(
     validation_excess: np.ndarray,
     position_error: np.ndarray,
     orientation_error: np.ndarray | None,
+    stage_error: tuple[np.ndarray, np.ndarray | None],
     level: float = LEVEL,
 ) -> Bounds:
     """The bounds, from the linearised stage problem over the training pairs (``lin`` with its ``ridge``,
     for the rates), the stage's errors on them (``training``: configurations, position m, orientation rad or
     None; for the scale) and the hybrid model's validation errors (m, rad; None: position only) at their
-    configurations ``validation_q (N, n)`` and excess ``(N, n)`` beyond the trained range."""
+    configurations ``validation_q (N, n)`` and excess ``(N, n)`` beyond the trained range. ``stage_error``:
+    the stage alone's validation errors (position m, orientation rad or None), for its own quantile (the
+    ``bound`` range policy compares the two)."""
     on_data, slabs = extrapolation_errors(lin, ridge, revolute)
     n = len(revolute)
-    kinds = {"position": (0, position_error)}
+    kinds = {"position": (0, position_error, stage_error[0])}
     if orientation_error is not None and on_data[1] is not None and training[2] is not None:
-        kinds["orientation"] = (1, orientation_error)
+        kinds["orientation"] = (1, orientation_error, stage_error[1])
     made: dict[str, ErrorBound] = {}
     figures: dict[str, float | int | list[float]] = {
         "validation_pairs": len(validation_excess),
@@ -165,7 +168,7 @@ def calibrate(
         "held_out_slabs": len(slabs),
         "held_out_pairs": int(sum(len(s[1]) for s in slabs)),
     }
-    for kind, (column, validation) in kinds.items():
+    for kind, (column, validation, stage_validation) in kinds.items():
         floor = conformal_quantile(on_data[column], level)
         rates = np.zeros(n)
         for j in range(n):
@@ -179,6 +182,9 @@ def calibrate(
         # a validation pair beyond the range counts for what its error exceeds the growth there
         grown = np.linalg.norm(validation_excess * rates, axis=1)
         left = np.maximum(validation - grown, 0.0)
-        made[kind] = ErrorBound(conformal_quantile(left / at, level), rates, scale)
+        stage_left = np.maximum(stage_validation - grown, 0.0)
+        made[kind] = ErrorBound(
+            conformal_quantile(left / at, level), rates, scale, conformal_quantile(stage_left / at, level)
+        )
         figures[f"{kind}_quantile_without_scale"] = conformal_quantile(left, level)  # what it was with none
     return Bounds(level, made["position"], made.get("orientation"), figures)

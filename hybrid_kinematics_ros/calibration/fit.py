@@ -408,8 +408,9 @@ def calibrate_bounds(
         map_step=0.0,
         **options,
     )
-    tip = model.fk(val_pairs.q, conditions=model.conditions_of(val_pairs.conditions, len(val_pairs)))
-    pos_mm, rot_deg = target_errors(val_pairs, tip)
+    val_conditions = model.conditions_of(val_pairs.conditions, len(val_pairs))
+    pos_mm, rot_deg = target_errors(val_pairs, model.fk(val_pairs.q, conditions=val_conditions))
+    alone_mm, alone_deg = target_errors(val_pairs, model.fk(val_pairs.q, nets=False, conditions=val_conditions))
     conditions = model.conditions_of(train_pairs.conditions, len(train_pairs))
     stage_mm, stage_deg = target_errors(train_pairs, model.fk(train_pairs.q, nets=False, conditions=conditions))
     stage = (train_pairs.q, 1e-3 * stage_mm, None if train_pairs.position_only else np.radians(stage_deg))
@@ -423,6 +424,7 @@ def calibrate_bounds(
         excess(val_pairs.q, model.trained_lower, model.trained_upper, chain.revolute),
         1e-3 * pos_mm,
         None if val_pairs.position_only else np.radians(rot_deg),
+        (1e-3 * alone_mm, None if val_pairs.position_only else np.radians(alone_deg)),
     )
 
 

@@ -54,7 +54,8 @@ def add_range_args(p: argparse.ArgumentParser) -> None:
         "--out-of-range",
         choices=RANGE_POLICIES,
         default="warn",
-        help="outside the calibrated range: warn (default), parametric (no nets there) or refuse",
+        help="outside the calibrated range: warn (default), parametric (no nets there), refuse, or bound "
+        "(each net where its error bound is below the parametric stage's)",
     )
     add_coverage_arg(p)
 

@@ -85,30 +85,40 @@ class Scale:
 
 @dataclass(frozen=True)
 class ErrorBound:
-    """One kind's bound: ``quantile · scale(q) + ‖rates ⊙ excess‖``."""
+    """One kind's bound: ``quantile · scale(q) + ‖rates ⊙ excess‖``; the parametric stage's alone (without
+    the nets) has its own quantile, ``stage_quantile``, and the same scale and rates."""
 
     quantile: float  # m or rad: the bound inside the trained range at a typical configuration (scale 1)
     rates: np.ndarray  # (n,) m or rad of error per rad (per m, prismatic) of each joint's excess
     scale: Scale | None = None  # None: the same everywhere (a section written before the scale)
+    stage_quantile: float | None = None  # the stage alone's ``quantile``; None: a section written before it
 
     def __call__(self, q: np.ndarray, x: np.ndarray, revolute: np.ndarray) -> np.ndarray:
         return self.at(features(q, revolute), x)
 
-    def at(self, f: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """The bound at configurations whose :func:`features` are ``f (B, 1 + 2n)`` and excess ``x (B, n)``."""
-        inside = self.quantile if self.scale is None else self.quantile * self.scale.at(f)
+    def at(self, f: np.ndarray, x: np.ndarray, stage: bool = False) -> np.ndarray:
+        """The bound at configurations whose :func:`features` are ``f (B, 1 + 2n)`` and excess ``x (B, n)``;
+        the stage alone's with ``stage``."""
+        quantile = self.stage_quantile if stage else self.quantile
+        if quantile is None:
+            raise ModelError("the model's bounds carry no bound of its parametric stage alone; retrain the model")
+        inside = quantile if self.scale is None else quantile * self.scale.at(f)
         return inside + np.linalg.norm(np.atleast_2d(x) * self.rates, axis=1)
 
     def manifest(self, unit: str) -> dict[str, Any]:
         out = {f"quantile_{unit}": self.quantile, f"growth_{unit}_per_rad": self.rates.tolist()}
+        if self.stage_quantile is not None:
+            out[f"stage_quantile_{unit}"] = self.stage_quantile
         return out if self.scale is None else out | {"scale": self.scale.manifest()}
 
     @classmethod
     def from_manifest(cls, section: dict[str, Any], unit: str) -> ErrorBound:
+        stage = section.get(f"stage_quantile_{unit}")
         return cls(
             float(section[f"quantile_{unit}"]),
             np.asarray(section[f"growth_{unit}_per_rad"], dtype=float),
             Scale.from_manifest(section.get("scale")),
+            None if stage is None else float(stage),
         )
 
 
@@ -139,12 +149,20 @@ class Bounds:
             out["orientation"] = self.orientation.manifest("rad")
         return out | {"figures": self.figures}
 
-    def of(self, q: np.ndarray, x: np.ndarray, revolute: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    @property
+    def has_stage(self) -> bool:
+        """True when the section carries the stage alone's bounds too (the ``bound`` range policy needs them)."""
+        kinds = [k for k in (self.position, self.orientation) if k is not None]
+        return all(k.stage_quantile is not None for k in kinds)
+
+    def of(
+        self, q: np.ndarray, x: np.ndarray, revolute: np.ndarray, stage: bool = False
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """Position bounds (m) and orientation bounds (rad, or None) at configurations ``q (B, n)`` whose
-        joints lie ``x (B, n)`` beyond the trained range (:func:`excess`)."""
+        joints lie ``x (B, n)`` beyond the trained range (:func:`excess`); the stage alone's with ``stage``."""
         f = features(q, revolute)  # once for both kinds: half the bound's cost on the node's hot path
-        orientation = None if self.orientation is None else self.orientation.at(f, x)
-        return self.position.at(f, x), orientation
+        orientation = None if self.orientation is None else self.orientation.at(f, x, stage)
+        return self.position.at(f, x, stage), orientation
 
 
 COLUMNS = ("position_bound_mm", "orientation_bound_deg")  # the bounds' names in the units users read

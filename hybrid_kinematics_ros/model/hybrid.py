@@ -5,10 +5,11 @@ when the model directory holds a parametric stage, the identified elasto-geometr
 it is that model alone, so nodes and IK use one type whether or not a calibration exists.
 
 Outside the joint range the nets were trained on, ``range_policy`` decides: ``warn`` (use the nets;
-callers flag it), ``parametric`` (drop the nets there) or ``refuse`` (callers fail such requests; see
-:meth:`HybridModel.check_range`). A trajectory covers a thin part of that box, and away from it the nets
-extrapolate; with ``coverage_radius`` set, the calibrated range is the configurations within that
-distance of a training configuration instead.
+callers flag it), ``parametric`` (drop the nets there), ``refuse`` (callers fail such requests; see
+:meth:`HybridModel.check_range`) or ``bound`` (each net serves where its error bound is below the parametric
+stage's alone, see :meth:`HybridModel.error_bounds`; no radius to choose). A trajectory covers a thin part of
+that box, and away from it the nets extrapolate; with ``coverage_radius`` set, the calibrated range is the
+configurations within that distance of a training configuration instead.
 
 Condition channels (temperature, the joints' approach directions) are per thread: a caller that serves
 several threads (the kinematics node) keeps the current values itself and computes each answer inside
@@ -45,7 +46,7 @@ from hybrid_kinematics_ros.model.nets import NumpyResidual
 from hybrid_kinematics_ros.model.parametric import model_from_manifest
 from hybrid_kinematics_ros.model.referencing import Referencing
 
-RANGE_POLICIES = ("warn", "parametric", "refuse")
+RANGE_POLICIES = ("warn", "parametric", "refuse", "bound")
 
 
 def left_jacobian_so3(w: np.ndarray) -> np.ndarray:
@@ -70,7 +71,6 @@ class HybridModel:
         coverage: np.ndarray | None = None,
     ) -> None:
         self.chain = chain
-        self.range_policy = range_policy
         self.coverage = None if coverage is None else np.asarray(coverage, dtype=float)
         self._tree: cKDTree | None = None
         self._coverage_radius: float | None = None
@@ -114,6 +114,7 @@ class HybridModel:
         # a section of the first kind (grown with the distance to the nearest training configuration, before
         # 2026-11-26) is not read: its numbers mean something else; such a model serves without bounds
         self.bounds = Bounds.from_manifest(section) if section and section.get("distance") == DISTANCE else None
+        self.range_policy = range_policy
 
     @property
     def range_policy(self) -> str:
@@ -123,6 +124,11 @@ class HybridModel:
     def range_policy(self, value: str) -> None:
         if value not in RANGE_POLICIES:
             raise ModelError(f"range policy '{value}' is not one of {', '.join(RANGE_POLICIES)}")
+        if value == "bound" and self.nets and (self.bounds is None or not self.bounds.has_stage):
+            raise ModelError(
+                f"range policy 'bound' compares the nets' error bounds with the parametric stage's, and model "
+                f"{self.path or ''} carries no bounds of its stage alone; retrain it with this version"
+            )
         self._range_policy = value
 
     @property
@@ -152,14 +158,72 @@ class HybridModel:
             self._tree = cKDTree(self.coverage)
         return self._tree.query(np.atleast_2d(q))[0]
 
-    def error_bounds(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray | None] | None:
+    def error_bounds(
+        self, q: np.ndarray, conditions: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray | None] | None:
         """Bounds on the answers' errors at configurations ``q (B, n)``: position (m) and orientation (rad;
         None for a position-only model), each meant to hold for ``bounds.level`` of answers
-        (:mod:`model.bounds`); None when the model carries no bounds."""
+        (:mod:`model.bounds`); None when the model carries no bounds. Each is the bound of what serves there
+        under the range policy: the nets' (beyond the trained range they grow by the part of the nets'
+        correction that comes from beyond it, :meth:`_extrapolation`) or, where they are dropped, the
+        parametric stage's alone."""
         if self.bounds is None:
             return None
-        revolute = self.chain.revolute
-        return self.bounds.of(q, excess(q, self.trained_lower, self.trained_upper, revolute), revolute)
+        q = self.same_turn(np.atleast_2d(np.asarray(q, dtype=float)))
+        x = excess(q, self.trained_lower, self.trained_upper, self.chain.revolute)
+        nets = self.bounds.of(q, x, self.chain.revolute)
+        if not self.nets or (not x.any() and self.range_policy != "parametric"):
+            return nets  # no nets, or all inside the trained range where they always serve
+        grown, served = self._choose(q, x, conditions, nets)
+        if served is True:
+            return grown
+        stage = self.bounds.of(q, x, self.chain.revolute, stage=True)
+        out = [
+            None if g is None else np.where(use, g, alone) for g, alone, use in zip(grown, stage, served.T, strict=True)
+        ]
+        return out[0], out[1]
+
+    def _extrapolation(self, q: np.ndarray, x: np.ndarray, conditions: np.ndarray | None) -> np.ndarray:
+        """``(B, 2)``: how much of the position (m) and orientation (rad) nets' corrections at ``q (B, n)``
+        (taken to the trained turn) comes from beyond the trained range: their change from the nearest
+        configuration inside it (each joint clipped to its range). 0 inside. The nets' error beyond the
+        range is the stage's there, grown at the measured rates, less this part of a correction nothing
+        checked: the triangle inequality adds it to their bound."""
+        out = np.zeros((len(q), 2))
+        rows = np.flatnonzero(x.any(axis=1))
+        if len(rows) == 0:
+            return out
+        c = None if conditions is None else np.broadcast_to(conditions, (len(q), len(self.condition_names)))[rows]
+        inside = np.clip(q[rows], self.trained_lower, self.trained_upper)
+        there, edge = self.residuals(q[rows], c), self.residuals(inside, c)
+        for k in range(2):
+            out[rows, k] = np.linalg.norm(there[k] - edge[k], axis=1)
+        return out
+
+    def _choose(
+        self,
+        q: np.ndarray,
+        x: np.ndarray,
+        conditions: np.ndarray | None,
+        nets: tuple[np.ndarray, np.ndarray | None] | None = None,
+    ) -> tuple[tuple[np.ndarray, np.ndarray | None], np.ndarray | bool]:
+        """The nets' bounds (``nets``, the bounds inside, grown by :meth:`_extrapolation`), and where each net
+        serves under the range policy: True (everywhere) or ``(B, 2)`` for the position and orientation
+        nets."""
+        if nets is None:
+            nets = self.bounds.of(q, x, self.chain.revolute)
+        ext = self._extrapolation(q, x, conditions)
+        grown = (nets[0] + ext[:, 0], None if nets[1] is None else nets[1] + ext[:, 1])
+        if self.range_policy == "parametric":
+            return grown, np.repeat(self.in_calibrated_range(q)[:, None], 2, axis=1)
+        if self.range_policy != "bound":
+            return grown, True
+        stage = self.bounds.of(q, x, self.chain.revolute, stage=True)
+        use = np.ones((len(q), 2), dtype=bool)
+        for k in range(2):
+            if grown[k] is not None:
+                use[:, k] = grown[k] < stage[k]
+        return grown, use
 
     @property
     def is_corrected(self) -> bool:
@@ -200,11 +264,16 @@ class HybridModel:
                 out.append(f"{name} = {v:.4f} rad, trained on [{lo:.4f}, {hi:.4f}]")
         return "; ".join(out)
 
-    def _nets_apply(self, q: np.ndarray) -> np.ndarray | bool:
-        """Where the nets correct: everywhere, or inside the trained range under the ``parametric`` policy."""
-        if self.range_policy != "parametric":
+    def _nets_apply(self, q: np.ndarray, conditions: np.ndarray | None = None) -> np.ndarray | bool:
+        """Where the nets correct ``q (B, n)`` (taken to the trained turn): True (everywhere) or ``(B, 2)``
+        for the position and orientation nets: inside the calibrated range under the ``parametric`` policy;
+        where their bound is below the stage's under ``bound`` (always inside the trained range)."""
+        if self.range_policy == "parametric":
+            return np.repeat(self.in_calibrated_range(q)[:, None], 2, axis=1)
+        if self.range_policy != "bound":
             return True
-        return self.in_calibrated_range(q)
+        x = excess(q, self.trained_lower, self.trained_upper, self.chain.revolute)
+        return self._choose(q, x, conditions)[1] if x.any() else True
 
     @classmethod
     def load(
@@ -440,8 +509,10 @@ class HybridModel:
         if not nets or not self.nets:
             return T
         dp, w = self.residuals(q, conditions)
-        mask = np.asarray(self._nets_apply(q), dtype=float).reshape(-1, 1)
-        return self.correct(T, dp * mask, w * mask)
+        use = self._nets_apply(q, conditions)
+        if use is True:
+            return self.correct(T, dp, w)
+        return self.correct(T, dp * use[:, :1], w * use[:, 1:])
 
     def fk_single(self, q: np.ndarray, analytic: bool = False) -> np.ndarray:
         """One pose ``(4, 4)`` on the low-overhead path: numpy FK and, for MLP nets, numpy inference."""
@@ -451,14 +522,19 @@ class HybridModel:
         q = self.same_turn(q)
         reached = self._approached(q)
         T = self.base.fk_single(reached) if self._rigid_base is None else fk.fk_single(self._rigid_base, reached)
-        if not self.nets or not self._nets_apply(q[None]):
+        if not self.nets:
+            return T
+        use = self._nets_apply(q[None])
+        position, orientation = (True, True) if use is True else use[0]
+        if not (position or orientation):
             return T
         if not all(self._fast.values()):
-            return self.correct(T[None], *self.residuals(q[None]))[0]
+            dp, w = self.residuals(q[None])
+            return self.correct(T[None], dp * position, w * orientation)[0]
         x = self._inputs(q)
-        if "position" in self._fast:
+        if "position" in self._fast and position:
             T[:3, 3] += self._fast["position"](x)
-        if "orientation" in self._fast:
+        if "orientation" in self._fast and orientation:
             T[:3, :3] = exp_so3(self._fast["orientation"](x)) @ T[:3, :3]
         return T
 
@@ -507,9 +583,11 @@ class HybridModel:
             values[kind] = out.detach().numpy()
         zeros = np.zeros((len(q), 3))
         dp, w = values.get("position", zeros), values.get("orientation", zeros)
-        mask = np.asarray(self._nets_apply(q), dtype=float).reshape(-1, 1)
-        dp, w = dp * mask, w * mask
-        grads = {kind: g * mask[:, :, None] for kind, g in grads.items()}
+        use = self._nets_apply(q)
+        if use is not True:
+            mask = {"position": use[:, :1].astype(float), "orientation": use[:, 1:].astype(float)}
+            dp, w = dp * mask["position"], w * mask["orientation"]
+            grads = {kind: g * mask[kind][:, :, None] for kind, g in grads.items()}
         hybrid = self.correct(T, dp, w)
         J = J.copy()
         if "position" in grads:
@@ -527,9 +605,13 @@ class HybridModel:
             return fk.fk_and_jacobian_single(self.chain, q)
         q = self.same_turn(q)
         T, J = self.base.fk_and_jacobian_single(self._approached(q))
-        if not self.nets or not self._nets_apply(q[None]):
+        if not self.nets:
             return T, J
-        if not all(self._fast.values()):
+        use = self._nets_apply(q[None])
+        position, orientation = (True, True) if use is True else use[0]
+        if not (position or orientation):
+            return T, J
+        if not all(self._fast.values()) or not (position and orientation):
             T, J = self.fk_and_jacobian(q[None])
             return T[0], J[0]
         x, n = self._inputs(q), self.chain.dof

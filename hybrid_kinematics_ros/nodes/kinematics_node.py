@@ -67,6 +67,7 @@ OUTSIDE = {  # what FK did with configurations outside the calibrated range, per
     "warn": "their correction is extrapolated",
     "parametric": "they got the parametric model without the nets",
     "refuse": "",
+    "bound": "each got a net's correction only where its error bound is below the parametric stage's alone",
 }
 
 
@@ -114,7 +115,8 @@ class KinematicsNode(Node):
             "out_of_range_policy",
             "warn",
             "outside the joint range the nets were trained on: warn (use them, flag it), "
-            "parametric (drop the nets there) or refuse (fail such FK and IK requests)",
+            "parametric (drop the nets there), refuse (fail such FK and IK requests) or bound (each net "
+            "where its error bound is below the parametric stage's, no radius to choose)",
         )
         self.coverage_radius = declare(
             "coverage_radius_rad",

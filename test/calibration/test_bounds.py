@@ -3,13 +3,18 @@ the bound grows at there, and their coverage on pairs the model never saw, insid
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
+from bench.bench_bounds import shoulder_configurations
 from hybrid_kinematics_ros.calibration import bounds as calibration_bounds
 from hybrid_kinematics_ros.calibration.evaluate import pose_errors_of
 from hybrid_kinematics_ros.model.bounds import DISTANCE, Bounds, ErrorBound, Scale, excess
 from hybrid_kinematics_ros.model.errors import ModelError
+from hybrid_kinematics_ros.model.hybrid import HybridModel
+from hybrid_kinematics_ros.simulation.cell import VirtualCell
 
 
 def test_conformal_quantile_is_the_finite_sample_order_statistic():
@@ -111,3 +116,48 @@ def test_bounds_grow_beyond_the_trained_range_with_the_error(shoulder_model):
     covered = np.mean(pos_mm <= 1e3 * position), np.mean(rot_deg <= np.degrees(orientation))
     assert min(covered) >= 0.9, covered
     assert np.median(position) > 10 * np.median(bounds["inside"][0])  # and says so
+
+
+def test_the_bound_policy_serves_each_net_where_its_bound_beats_the_stage(shoulder_model, ur10):
+    """``out_of_range_policy: bound``: inside the trained range the nets serve; beyond it each net serves
+    where its bound (grown by its unchecked change there) is below the stage's alone, every answer carries
+    the bound of what served it, and far beyond, where the nets extrapolate worse than the stage, it beats
+    ``warn``."""
+    out, _, inside, _ = shoulder_model
+    model = HybridModel.load(out)  # its own copy: the policy changes below stay here
+    far = VirtualCell.from_config(ur10, noise=False).pairs(shoulder_configurations(300, (1.0, 2.5), seed=3), seed=3)
+    assert model.bounds.has_stage
+    assert model.bounds.position.stage_quantile > model.bounds.position.quantile  # the nets help inside
+    answers = {}
+    for policy in ("warn", "bound"):
+        model.range_policy = policy
+        answers[policy] = {
+            name: (model.fk(p.q), model.error_bounds(p.q), pose_errors_of(model, p)["hybrid"])
+            for name, p in (("inside", inside), ("far", far))
+        }
+    np.testing.assert_array_equal(answers["bound"]["inside"][0], answers["warn"]["inside"][0])
+    use = model._nets_apply(model.same_turn(far.q))
+    assert 0 < use[:, 0].sum() < len(far)  # the position net is dropped where its bound is the larger
+    stage_pose, hybrid_pose, served = model.fk(far.q, nets=False), answers["warn"]["far"][0], answers["bound"]["far"][0]
+    np.testing.assert_allclose(served[~use[:, 0], :3, 3], stage_pose[~use[:, 0], :3, 3], atol=1e-12)
+    np.testing.assert_allclose(served[use[:, 0], :3, 3], hybrid_pose[use[:, 0], :3, 3], atol=1e-12)
+    stage_bound = model.bounds.of(
+        far.q,
+        excess(far.q, model.trained_lower, model.trained_upper, ur10.chain.revolute),
+        ur10.chain.revolute,
+        stage=True,
+    )[0]
+    np.testing.assert_allclose(answers["bound"]["far"][1][0][~use[:, 0]], stage_bound[~use[:, 0]])
+    pos_mm = {policy: answers[policy]["far"][2][0] for policy in answers}
+    assert pos_mm["bound"].mean() < 0.9 * pos_mm["warn"].mean()
+    assert np.mean(pos_mm["bound"] <= 1e3 * answers["bound"]["far"][1][0]) >= 0.9
+
+
+def test_the_bound_policy_needs_the_stages_bounds(trained):
+    _, model, manifest, _ = trained
+    older = json.loads(json.dumps(manifest))
+    for kind in ("position", "orientation"):
+        del older["bounds"][kind]["stage_quantile_" + ("m" if kind == "position" else "rad")]
+    assert HybridModel(model.chain, model.nets, older).bounds.position.stage_quantile is None
+    with pytest.raises(ModelError, match="retrain"):
+        HybridModel(model.chain, model.nets, older, range_policy="bound")
