@@ -14,6 +14,7 @@ import torch
 from bench.report import table, write_section
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.kinematics.torch_chain import TorchChain
 
 BATCH = 100_000
 SINGLE = 20_000
@@ -43,7 +44,7 @@ def main() -> None:
             data.oMf[frame].homogeneous  # noqa: B018 - materialise the pose as our FK does
 
     t_np = best_of(lambda: fk.fk(chain, q))
-    tc = fk.TorchChain(chain)
+    tc = TorchChain(chain)
     qt = torch.tensor(q)
     with torch.no_grad():
         t_torch = best_of(lambda: tc(qt))

@@ -10,6 +10,7 @@ import torch
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
 from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR
+from hybrid_kinematics_ros.kinematics.torch_chain import TorchChain
 
 N = 1000
 
@@ -58,7 +59,7 @@ def test_torch_matches_numpy_in_float64(case, example_robot_data):
     urdf, base, tip = urdf_cases(example_robot_data)[case]
     chain = chain_from_urdf(urdf, base, tip)
     q = np.random.default_rng(10 + case).uniform(-np.pi, np.pi, (N, chain.dof))
-    tc = fk.TorchChain(chain)
+    tc = TorchChain(chain)
     qt = torch.tensor(q)
     np.testing.assert_allclose(tc(qt).numpy(), fk.fk(chain, q), atol=1e-12, rtol=0)
     np.testing.assert_allclose(tc.joint_frames(qt).numpy(), fk.joint_frames(chain, q), atol=1e-12, rtol=0)
@@ -67,20 +68,20 @@ def test_torch_matches_numpy_in_float64(case, example_robot_data):
 def test_torch_float32_and_gradient_agree_with_jacobian():
     chain = chain_from_urdf(CONFIG_DIR / "ur10.urdf", "base_link", "tool0")
     q = torch.tensor(np.random.default_rng(3).uniform(-2, 2, (4, 6)), requires_grad=True)
-    tc = fk.TorchChain(chain)
+    tc = TorchChain(chain)
     pos = tc(q)[:, :3, 3]
     grads = [torch.autograd.grad(pos[:, i].sum(), q, retain_graph=True)[0] for i in range(3)]
     autograd_linear = torch.stack(grads, dim=1)  # (B, 3, n)
     _, jac = fk.fk_and_jacobian(chain, q.detach().numpy())
     np.testing.assert_allclose(autograd_linear.numpy(), jac[:, :3], atol=1e-12)
-    t32 = fk.TorchChain(chain, dtype=torch.float32)(q.detach().float())
+    t32 = TorchChain(chain, dtype=torch.float32)(q.detach().float())
     assert t32.dtype == torch.float32
     np.testing.assert_allclose(t32.numpy(), fk.fk(chain, q.detach().numpy()), atol=1e-5)
 
 
 def test_torch_chain_scripts_and_matches_eager(tmp_path):
     chain = chain_from_urdf(CONFIG_DIR / "rx160.urdf", "base_link", "tool0")
-    eager = fk.TorchChain(chain)
+    eager = TorchChain(chain)
     scripted = torch.jit.script(eager)
     scripted.save(str(tmp_path / "chain.pt"))
     loaded = torch.jit.load(str(tmp_path / "chain.pt"))
