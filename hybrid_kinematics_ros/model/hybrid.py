@@ -172,7 +172,7 @@ class HybridModel:
         q = self.same_turn(np.atleast_2d(np.asarray(q, dtype=float)))
         x = excess(q, self.trained_lower, self.trained_upper, self.chain.revolute)
         nets = self.bounds.of(q, x, self.chain.revolute)
-        if not self.nets or (not x.any() and self.range_policy != "parametric"):
+        if not self.nets or (not x.any() and not self._by_range):
             return nets  # no nets, or all inside the trained range where they always serve
         grown, served = self._choose(q, x, conditions, nets)
         if served is True:
@@ -214,7 +214,7 @@ class HybridModel:
             nets = self.bounds.of(q, x, self.chain.revolute)
         ext = self._extrapolation(q, x, conditions)
         grown = (nets[0] + ext[:, 0], None if nets[1] is None else nets[1] + ext[:, 1])
-        if self.range_policy == "parametric":
+        if self._by_range:
             return grown, np.repeat(self.in_calibrated_range(q)[:, None], 2, axis=1)
         if self.range_policy != "bound":
             return grown, True
@@ -264,11 +264,17 @@ class HybridModel:
                 out.append(f"{name} = {v:.4f} rad, trained on [{lo:.4f}, {hi:.4f}]")
         return "; ".join(out)
 
+    @property
+    def _by_range(self) -> bool:
+        """The nets serve inside the calibrated range only: the ``parametric`` policy, and ``bound`` with another
+        payload than the nets were trained with (their bound does not know it; none is inside then)."""
+        return self.range_policy == "parametric" or (self.range_policy == "bound" and self.payload_changed)
+
     def _nets_apply(self, q: np.ndarray, conditions: np.ndarray | None = None) -> np.ndarray | bool:
         """Where the nets correct ``q (B, n)`` (taken to the trained turn): True (everywhere) or ``(B, 2)``
         for the position and orientation nets: inside the calibrated range under the ``parametric`` policy;
         where their bound is below the stage's under ``bound`` (always inside the trained range)."""
-        if self.range_policy == "parametric":
+        if self._by_range:
             return np.repeat(self.in_calibrated_range(q)[:, None], 2, axis=1)
         if self.range_policy != "bound":
             return True

@@ -151,6 +151,10 @@ def test_the_bound_policy_serves_each_net_where_its_bound_beats_the_stage(should
     pos_mm = {policy: answers[policy]["far"][2][0] for policy in answers}
     assert pos_mm["bound"].mean() < 0.9 * pos_mm["warn"].mean()
     assert np.mean(pos_mm["bound"] <= 1e3 * answers["bound"]["far"][1][0]) >= 0.9
+    # another payload than the nets were trained with: their bound does not know it, so the stage serves
+    heavy = model.with_payload(12.0, np.array([0.0, 0.0, 0.1]))
+    np.testing.assert_array_equal(heavy.fk(inside.q[:20]), heavy.fk(inside.q[:20], nets=False))
+    assert not np.array_equal(model.fk(inside.q[:20]), model.fk(inside.q[:20], nets=False))
 
 
 def test_the_bound_policy_needs_the_stages_bounds(trained):
