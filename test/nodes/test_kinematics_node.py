@@ -16,6 +16,7 @@ from std_srvs.srv import Trigger
 from hybrid_kinematics_interfaces.srv import ComputeFK, ComputeIK
 from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.nodes.convert import joint_state_msg, pose_msg
 from test.nodes.rosutil import Client, start, stop
 
@@ -318,9 +319,10 @@ def test_in_process_node_with_defaults_file(ros):
         node.destroy_node()
 
 
-@pytest.mark.parametrize("policy", ["refuse", "parametric"])
+@pytest.mark.parametrize("policy", ["refuse", "parametric", "bound"])
 def test_out_of_range_policy(ros, trained, policy):
-    """Outside the trained joint range the node refuses, or falls back to the model without the nets."""
+    """Outside the trained joint range the node refuses, falls back to the model without the nets, or serves
+    each net where its bound beats the stage's, with the bound of what served."""
     from hybrid_kinematics_ros.nodes.kinematics_node import KinematicsNode
 
     model = trained[1]
@@ -340,10 +342,18 @@ def test_out_of_range_policy(ros, trained, policy):
         if policy == "refuse":
             assert not resp.success and "outside the calibrated joint range" in resp.message
             assert model.joint_names[2] in resp.message
-        else:
+        elif policy == "parametric":
             assert resp.success and list(resp.in_calibrated_range) == [True, False]
             np.testing.assert_allclose(poses_of(resp)[1], model.fk(outside, nets=False)[0], atol=1e-12)
             np.testing.assert_allclose(poses_of(resp)[0], model.fk(inside)[0], atol=1e-9)
+        else:
+            served = HybridModel.load(trained[0])
+            served.range_policy = "bound"
+            q = np.array([inside, outside])
+            assert resp.success and list(resp.in_calibrated_range) == [True, False]
+            assert "error bound is below the parametric stage's" in resp.message
+            np.testing.assert_allclose(poses_of(resp), served.fk(q), atol=1e-9)
+            np.testing.assert_allclose(resp.position_bound_mm, 1e3 * served.error_bounds(q)[0], rtol=1e-9)
         assert client.call(fk, fk_request([inside], model.joint_names)).success
     finally:
         client.close()
