@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy.ndimage import maximum_filter1d, minimum_filter1d
@@ -19,8 +20,8 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from hybrid_kinematics_ros.calibration.clock import NS, Clock, estimate_clock
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.io.pairs import Pairs
-from hybrid_kinematics_ros.io.raw_bag import RawRecording
+from hybrid_kinematics_ros.io.pairs import RAW_JOINTS_TOPIC, RAW_POSE_TOPIC, Pairs
+from hybrid_kinematics_ros.io.raw_bag import RawRecording, read_raw
 from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.kinematics.se3 import matrix_from_pose
 
@@ -271,3 +272,17 @@ def _no_pairs(chain: Chain, frame_id: str, position_only: bool) -> Pairs:
 
 def _no_pairs_like(pairs: Pairs) -> Pairs:
     return pairs.subset(np.zeros(0, dtype=int))
+
+
+def align_raw(
+    bag: str | Path,
+    chain: Chain,
+    options: AlignOptions | None = None,
+    frame_id: str | None = None,
+    joints_topic: str = RAW_JOINTS_TOPIC,
+    tracker_topic: str = RAW_POSE_TOPIC,
+) -> tuple[AlignResult, RawRecording]:
+    """Align a raw recording (joint states and tracker poses) into pairs; returns the result and the
+    recording it read."""
+    rec = read_raw(bag, joints_topic, tracker_topic, chain.joint_names)
+    return align(chain, rec, options, frame_id), rec

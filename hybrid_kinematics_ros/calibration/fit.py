@@ -13,7 +13,7 @@ import numpy as np
 from hybrid_kinematics_ros.calibration import bounds as bounds_module
 from hybrid_kinematics_ros.calibration import capacity as capacity_module
 from hybrid_kinematics_ros.calibration import train
-from hybrid_kinematics_ros.calibration.alignment import AlignOptions, AlignResult, align
+from hybrid_kinematics_ros.calibration.alignment import align_raw
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import evaluate, target_errors
 from hybrid_kinematics_ros.calibration.parametric import HARMONIC_PRIOR, ParametricResult, identify, linearise
@@ -32,7 +32,6 @@ from hybrid_kinematics_ros.io.pairs import (
     bag_topics,
     read_pairs,
 )
-from hybrid_kinematics_ros.io.raw_bag import RawRecording, read_raw
 from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
 from hybrid_kinematics_ros.model import approach
@@ -41,18 +40,6 @@ from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.model.referencing import Referencing, to_base_frame
 
 COVERAGE_SPACING = 0.005  # rad: the grid the stored training configurations are thinned on
-
-
-def align_raw(
-    bag: str | Path,
-    chain: Chain,
-    options: AlignOptions | None = None,
-    frame_id: str | None = None,
-    joints_topic: str = RAW_JOINTS_TOPIC,
-    tracker_topic: str = RAW_POSE_TOPIC,
-) -> tuple[AlignResult, RawRecording]:
-    rec = read_raw(bag, joints_topic, tracker_topic, chain.joint_names)
-    return align(chain, rec, options, frame_id), rec
 
 
 def load_stations(bags: Sequence[str | Path], chain: Chain, raw_frame_id: str | None = None) -> list[Pairs]:

@@ -6,8 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from hybrid_kinematics_ros.calibration.alignment import AlignOptions
-from hybrid_kinematics_ros.calibration.fit import align_raw
+from hybrid_kinematics_ros.calibration.alignment import AlignOptions, align_raw
 from hybrid_kinematics_ros.cli.common import add_robot_args, chain_from_args
 from hybrid_kinematics_ros.io.pairs import RAW_JOINTS_TOPIC, RAW_POSE_TOPIC, write_pairs
 

@@ -5,14 +5,18 @@ from __future__ import annotations
 import argparse
 import csv
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.model import range_policy
 from hybrid_kinematics_ros.model.bounds import COLUMNS, in_report_units
-from hybrid_kinematics_ros.model.hybrid import RANGE_POLICIES, HybridModel
+
+if TYPE_CHECKING:  # the model (and torch) only for the commands that load one: the others start sooner
+    from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 POSE_COLUMNS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 
@@ -52,10 +56,9 @@ def add_range_args(p: argparse.ArgumentParser) -> None:
     """``--out-of-range`` and ``--coverage-radius``: what the model does outside its calibrated range."""
     p.add_argument(
         "--out-of-range",
-        choices=RANGE_POLICIES,
+        choices=tuple(range_policy.RANGE_POLICIES),
         default="warn",
-        help="outside the calibrated range: warn (default), parametric (no nets there), refuse, or bound "
-        "(each net where its error bound is below the parametric stage's)",
+        help=f"outside the calibrated range: {range_policy.described()}",
     )
     add_coverage_arg(p)
 

@@ -44,9 +44,8 @@ from hybrid_kinematics_ros.model.bounds import DISTANCE, Bounds, excess
 from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.model.nets import NumpyResidual
 from hybrid_kinematics_ros.model.parametric import model_from_manifest
+from hybrid_kinematics_ros.model.range_policy import RANGE_POLICIES
 from hybrid_kinematics_ros.model.referencing import Referencing
-
-RANGE_POLICIES = ("warn", "parametric", "refuse", "bound")
 
 
 def left_jacobian_so3(w: np.ndarray) -> np.ndarray:

@@ -37,7 +37,7 @@ from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 from hybrid_kinematics_ros.kinematics.paths import resolve_path
-from hybrid_kinematics_ros.model import approach
+from hybrid_kinematics_ros.model import approach, range_policy
 from hybrid_kinematics_ros.model.approach import ApproachTracker
 from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -114,9 +114,7 @@ class KinematicsNode(Node):
         self.range_policy = declare(
             "out_of_range_policy",
             "warn",
-            "outside the joint range the nets were trained on: warn (use them, flag it), "
-            "parametric (drop the nets there), refuse (fail such FK and IK requests) or bound (each net "
-            "where its error bound is below the parametric stage's, no radius to choose)",
+            f"outside the joint range the nets were trained on: {range_policy.described()}",
         )
         self.coverage_radius = declare(
             "coverage_radius_rad",
