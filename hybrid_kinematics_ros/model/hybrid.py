@@ -173,7 +173,8 @@ class HybridModel:
         nets = self.bounds.of(q, x, self.chain.revolute)
         if not self.nets or (not x.any() and not self._by_range):
             return nets  # no nets, or all inside the trained range where they always serve
-        grown, served = self._choose(q, x, conditions, nets)
+        grown = self._grown(q, x, conditions, nets)
+        served = self._nets_apply(q, conditions, grown=grown)
         if served is True:
             return grown
         stage = self.bounds.of(q, x, self.chain.revolute, stage=True)
@@ -182,47 +183,45 @@ class HybridModel:
         ]
         return out[0], out[1]
 
-    def _extrapolation(self, q: np.ndarray, x: np.ndarray, conditions: np.ndarray | None) -> np.ndarray:
+    def _extrapolation(
+        self,
+        q: np.ndarray,
+        x: np.ndarray,
+        conditions: np.ndarray | None,
+        at: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> np.ndarray:
         """``(B, 2)``: how much of the position (m) and orientation (rad) nets' corrections at ``q (B, n)``
         (taken to the trained turn) comes from beyond the trained range: their change from the nearest
         configuration inside it (each joint clipped to its range). 0 inside. The nets' error beyond the
         range is the stage's there, grown at the measured rates, less this part of a correction nothing
-        checked: the triangle inequality adds it to their bound."""
+        checked: the triangle inequality adds it to their bound. ``at``: the residuals at ``q``, when the
+        caller has them (the nets then run once more, at the clipped rows only)."""
         out = np.zeros((len(q), 2))
         rows = np.flatnonzero(x.any(axis=1))
         if len(rows) == 0:
             return out
         c = None if conditions is None else np.broadcast_to(conditions, (len(q), len(self.condition_names)))[rows]
         inside = np.clip(q[rows], self.trained_lower, self.trained_upper)
-        there, edge = self.residuals(q[rows], c), self.residuals(inside, c)
+        there = self.residuals(q[rows], c) if at is None else (at[0][rows], at[1][rows])
+        edge = self.residuals(inside, c)
         for k in range(2):
             out[rows, k] = np.linalg.norm(there[k] - edge[k], axis=1)
         return out
 
-    def _choose(
+    def _grown(
         self,
         q: np.ndarray,
         x: np.ndarray,
         conditions: np.ndarray | None,
         nets: tuple[np.ndarray, np.ndarray | None] | None = None,
-    ) -> tuple[tuple[np.ndarray, np.ndarray | None], np.ndarray | bool]:
-        """The nets' bounds (``nets``, the bounds inside, grown by :meth:`_extrapolation`), and where each net
-        serves under the range policy: True (everywhere) or ``(B, 2)`` for the position and orientation
-        nets."""
+        at: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The nets' bounds at ``q`` (``nets``: the bounds inside, when known), grown by
+        :meth:`_extrapolation`."""
         if nets is None:
             nets = self.bounds.of(q, x, self.chain.revolute)
-        ext = self._extrapolation(q, x, conditions)
-        grown = (nets[0] + ext[:, 0], None if nets[1] is None else nets[1] + ext[:, 1])
-        if self._by_range:
-            return grown, np.repeat(self.in_calibrated_range(q)[:, None], 2, axis=1)
-        if self.range_policy != "bound":
-            return grown, True
-        stage = self.bounds.of(q, x, self.chain.revolute, stage=True)
-        use = np.ones((len(q), 2), dtype=bool)
-        for k in range(2):
-            if grown[k] is not None:
-                use[:, k] = grown[k] < stage[k]
-        return grown, use
+        ext = self._extrapolation(q, x, conditions, at)
+        return nets[0] + ext[:, 0], None if nets[1] is None else nets[1] + ext[:, 1]
 
     @property
     def is_corrected(self) -> bool:
@@ -269,16 +268,33 @@ class HybridModel:
         payload than the nets were trained with (their bound does not know it; none is inside then)."""
         return self.range_policy == "parametric" or (self.range_policy == "bound" and self.payload_changed)
 
-    def _nets_apply(self, q: np.ndarray, conditions: np.ndarray | None = None) -> np.ndarray | bool:
-        """Where the nets correct ``q (B, n)`` (taken to the trained turn): True (everywhere) or ``(B, 2)``
-        for the position and orientation nets: inside the calibrated range under the ``parametric`` policy;
-        where their bound is below the stage's under ``bound`` (always inside the trained range)."""
+    def _nets_apply(
+        self,
+        q: np.ndarray,
+        conditions: np.ndarray | None = None,
+        at: tuple[np.ndarray, np.ndarray] | None = None,
+        grown: tuple[np.ndarray, np.ndarray | None] | None = None,
+    ) -> np.ndarray | bool:
+        """Where the nets correct ``q (B, n)`` (taken to the trained turn) under the range policy: True
+        (everywhere) or ``(B, 2)`` for the position and orientation nets. Inside the calibrated range under
+        ``parametric``; under ``bound``, where their bound (:meth:`_grown`; ``grown`` when the caller has it,
+        ``at`` the residuals at ``q`` when it has those) is below the stage's, so always inside the trained
+        range."""
         if self._by_range:
             return np.repeat(self.in_calibrated_range(q)[:, None], 2, axis=1)
         if self.range_policy != "bound":
             return True
         x = excess(q, self.trained_lower, self.trained_upper, self.chain.revolute)
-        return self._choose(q, x, conditions)[1] if x.any() else True
+        if not x.any():
+            return True
+        if grown is None:
+            grown = self._grown(q, x, conditions, at=at)
+        stage = self.bounds.of(q, x, self.chain.revolute, stage=True)
+        use = np.ones((len(q), 2), dtype=bool)
+        for k in range(2):
+            if grown[k] is not None:
+                use[:, k] = grown[k] < stage[k]
+        return use
 
     @classmethod
     def load(
@@ -514,7 +530,7 @@ class HybridModel:
         if not nets or not self.nets:
             return T
         dp, w = self.residuals(q, conditions)
-        use = self._nets_apply(q, conditions)
+        use = self._nets_apply(q, conditions, at=(dp, w))
         if use is True:
             return self.correct(T, dp, w)
         return self.correct(T, dp * use[:, :1], w * use[:, 1:])
@@ -588,7 +604,7 @@ class HybridModel:
             values[kind] = out.detach().numpy()
         zeros = np.zeros((len(q), 3))
         dp, w = values.get("position", zeros), values.get("orientation", zeros)
-        use = self._nets_apply(q)
+        use = self._nets_apply(q, at=(dp, w))
         if use is not True:
             mask = {"position": use[:, :1].astype(float), "orientation": use[:, 1:].astype(float)}
             dp, w = dp * mask["position"], w * mask["orientation"]
