@@ -6,6 +6,7 @@ trains it) and needs nothing from here to load; at batch size 1 the numpy evalua
 
 from __future__ import annotations
 
+import math
 from typing import ClassVar
 
 import numpy as np
@@ -31,7 +32,11 @@ class AxisTurn:
         return c * np.eye(3) + s * self.kx + (1.0 - c) * self.kk
 
     def apply(self, r: np.ndarray, angle: np.ndarray | float) -> np.ndarray:
-        """Vectors ``r (..., 3)`` turned by ``angle`` (one per vector, or one for all)."""
+        """Vectors ``r (..., 3)`` turned by ``angle`` (one per vector, or one for all); one vector by one angle
+        as ``r cos + (k × r) sin + k (k · r)(1 − cos)``, without building the matrix."""
+        if r.ndim == 1 and np.ndim(angle) == 0:
+            c = math.cos(angle)
+            return c * r + math.sin(angle) * (self.kx @ r) + (1.0 - c) * (self.kk @ r)
         return (self.matrix(angle) @ r[..., None])[..., 0]
 
 
@@ -108,7 +113,8 @@ class NumpyResidual:
             for kind, a, b in layers:
                 y = y @ a + b if kind == "linear" else a(y)
             out.append(y)
-        r = np.mean(out, axis=0, dtype=np.float64) * self.scale + self.mean
+        r = (out[0].astype(np.float64) if len(out) == 1 else np.mean(out, axis=0, dtype=np.float64)) * self.scale
+        r += self.mean
         return self.turner.apply(r, q[..., 0]) if self.turn else r
 
     def value_and_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -27,6 +27,9 @@ def joints(chain, n, seed=0):
 def test_exp_so3_matches_scipy_from_tiny_to_large_angles():
     w = np.random.default_rng(0).normal(size=(200, 3)) * np.logspace(-14, 0.5, 200)[:, None]
     np.testing.assert_allclose(se3.exp_so3(w), Rotation.from_rotvec(w).as_matrix(), atol=1e-15, rtol=0)
+    # one vector takes a path of its own (Python floats): each alone, and no rotation at all
+    for v in [*w, np.zeros(3), np.array([np.pi, 0.0, 0.0])]:
+        np.testing.assert_allclose(se3.exp_so3(v), Rotation.from_rotvec(v).as_matrix(), atol=1e-15, rtol=0)
 
 
 def test_rigid_elastic_chain_is_the_plain_chain(elastic):
