@@ -124,6 +124,7 @@ class AnalyticIK:
         self._robot = getattr(ik_geo.Robot, family)(h.tolist(), p.tolist())
         self._tip_rotation_t = g.tip[:3, :3].T  # R_target · R_tip(0)ᵀ is what IK-Geo's model reaches
         self.lower, self.upper, _ = joint_limits(chain)  # an unlimited joint: ±2π, as the iterative solver
+        self._last: tuple[bytes, list] | None = None  # the last target's answers (see _answers)
 
     @classmethod
     def of(cls, chain: Chain) -> AnalyticIK | None:
@@ -137,8 +138,17 @@ class AnalyticIK:
             return None
 
     def _answers(self, target: np.ndarray) -> list[tuple[list[float], bool]]:
+        """IK-Geo's answers, exact and least-squares. A solve asks for both of one target (its branches,
+        then whether it is singular): the last target's answers are kept (replaced in one assignment, so a
+        solver shared between threads reads a consistent pair)."""
+        key = target.tobytes()
+        last = self._last
+        if last is not None and last[0] == key:
+            return last[1]
         rotation = target[:3, :3] @ self._tip_rotation_t
-        return self._robot.get_ik(rotation.T.tolist(), target[:3, 3].tolist())  # columns, not rows
+        answers = self._robot.get_ik(rotation.T.tolist(), target[:3, 3].tolist())  # columns, not rows
+        self._last = (key, answers)
+        return answers
 
     def singular(self, target: np.ndarray) -> bool:
         """Whether some branch of the target is at a singularity: there IK-Geo flags its answer as least

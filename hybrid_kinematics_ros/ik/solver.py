@@ -151,6 +151,7 @@ class IKSolver:
         self.seeds = seeding.SeedTable(model, self.lower, self.upper)
         self.closed_form = AnalyticIK.of(model.chain) if o.closed_form else None  # None: iterative only
         self.path = f"closed form ({self.closed_form.family})" if self.closed_form else "iterative"
+        self._last_rank: tuple[bytes, bool] | None = None  # see _rank_lost
 
     def branches(self, target: np.ndarray, seed: np.ndarray) -> np.ndarray:
         """The closed forms' branches within the limits, nearest the seed first; none without closed forms."""
@@ -413,9 +414,16 @@ class IKSolver:
         return np.array(polished).reshape(-1, self.model.chain.dof)
 
     def _rank_lost(self, q: np.ndarray) -> bool:
-        """The URDF Jacobian at ``q`` has lost rank: ``q`` is at a singularity."""
+        """The URDF Jacobian at ``q`` has lost rank: ``q`` is at a singularity. The classical stage asks, and
+        then the verdict on the same answer: the last ``q``'s is kept (one assignment, as in ``_answers``)."""
+        key = np.asarray(q, dtype=float).tobytes()
+        last = self._last_rank
+        if last is not None and last[0] == key:
+            return last[1]
         jac = self.model.fk_and_jacobian_single(q, analytic=True)[1]
-        return bool(np.linalg.svd(jac, compute_uv=False)[-1] < SINGULAR)
+        lost = bool(np.linalg.svd(jac, compute_uv=False)[-1] < SINGULAR)
+        self._last_rank = (key, lost)
+        return lost
 
     def _singular(self, result: IKResult) -> IKResult:
         """Says so when a solved target is singular for the URDF model at the answer (its Jacobian has lost
