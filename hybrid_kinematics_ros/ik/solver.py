@@ -61,7 +61,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hybrid_kinematics_ros.ik import seeds as seeding
-from hybrid_kinematics_ros.ik.analytic import AnalyticIK, turns
+from hybrid_kinematics_ros.ik.analytic import POLISH, AnalyticIK, turns
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.lm import error6, joint_limits, lm_solve
 from hybrid_kinematics_ros.ik.refine import HybridRefiner
@@ -256,6 +256,10 @@ class IKSolver:
         o = self.options
         deadline = start + o.timeout_s
         stats = {"attempts": 0, "refinements": 0, "path": self.path}
+        if analytic or not self.model.is_corrected:
+            found = self._nearest_exact(target, seed, analytic, start, stats)
+            if found is not None:
+                return found
         closed = self.branches(target, seed)
         if analytic or not self.model.is_corrected:
             # no hybrid stages to keep time for, and the branch search would only rerun the same URDF-model LM
@@ -392,6 +396,29 @@ class IKSolver:
                 if result.success:
                     return result
         return None
+
+    def _nearest_exact(
+        self, target: np.ndarray, seed: np.ndarray, analytic: bool, start: float, stats: dict
+    ) -> IKResult | None:
+        """The URDF model's answer for one IK-Geo call and one FK: the exact branch within the limits nearest
+        the seed, when our FK takes it to the target as closely as the closed forms' own check wants an
+        unpolished branch (:data:`~hybrid_kinematics_ros.ik.analytic.POLISH`) and the target is singular on
+        none of its branches. None otherwise: the whole classical stage follows (it polishes a rough branch,
+        and at a singularity looks for the continuum's member nearest the seed). The same answer as that
+        stage's, for about a third of its time (BENCHMARKS.md, TRAC-IK's protocol)."""
+        if self.closed_form is None:
+            return None
+        q = self.closed_form.nearest(target, seed)
+        if q is None:
+            return None
+        e = error6(target, self.model.fk_single(q, analytic=True))
+        # a branch the closed forms' own check would polish (a near-singular wrist turns the URDF's rounded
+        # angles into microradians of q4 and q6 at a pose error below any tolerance) takes the whole stage
+        if np.linalg.norm(e) > POLISH or self._rank_lost(q) or self.closed_form.singular(target):
+            return None
+        ep, er = float(np.linalg.norm(e[:3])), float(np.linalg.norm(e[3:]))
+        stats["attempts"] = 1
+        return self.result(q, target, analytic, start, stats, (1e3 * ep, float(np.degrees(er))))
 
     def _beyond_reach(self, target: np.ndarray, seed: np.ndarray, closed: np.ndarray) -> np.ndarray:
         """Where the closed forms give no exact branch within the limits: their least-squares answers within
