@@ -260,3 +260,21 @@ def test_several_solutions_of_a_singular_target_include_the_singular_branch():
         # the same branch: joints 1-3 and 5 as made (4 and 6 trade off along the continuum)
         found += any(np.abs(np.delete(wrapped(r.q - qi), [3, 5])).max() < 1e-5 for r in results)
     assert found >= 18, found
+
+
+@pytest.mark.parametrize("robot", ["ur10", "rx160"])
+def test_the_quick_urdf_answer_is_the_classical_stage_s(robot):
+    """Where the nearest exact branch needs no polish and no branch is singular, ``solve`` answers from it at
+    once: the same joints as the whole classical stage (every branch checked and polished), from any seed,
+    with the wrist near its singularity too (where a rough branch must take the stage's polish)."""
+    chain = load_robot_config(robot).chain
+    solver = IKSolver(HybridModel.analytic_only(chain), GENEROUS)
+    rng = np.random.default_rng(11)
+    q = random_joints(chain, 60, 5)
+    q[:20, 4] = rng.choice([-1.0, 1.0], 20) * 1e-4
+    seeds = random_joints(chain, 60, 6)
+    for target, seed in zip(fk.fk(chain, q), seeds, strict=True):
+        result = solver.solve(target, seed, analytic=True)
+        staged, *_ = solver.classical(target, seed, float("inf"), branches=solver.branches(target, seed))
+        assert result.success and result.stats["attempts"] == 1, result.message
+        np.testing.assert_allclose(result.q, staged, atol=1e-9, rtol=0)
