@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hybrid_kinematics_ros.ik.lm import joint_limits
+from hybrid_kinematics_ros.ik.lm import error6, joint_limits
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import Chain
 
@@ -191,20 +191,42 @@ class AnalyticIK:
 
     def branches(self, target: np.ndarray, seed: np.ndarray) -> np.ndarray:
         """Every exact branch ``(k, 6)`` within the joint limits, each joint shifted by 2π to lie nearest the
-        seed, that our own FK takes to within CHECK_M / CHECK_RAD of the target, after one Newton step on it
-        (a URDF's rounded angles leave the family's assumptions off by nanometres, which a near-singular
-        wrist turns into microradians); nearest the seed first."""
+        seed, that our own FK takes to within CHECK_M / CHECK_RAD of the target (:meth:`_checked`); nearest
+        the seed first."""
+        q = self._checked(fold(self.raw_branches(target), seed, self.lower, self.upper), target)[0]
+        return q[np.argsort(np.linalg.norm(q - seed, axis=1), kind="stable")]
+
+    def nearest_checked(self, target: np.ndarray, seed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The first row of :meth:`branches` for the cost of one, with its pose error ``(6,)``
+        (:func:`~hybrid_kinematics_ros.ik.lm.error6`) and Jacobian on our FK: the exact branch within the
+        limits nearest the seed, checked; None where it fails the check (another branch may then be the
+        nearest that passes)."""
         q = fold(self.raw_branches(target), seed, self.lower, self.upper)
         if not len(q):
-            return q
-        T, jac = fk.fk_and_jacobian(self.chain, q)
-        e = _errors(target, T)
+            return None
+        q, e, jac = self._checked(q[np.argmin(np.linalg.norm(q - seed, axis=1))][None], target)
+        return (q[0], e[0], jac[0]) if len(q) else None
+
+    def _checked(self, q: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The rows of ``q (k, 6)`` that our own FK takes to within CHECK_M / CHECK_RAD of the target, after
+        one Newton step on those further off than POLISH (a URDF's rounded angles leave the family's
+        assumptions off by nanometres, which a near-singular wrist turns into microradians); with their
+        pose errors ``(k, 6)`` and Jacobians ``(k, 6, 6)``."""
+        if not len(q):
+            return q, np.empty((0, 6)), np.empty((0, 6, q.shape[1]))
+        if len(q) == 1:  # the single-configuration path: a batch of one costs several times more
+            T, jac = fk.fk_and_jacobian_single(self.chain, q[0])
+            e, jac = error6(target, T)[None], jac[None]
+        else:
+            T, jac = fk.fk_and_jacobian(self.chain, q)
+            e = _errors(target, T)
         rough = np.linalg.norm(e, axis=1) > POLISH
         if rough.any():
             q[rough] = np.clip(q[rough] + _newton(jac[rough], e[rough]), self.lower, self.upper)
-            e[rough] = _errors(target, fk.fk(self.chain, q[rough]))
-        q = q[(np.linalg.norm(e[:, :3], axis=1) < CHECK_M) & (np.linalg.norm(e[:, 3:], axis=1) < CHECK_RAD)]
-        return q[np.argsort(np.linalg.norm(q - seed, axis=1), kind="stable")]
+            T, jac[rough] = fk.fk_and_jacobian(self.chain, q[rough])
+            e[rough] = _errors(target, T)
+        ok = (np.linalg.norm(e[:, :3], axis=1) < CHECK_M) & (np.linalg.norm(e[:, 3:], axis=1) < CHECK_RAD)
+        return q[ok], e[ok], jac[ok]
 
 
 def _errors(target: np.ndarray, T: np.ndarray) -> np.ndarray:

@@ -61,7 +61,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hybrid_kinematics_ros.ik import seeds as seeding
-from hybrid_kinematics_ros.ik.analytic import POLISH, AnalyticIK, turns
+from hybrid_kinematics_ros.ik.analytic import AnalyticIK, turns
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.lm import error6, joint_limits, lm_solve
 from hybrid_kinematics_ros.ik.refine import HybridRefiner
@@ -400,23 +400,21 @@ class IKSolver:
     def _nearest_exact(
         self, target: np.ndarray, seed: np.ndarray, analytic: bool, start: float, stats: dict
     ) -> IKResult | None:
-        """The URDF model's answer for one IK-Geo call and one FK: the exact branch within the limits nearest
-        the seed, when our FK takes it to the target as closely as the closed forms' own check wants an
-        unpolished branch (:data:`~hybrid_kinematics_ros.ik.analytic.POLISH`) and the target is singular on
-        none of its branches. None otherwise: the whole classical stage follows (it polishes a rough branch,
-        and at a singularity looks for the continuum's member nearest the seed). The same answer as that
-        stage's, for about a third of its time (BENCHMARKS.md, TRAC-IK's protocol)."""
+        """The URDF model's answer for one IK-Geo call and one checked branch: the first of the closed forms'
+        branches (:meth:`AnalyticIK.nearest_checked`), when our FK takes it to within the inner tolerance and
+        the target is singular on none of its branches. None otherwise: the whole classical stage follows
+        (at a singularity it looks for the continuum's member nearest the seed). The same answer as that
+        stage's, for a third of its time (BENCHMARKS.md, TRAC-IK's protocol)."""
         if self.closed_form is None:
             return None
-        q = self.closed_form.nearest(target, seed)
-        if q is None:
+        found = self.closed_form.nearest_checked(target, seed)
+        if found is None:
             return None
-        e = error6(target, self.model.fk_single(q, analytic=True))
-        # a branch the closed forms' own check would polish (a near-singular wrist turns the URDF's rounded
-        # angles into microradians of q4 and q6 at a pose error below any tolerance) takes the whole stage
-        if np.linalg.norm(e) > POLISH or self._rank_lost(q) or self.closed_form.singular(target):
-            return None
+        q, e, jac = found
         ep, er = float(np.linalg.norm(e[:3])), float(np.linalg.norm(e[3:]))
+        tol_m, tol_rad = self.inner_tol
+        if ep > tol_m or er > tol_rad or self._rank_lost(q, jac) or self.closed_form.singular(target):
+            return None
         stats["attempts"] = 1
         return self.result(q, target, analytic, start, stats, (1e3 * ep, float(np.degrees(er))))
 
@@ -440,14 +438,16 @@ class IKSolver:
                 polished.append(q)
         return np.array(polished).reshape(-1, self.model.chain.dof)
 
-    def _rank_lost(self, q: np.ndarray) -> bool:
-        """The URDF Jacobian at ``q`` has lost rank: ``q`` is at a singularity. The classical stage asks, and
-        then the verdict on the same answer: the last ``q``'s is kept (one assignment, as in ``_answers``)."""
+    def _rank_lost(self, q: np.ndarray, jac: np.ndarray | None = None) -> bool:
+        """The URDF Jacobian at ``q`` (``jac``, when the caller has it) has lost rank: ``q`` is at a
+        singularity. The classical stage asks, and then the verdict on the same answer: the last ``q``'s is
+        kept (one assignment, as in ``_answers``)."""
         key = np.asarray(q, dtype=float).tobytes()
         last = self._last_rank
         if last is not None and last[0] == key:
             return last[1]
-        jac = self.model.fk_and_jacobian_single(q, analytic=True)[1]
+        if jac is None:
+            jac = self.model.fk_and_jacobian_single(q, analytic=True)[1]
         lost = bool(np.linalg.svd(jac, compute_uv=False)[-1] < SINGULAR)
         self._last_rank = (key, lost)
         return lost
