@@ -8,7 +8,7 @@ segment's pairs into the bag, so memory stays bounded for sessions of hours. Whe
 a recording shorter than a segment and its context is aligned exactly as ``hybrid-kinematics align``
 does it. A killed recorder leaves a bag whose complete chunks read back, and which ``align`` turns into
 pairs. Diagnostics (rates, counts, rejections, the clock offset) are published once a second; they
-WARN on lost messages, an unstable clock offset or frequent beam breaks, and are an ERROR once the bag
+WARN on missing joint states, an unstable clock offset or frequent beam breaks, and are an ERROR once the bag
 cannot be written. Subscriptions are reliable unless a publisher is best-effort (``reliability: auto``).
 Subscriptions run on the EventsExecutor: the only executor here that keeps up with 3 kHz at low CPU.
 """
@@ -34,7 +34,6 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
-from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
@@ -99,7 +98,6 @@ class RecorderNode(Node):
         self.no_joints_warn_s = declare(
             "no_joints_warn_s", 3.0, "recording this long without a joint state that has the robot's joints: WARN"
         )
-        self.lost: Counter = Counter()  # what the middleware reports as lost before it reached us
         self.subscriptions_: dict[str, tuple] = {}  # topic -> (subscription, reliability, type, callback)
         for msgtype, topic, callback in (
             (JointState, self.joints_topic, self._on_joints),
@@ -129,9 +127,11 @@ class RecorderNode(Node):
 
     # ------------------------------------------------------------------ subscriptions
     def _subscribe(self, topic: str, msgtype, callback, reliability: ReliabilityPolicy) -> None:
-        events = SubscriptionEventCallbacks(message_lost=lambda info, t=topic: self._on_lost(t, info))
+        # No message-lost event handler: in Jazzy's rmw_fastrtps, taking that event while a DDS receive thread
+        # reports a lost sample deadlocks the two (AB-BA on the reader's and the event's mutexes; ros2/rmw_fastrtps
+        # #890): a saturated machine hung the recorder for good. The stream's own gaps show what is missing.
         qos = QoSProfile(depth=10000, reliability=reliability)
-        sub = self.create_subscription(msgtype, topic, callback, qos, raw=True, event_callbacks=events)
+        sub = self.create_subscription(msgtype, topic, callback, qos, raw=True)
         self.subscriptions_[topic] = (sub, reliability, msgtype, callback)
 
     def _no_joints_message(self, elapsed: float) -> str:
@@ -348,9 +348,6 @@ class RecorderNode(Node):
             self.beam_breaks += 1  # a gap alignment will not bridge
         self.last_pose_stamp = stamp
 
-    def _on_lost(self, topic: str, info) -> None:
-        self.lost[topic] = info.total_count
-
     def _on_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         try:
             response.message = f"recording into {self.start()}"
@@ -409,7 +406,6 @@ class RecorderNode(Node):
                     "beam_breaks": str(self.beam_breaks),
                 }
             )
-            values.update({f"lost_{t}": str(n) for t, n in self.lost.items()})
             problems = self._problems(elapsed)
             self._start_offset_estimate()
             self._start_segment_alignment()
@@ -437,9 +433,6 @@ class RecorderNode(Node):
         out = []
         if self.write_error:
             out.append((DiagnosticStatus.ERROR, f"write failed: {self.write_error}"))
-        lost = sum(self.lost.values())
-        if lost:
-            out.append((DiagnosticStatus.WARN, f"{lost} messages lost before they reached the recorder"))
         if self.aligner.joints.n == 0 and elapsed >= self.no_joints_warn_s:
             out.append((DiagnosticStatus.WARN, self._no_joints_message(elapsed)))
         per_min = 60.0 * self.beam_breaks / max(elapsed, 1.0)

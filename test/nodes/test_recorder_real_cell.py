@@ -97,8 +97,10 @@ def record(client, tmp_path, name: str, seconds: float, sim_args=(), recorder_ar
         if kill_when:
             log = tmp_path / f"{name}.log"
             proc.send_signal(signal.SIGINT)
-            while kill_when not in log.read_text() and proc.poll() is None:
+            stopping = time.monotonic() + 120  # a recorder that never gets there fails, not hangs the suite
+            while kill_when not in log.read_text() and proc.poll() is None and time.monotonic() < stopping:
                 time.sleep(0.01)
+            assert kill_when in log.read_text(), log.read_text()
             proc.kill()
             proc.wait()
         else:
