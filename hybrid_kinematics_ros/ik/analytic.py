@@ -207,14 +207,16 @@ class AnalyticIK:
         q, e, jac = self._checked(q[np.argmin(np.linalg.norm(q - seed, axis=1))][None], target)
         return (q[0], e[0], jac[0]) if len(q) else None
 
-    def _checked(self, q: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _checked(self, q: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """The rows of ``q (k, 6)`` that our own FK takes to within CHECK_M / CHECK_RAD of the target, after
         one Newton step on those further off than POLISH (a URDF's rounded angles leave the family's
         assumptions off by nanometres, which a near-singular wrist turns into microradians); with their
-        pose errors ``(k, 6)`` and Jacobians ``(k, 6, 6)``."""
+        pose errors ``(k, 6)``, and for one row its Jacobian ``(1, 6, 6)`` at the answer (the quick answer's
+        rank check takes it; a batch's are not kept up to date after the polish, so None)."""
+        single = len(q) == 1  # the single-configuration path: a batch of one costs several times more
         if not len(q):
-            return q, np.empty((0, 6)), np.empty((0, 6, q.shape[1]))
-        if len(q) == 1:  # the single-configuration path: a batch of one costs several times more
+            return q, np.empty((0, 6)), None
+        if single:
             T, jac = fk.fk_and_jacobian_single(self.chain, q[0])
             e, jac = error6(target, T)[None], jac[None]
         else:
@@ -223,10 +225,13 @@ class AnalyticIK:
         rough = np.linalg.norm(e, axis=1) > POLISH
         if rough.any():
             q[rough] = np.clip(q[rough] + _newton(jac[rough], e[rough]), self.lower, self.upper)
-            T, jac[rough] = fk.fk_and_jacobian(self.chain, q[rough])
-            e[rough] = _errors(target, T)
+            if single:
+                T, jac1 = fk.fk_and_jacobian_single(self.chain, q[0])
+                e, jac = error6(target, T)[None], jac1[None]
+            else:
+                e[rough] = _errors(target, fk.fk(self.chain, q[rough]))
         ok = (np.linalg.norm(e[:, :3], axis=1) < CHECK_M) & (np.linalg.norm(e[:, 3:], axis=1) < CHECK_RAD)
-        return q[ok], e[ok], jac[ok]
+        return q[ok], e[ok], jac[ok] if single else None
 
 
 def _errors(target: np.ndarray, T: np.ndarray) -> np.ndarray:

@@ -256,12 +256,12 @@ class IKSolver:
         o = self.options
         deadline = start + o.timeout_s
         stats = {"attempts": 0, "refinements": 0, "path": self.path}
-        if analytic or not self.model.is_corrected:
-            found = self._nearest_exact(target, seed, analytic, start, stats)
-            if found is not None:
-                return found
+        urdf_only = analytic or not self.model.is_corrected
+        found = self._nearest_exact(target, seed, analytic, start, stats) if urdf_only else None
+        if found is not None:
+            return found
         closed = self.branches(target, seed)
-        if analytic or not self.model.is_corrected:
+        if urdf_only:
             # no hybrid stages to keep time for, and the branch search would only rerun the same URDF-model LM
             # from the same table seeds: the classical stage gets the whole budget and all of those seeds
             restarts = 2 * seeding.TABLE_RESTARTS
