@@ -36,6 +36,7 @@ MEET_M = 1e-6
 # assumptions do not hold well enough. Within it, the caller's LM polishes the branch in an iteration or two.
 CHECK_M, CHECK_RAD = 1e-5, 1e-5
 POLISH = 1e-10  # (m and rad) a branch further off gets one Newton step on our FK
+TAU = 2 * np.pi
 
 # Families with closed forms in IK-Geo, most specific first (its search-based ones find nothing on a UR10).
 FAMILIES = (
@@ -124,7 +125,7 @@ class AnalyticIK:
         self._robot = getattr(ik_geo.Robot, family)(h.tolist(), p.tolist())
         self._tip_rotation_t = g.tip[:3, :3].T  # R_target · R_tip(0)ᵀ is what IK-Geo's model reaches
         self.lower, self.upper, _ = joint_limits(chain)  # an unlimited joint: ±2π, as the iterative solver
-        self._last: tuple[bytes, list] | None = None  # the last target's answers (see _answers)
+        self._last: tuple[bytes, tuple[np.ndarray, np.ndarray]] | None = None  # the last answers (_answers)
 
     @classmethod
     def of(cls, chain: Chain) -> AnalyticIK | None:
@@ -137,18 +138,20 @@ class AnalyticIK:
         except ImportError:  # ik-geo not installed (requirements.txt has it): the iterative solver, which says so
             return None
 
-    def _answers(self, target: np.ndarray) -> list[tuple[list[float], bool]]:
-        """IK-Geo's answers, exact and least-squares. A solve asks for both of one target (its branches,
-        then whether it is singular): the last target's answers are kept (replaced in one assignment, so a
-        solver shared between threads reads a consistent pair)."""
+    def _answers(self, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """IK-Geo's exact and least-squares answers, each ``(k, 6)`` in (-π, π], the NaN ones (a wrong family)
+        dropped. A solve asks for both of one target (its branches, then whether it is singular): the last
+        target's are kept (replaced in one assignment, so a solver shared between threads reads a consistent
+        pair)."""
         key = target.tobytes()
         last = self._last
         if last is not None and last[0] == key:
             return last[1]
         rotation = target[:3, :3] @ self._tip_rotation_t
         answers = self._robot.get_ik(rotation.T.tolist(), target[:3, 3].tolist())  # columns, not rows
-        self._last = (key, answers)
-        return answers
+        split = (_finite([q for q, ls in answers if not ls]), _finite([q for q, ls in answers if ls]))
+        self._last = (key, split)
+        return split
 
     def singular(self, target: np.ndarray) -> bool:
         """Whether some branch of the target is at a singularity: there IK-Geo flags its answer as least
@@ -158,7 +161,7 @@ class AnalyticIK:
         q = self._answers_of(target, least_squares=True)
         if not len(q):
             return False
-        reached = fk.fk(self.chain, q)[:, :3, 3]
+        reached = fk.fk_single(self.chain, q)[:, :3, 3]  # a few answers: fk's set-up would cost four times more
         return bool(np.any(np.linalg.norm(reached - target[:3, 3], axis=1) < CHECK_M))
 
     def raw_branches(self, target: np.ndarray) -> np.ndarray:
@@ -166,9 +169,8 @@ class AnalyticIK:
         return self._answers_of(target, least_squares=False)
 
     def _answers_of(self, target: np.ndarray, least_squares: bool) -> np.ndarray:
-        """IK-Geo's exact (or least-squares) answers ``(k, 6)`` in (-π, π], the NaN ones (a wrong family) dropped."""
-        q = np.array([q for q, ls in self._answers(target) if ls == least_squares], dtype=float).reshape(-1, 6)
-        return q[np.all(np.isfinite(q), axis=1)]
+        """IK-Geo's exact (or least-squares) answers ``(k, 6)`` in (-π, π] (:meth:`_answers`)."""
+        return self._answers(target)[int(least_squares)]
 
     def approximations(self, target: np.ndarray, seed: np.ndarray, miss_m: float, miss_rad: float) -> np.ndarray:
         """IK-Geo's least-squares answers ``(k, 6)`` within the limits that our FK takes to within ``miss_m``
@@ -187,7 +189,7 @@ class AnalyticIK:
         """The exact branch within the limits nearest the seed, unchecked (the caller checks it on the model it
         solves for), or None."""
         q = fold(self.raw_branches(target), seed, self.lower, self.upper)
-        return q[np.argmin(np.linalg.norm(q - seed, axis=1))] if len(q) else None
+        return q[_nearest_row(q, seed)] if len(q) else None
 
     def branches(self, target: np.ndarray, seed: np.ndarray) -> np.ndarray:
         """Every exact branch ``(k, 6)`` within the joint limits, each joint shifted by 2π to lie nearest the
@@ -204,7 +206,7 @@ class AnalyticIK:
         q = fold(self.raw_branches(target), seed, self.lower, self.upper)
         if not len(q):
             return None
-        q, e, jac = self._checked(q[np.argmin(np.linalg.norm(q - seed, axis=1))][None], target)
+        q, e, jac = self._checked(q[_nearest_row(q, seed)][None], target)
         return (q[0], e[0], jac[0]) if len(q) else None
 
     def _checked(self, q: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -213,25 +215,51 @@ class AnalyticIK:
         assumptions off by nanometres, which a near-singular wrist turns into microradians); with their
         pose errors ``(k, 6)``, and for one row its Jacobian ``(1, 6, 6)`` at the answer (the quick answer's
         rank check takes it; a batch's are not kept up to date after the polish, so None)."""
-        single = len(q) == 1  # the single-configuration path: a batch of one costs several times more
+        if len(q) == 1:  # the single-configuration path: a batch of one costs several times more
+            return self._checked_one(q, target)
         if not len(q):
             return q, np.empty((0, 6)), None
-        if single:
-            T, jac = fk.fk_and_jacobian_single(self.chain, q[0])
-            e, jac = error6(target, T)[None], jac[None]
-        else:
-            T, jac = fk.fk_and_jacobian(self.chain, q)
-            e = _errors(target, T)
+        T, jac = fk.fk_and_jacobian(self.chain, q)
+        e = _errors(target, T)
         rough = np.linalg.norm(e, axis=1) > POLISH
         if rough.any():
             q[rough] = np.clip(q[rough] + _newton(jac[rough], e[rough]), self.lower, self.upper)
-            if single:
-                T, jac1 = fk.fk_and_jacobian_single(self.chain, q[0])
-                e, jac = error6(target, T)[None], jac1[None]
-            else:
-                e[rough] = _errors(target, fk.fk(self.chain, q[rough]))
+            e[rough] = _errors(target, fk.fk(self.chain, q[rough]))
         ok = (np.linalg.norm(e[:, :3], axis=1) < CHECK_M) & (np.linalg.norm(e[:, 3:], axis=1) < CHECK_RAD)
-        return q[ok], e[ok], jac[ok] if single else None
+        return q[ok], e[ok], None
+
+    def _checked_one(self, q: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """:meth:`_checked` of one row ``q (1, 6)``, in few numpy calls (the quick answer's path)."""
+        T, jac = fk.fk_and_jacobian_single(self.chain, q[0])
+        e = error6(target, T)
+        if e @ e > POLISH * POLISH:
+            q = np.clip(q + _newton(jac[None], e[None]), self.lower, self.upper)
+            T, jac = fk.fk_and_jacobian_single(self.chain, q[0])
+            e = error6(target, T)
+        if e[:3] @ e[:3] < CHECK_M * CHECK_M and e[3:] @ e[3:] < CHECK_RAD * CHECK_RAD:
+            return q, e[None], jac[None]
+        return q[:0], np.empty((0, 6)), None
+
+
+_NONE = np.empty((0, 6))
+_NONE.setflags(write=False)
+
+
+def _nearest_row(q: np.ndarray, seed: np.ndarray) -> int:
+    """The index of the row of ``q (k, n)`` nearest ``seed`` (Euclidean; einsum: a third of norm's cost)."""
+    d = q - seed
+    return int(np.argmin(np.einsum("ij,ij->i", d, d)))
+
+
+def _finite(rows: list[list[float]]) -> np.ndarray:
+    """``(k, 6)`` of the rows with every joint finite, read-only (the last target's are shared)."""
+    if not rows:
+        return _NONE
+    q = np.array(rows, dtype=float).reshape(-1, 6)
+    if not np.isfinite(q.sum()):
+        q = q[np.isfinite(q).all(axis=1)]
+    q.setflags(write=False)
+    return q
 
 
 def _errors(target: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -260,16 +288,14 @@ def fold(q: np.ndarray, seed: np.ndarray, lower: np.ndarray, upper: np.ndarray) 
     rows with a joint that has no such value are dropped."""
     q = np.asarray(q, dtype=float).reshape(-1, len(seed))
     first, last = _turn_range(q, lower, upper)
-    shift = np.clip(np.round((seed - q) / (2 * np.pi)), first, last)
-    inside = np.all(first <= last, axis=1)
-    return (q + 2 * np.pi * shift)[inside]
+    shift = np.minimum(np.maximum(np.round((seed - q) / TAU), first), last)
+    return (q + TAU * shift)[(first <= last).all(axis=1)]
 
 
 def _turn_range(q: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The fewest and the most whole turns (ints, each ``q``'s shape) that keep each joint of ``q`` within
-    ``[lower, upper]``; first > last where none does."""
-    tau = 2 * np.pi
-    return np.ceil((lower - 1e-12 - q) / tau).astype(int), np.floor((upper + 1e-12 - q) / tau).astype(int)
+    """The fewest and the most whole turns (whole floats, each ``q``'s shape) that keep each joint of ``q``
+    within ``[lower, upper]``; first > last where none does."""
+    return np.ceil((lower - 1e-12 - q) / TAU), np.floor((upper + 1e-12 - q) / TAU)
 
 
 def turns(q: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
@@ -278,7 +304,7 @@ def turns(q: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
     nets see raw joint values (on a UR arm's ±2π joints, 2⁶ copies of each branch)."""
     first, last = _turn_range(q, lower, upper)
     copies = [
-        itertools.product(*(row[j] + 2 * np.pi * np.arange(lo[j], hi[j] + 1) for j in range(len(row))))
+        itertools.product(*(row[j] + TAU * np.arange(lo[j], hi[j] + 1) for j in range(len(row))))
         for row, lo, hi in zip(q, first, last, strict=True)
     ]
     return np.array(list(itertools.chain.from_iterable(copies)), dtype=float).reshape(-1, q.shape[1])

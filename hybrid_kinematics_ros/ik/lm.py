@@ -7,6 +7,7 @@ Jacobian) is the caller's choice, passed as one function.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 
@@ -39,20 +40,26 @@ LAMBDA_DOWN, LAMBDA_UP, LAMBDA_MIN, LAMBDA_MAX = 5.0, 8.0, 1e-12, 1e8
 
 def log_so3(r: np.ndarray) -> np.ndarray:
     """Rotation vector of one rotation matrix; accurate near zero, scipy near π."""
-    skew = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
-    s = 0.5 * np.sqrt(skew @ skew)
-    c = 0.5 * (np.trace(r) - 1.0)
-    angle = np.arctan2(s, c)
-    if angle < 1e-9:
-        return 0.5 * skew
+    return np.array(_log_so3_floats(r))
+
+
+def _log_so3_floats(r: np.ndarray) -> tuple[float, float, float]:
+    """:func:`log_so3` in Python floats: the IK's inner loops take it once a step, where each numpy call
+    costs a microsecond or more."""
+    (a, b, c), (d, e, f), (g, h, i) = r.tolist()
+    x, y, z = h - f, c - g, d - b
+    s = 0.5 * math.sqrt(x * x + y * y + z * z)
+    angle = math.atan2(s, 0.5 * (a + e + i - 1.0))
     if angle > 3.0:
-        return se3.rotvec(r[None])[0]
-    return angle / (2.0 * s) * skew
+        return tuple(se3.rotvec(r[None])[0].tolist())
+    k = 0.5 if angle < 1e-9 else angle / (2.0 * s)
+    return k * x, k * y, k * z
 
 
 def error6(target: np.ndarray, T: np.ndarray) -> np.ndarray:
     """``[p_t − p; log(R_t Rᵀ)]`` in m and rad, base frame."""
-    return np.concatenate([target[:3, 3] - T[:3, 3], log_so3(target[:3, :3] @ T[:3, :3].T)])
+    (tx, ty, tz), (px, py, pz) = target[:3, 3].tolist(), T[:3, 3].tolist()
+    return np.array((tx - px, ty - py, tz - pz, *_log_so3_floats(target[:3, :3] @ T[:3, :3].T)))
 
 
 def error6_batch(targets: np.ndarray, T: np.ndarray) -> np.ndarray:

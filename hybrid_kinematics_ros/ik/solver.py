@@ -54,6 +54,7 @@ corrections (or ``analytic=True``) has no hybrid stages: its classical stage get
 from __future__ import annotations
 
 import functools
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -89,10 +90,32 @@ PROBE_ROUNDS = 4  # the other branches' rounds while the seed's branch is not so
 # The rule does not apply to exact rounds, which can rise before they fall (rx160, elbow stretched: 43 of 60
 # solved with it, 49 without).
 STALLED = 0.9
+# Within this of the target (m, rad) a round is a Newton step on the URDF Jacobian instead of a closed-form
+# call and a compensated target: the step is microradians, over which the URDF model's curvature errs by
+# 1e-10 m, below the polish tolerance, so both rounds converge alike and the step costs half.
+LINEAR_M = LINEAR_RAD = 1e-5
 VALLEY_SHARE = 0.5  # of the budget, still left, for the search along a singular valley (ik/valley.py)
 POLISH_ITERATIONS = 12  # LM steps on a least-squares answer beyond a fold (6-9 reach the URDF model's nearest point)
 SINGULAR = 1e-6  # the URDF Jacobian's smallest singular value (m or rad per rad) at a singular target's answer
 OTHER_BRANCH = "on another branch than the seed's, which found no solution within the budget"  # said with it
+
+
+def pose_problem(target: np.ndarray) -> str | None:
+    """What is wrong with a target pose ``(4, 4)``, or None: it must be finite, and its rotation orthonormal
+    (to 1e-6) with determinant +1. In Python floats: numpy's checks cost 5 µs of a request's 100."""
+    finite = "the target must be a finite 4x4 homogeneous matrix"
+    if target.shape != (4, 4):
+        return finite
+    v = target.ravel().tolist()
+    if not all(map(math.isfinite, v)):
+        return finite
+    a, b, c, _, d, e, f, _, g, h, i, _ = v[:12]
+    rows = (a * a + b * b + c * c - 1.0, d * d + e * e + f * f - 1.0, g * g + h * h + i * i - 1.0)
+    cross = (a * d + b * e + c * f, a * g + b * h + c * i, d * g + e * h + f * i)
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    if max(map(abs, rows + cross)) > 1e-6 or det < 0:
+        return "the target's rotation is not orthonormal"
+    return None
 
 
 def compensated_target(
@@ -152,6 +175,7 @@ class IKSolver:
         self.closed_form = AnalyticIK.of(model.chain) if o.closed_form else None  # None: iterative only
         self.path = f"closed form ({self.closed_form.family})" if self.closed_form else "iterative"
         self._last_rank: tuple[bytes, bool] | None = None  # see _rank_lost
+        self._mid = model.chain.mid_limits()  # the seed of a request without one
 
     def branches(self, target: np.ndarray, seed: np.ndarray) -> np.ndarray:
         """The closed forms' branches within the limits, nearest the seed first; none without closed forms."""
@@ -168,13 +192,11 @@ class IKSolver:
                 f"IK needs a chain of 6 or 7 joints; {c.base_link} -> {c.tip_link} has {dof}: choose another tip link"
             )
         target = np.asarray(target, dtype=float)
-        if target.shape != (4, 4) or not np.all(np.isfinite(target)):
-            raise IKError("the target must be a finite 4x4 homogeneous matrix")
-        r = target[:3, :3]
-        if np.abs(r @ r.T - np.eye(3)).max() > 1e-6 or np.linalg.det(r) < 0:
-            raise IKError("the target's rotation is not orthonormal")
-        seed = self.model.chain.mid_limits() if seed is None else np.asarray(seed, dtype=float)
-        if seed.shape != (dof,) or not np.all(np.isfinite(seed)):
+        problem = pose_problem(target)
+        if problem is not None:
+            raise IKError(problem)
+        seed = self._mid.copy() if seed is None else np.asarray(seed, dtype=float)
+        if seed.shape != (dof,) or not np.isfinite(seed).all():
             raise IKError(f"the seed must have {dof} finite joint values, got {seed.shape}")
         return target, seed
 
@@ -257,7 +279,10 @@ class IKSolver:
         deadline = start + o.timeout_s
         stats = {"attempts": 0, "refinements": 0, "path": self.path}
         urdf_only = analytic or not self.model.is_corrected
-        found = self._nearest_exact(target, seed, analytic, start, stats) if urdf_only else None
+        if urdf_only:
+            found = self._nearest_exact(target, seed, analytic, start, stats)
+        else:
+            found = self._nearest_fixed_point(target, seed, analytic, start, deadline, stats, origin)
         if found is not None:
             return found
         closed = self.branches(target, seed)
@@ -411,12 +436,35 @@ class IKSolver:
         if found is None:
             return None
         q, e, jac = found
-        ep, er = float(np.linalg.norm(e[:3])), float(np.linalg.norm(e[3:]))
+        ep, er = math.sqrt(e[:3] @ e[:3]), math.sqrt(e[3:] @ e[3:])
         tol_m, tol_rad = self.inner_tol
         if ep > tol_m or er > tol_rad or self._rank_lost(q, jac) or self.closed_form.singular(target):
             return None
         stats["attempts"] = 1
         return self.result(q, target, analytic, start, stats, (1e3 * ep, float(np.degrees(er))))
+
+    def _nearest_fixed_point(
+        self,
+        target: np.ndarray,
+        seed: np.ndarray,
+        analytic: bool,
+        start: float,
+        deadline: float,
+        stats: dict,
+        origin: np.ndarray | None,
+    ) -> IKResult | None:
+        """The hybrid answer for one IK-Geo call: the closed forms' fixed point from their branch nearest the
+        seed (:meth:`AnalyticIK.nearest`), where it converges, as on nearly every target. None otherwise,
+        and the whole search follows (from the same branch first). The same answer as the search's, without
+        checking every other branch first (a UR10's single solution in half the time: BENCHMARKS.md)."""
+        if self.closed_form is None:
+            return None
+        q = self.closed_form.nearest(target, seed)  # checked on the hybrid FK: an answer that misses fails there
+        if q is None:
+            return None
+        stats["attempts"] = 1
+        result = self._from_branch(target, q, analytic, start, deadline, stats, origin, self._fixed_point_only)
+        return self._singular(result) if result.success else None
 
     def _beyond_reach(self, target: np.ndarray, seed: np.ndarray, closed: np.ndarray) -> np.ndarray:
         """Where the closed forms give no exact branch within the limits: their least-squares answers within
@@ -448,7 +496,11 @@ class IKSolver:
             return last[1]
         if jac is None:
             jac = self.model.fk_and_jacobian_single(q, analytic=True)[1]
-        lost = bool(np.linalg.svd(jac, compute_uv=False)[-1] < SINGULAR)
+        # |det J| = Π σᵢ ≤ σ_min · σ_maxⁿ⁻¹ and σ_max ≤ ‖J‖_F: a determinant this far from zero proves σ_min
+        # above SINGULAR for a third of an SVD's cost (a square Jacobian; nearly every answer is regular)
+        n = jac.shape[1]
+        regular = n == 6 and abs(np.linalg.det(jac)) > SINGULAR * float(np.vdot(jac, jac)) ** ((n - 1) / 2)
+        lost = not regular and bool(np.linalg.svd(jac, compute_uv=False)[-1] < SINGULAR)
         self._last_rank = (key, lost)
         return lost
 
@@ -543,16 +595,20 @@ class IKSolver:
             return q0, None, False
         tol_m, tol_rad = self.inner_tol
         polish_m, polish_rad = self.refiner.polish_tol
-        best, best_cost, best_errors, q = q0, np.inf, None, q0
-        least_squares = converged = False
+        best, best_cost, best_errors, best_hybrid, q = q0, np.inf, None, None, q0
+        least_squares = converged = stepped = False
+        newton = True
         for round_ in range(rounds + 1):
             hybrid = self.model.fk_single(q)
             e = error6(target, hybrid)
-            cost = float(np.linalg.norm(e))  # m and rad, as LM weighs them
-            ep, er = float(np.linalg.norm(e[:3])), float(np.linalg.norm(e[3:]))
+            ep, er = math.sqrt(e[:3] @ e[:3]), math.sqrt(e[3:] @ e[3:])
+            cost = math.hypot(ep, er)  # m and rad, as LM weighs them
             stalled = least_squares and cost > STALLED * best_cost
             if cost < best_cost:
-                best, best_cost, best_errors = q, cost, (1e3 * ep, float(np.degrees(er)))
+                best, best_cost, best_errors, best_hybrid = q, cost, (1e3 * ep, float(np.degrees(er))), hybrid
+            elif stepped:  # the Newton step went uphill (a near-singular Jacobian): closed-form rounds from the best
+                newton = False
+                q, e, hybrid = best, error6(target, best_hybrid), best_hybrid
             if ep <= tol_m and er <= tol_rad:
                 if converged or (ep <= polish_m and er <= polish_rad):
                     break
@@ -561,6 +617,13 @@ class IKSolver:
                 return best, best_errors, True
             if round_ == rounds or time.perf_counter() > deadline:
                 break
+            stepped = newton and ep < LINEAR_M and er < LINEAR_RAD
+            if stepped:
+                q_next = self._newton_step(q, e)
+                if q_next is not None:
+                    q = q_next
+                    continue
+                stepped = False
             moved = compensated_target(self.model, target, q, hybrid)
             q_next = self.closed_form.nearest(moved, q)
             least_squares = q_next is None
@@ -571,6 +634,16 @@ class IKSolver:
                 break
             q = q_next
         return best, best_errors, False
+
+    def _newton_step(self, q: np.ndarray, e: np.ndarray) -> np.ndarray | None:
+        """``q`` moved by the URDF Jacobian's Newton step for the hybrid error ``e`` (6,), within the limits; None
+        where the Jacobian is singular."""
+        jac = self.model.fk_and_jacobian_single(q, analytic=True)[1]
+        try:
+            step = np.linalg.solve(jac, e)
+        except np.linalg.LinAlgError:
+            return None
+        return np.clip(q + step, self.lower, self.upper)
 
     def _fixed_point_only(
         self,
@@ -689,7 +762,7 @@ class IKSolver:
         same model."""
         o = self.options
         pos, rot = errors if errors is not None else self.refiner.errors(q, target, analytic)
-        inside = bool(self.model.in_calibrated_range(q)[0])
+        inside = self.model.in_calibrated_range_one(q)
         ok = pos <= o.position_tolerance_mm and rot <= o.orientation_tolerance_deg
         if ok and not inside and o.require_calibrated_range and not analytic:
             bounds = zip(self.model.joint_names, q, self.model.trained_lower, self.model.trained_upper, strict=True)

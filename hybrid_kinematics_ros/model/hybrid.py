@@ -381,6 +381,10 @@ class HybridModel:
         bit. The URDF pose is the same; the nets, the joint error map and the range checks then see the
         angles they were trained on, so q and q ± 2π get one correction."""
         q = np.asarray(q, dtype=float)
+        if q.ndim == 1:  # one configuration (every FK service call): the usual answer, inside, in Python floats
+            lower, upper = self._range_lists
+            if all(lo <= v <= hi for lo, v, hi in zip(lower, q.tolist(), upper, strict=True)):
+                return q
         outside = self._periodic & ((q < self._range[0]) | (q > self._range[1]))
         if not outside.any():
             return q

@@ -25,6 +25,7 @@ class AxisTurn:
         self.axis = np.asarray(axis, dtype=float)
         self.kx = skew(self.axis)  # k × r = kx @ r
         self.kk = np.outer(self.axis, self.axis)
+        self._k = tuple(self.axis.tolist())
 
     def matrix(self, angle: np.ndarray | float) -> np.ndarray:
         """Rotation matrices ``(..., 3, 3)`` by ``angle`` (rad, scalar or ``(...)``)."""
@@ -34,9 +35,17 @@ class AxisTurn:
     def apply(self, r: np.ndarray, angle: np.ndarray | float) -> np.ndarray:
         """Vectors ``r (..., 3)`` turned by ``angle`` (one per vector, or one for all); one vector by one angle
         as ``r cos + (k × r) sin + k (k · r)(1 − cos)``, without building the matrix."""
-        if r.ndim == 1 and np.ndim(angle) == 0:
-            c = math.cos(angle)
-            return c * r + math.sin(angle) * (self.kx @ r) + (1.0 - c) * (self.kk @ r)
+        if r.ndim == 1 and np.ndim(angle) == 0:  # in Python floats: 1.5 µs, where numpy's products cost 5
+            c, s = math.cos(angle), math.sin(angle)
+            (x, y, z), (kx, ky, kz) = r.tolist(), self._k
+            along = (1.0 - c) * (kx * x + ky * y + kz * z)
+            return np.array(
+                (
+                    c * x + s * (ky * z - kz * y) + along * kx,
+                    c * y + s * (kz * x - kx * z) + along * ky,
+                    c * z + s * (kx * y - ky * x) + along * kz,
+                )
+            )
         return (self.matrix(angle) @ r[..., None])[..., 0]
 
 

@@ -16,7 +16,7 @@ from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR
 from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.model.hybrid import HybridModel
-from hybrid_kinematics_ros.model.nets import to_joint1_frame
+from hybrid_kinematics_ros.model.nets import AxisTurn, to_joint1_frame
 
 
 def test_training_cuts_the_error_by_a_large_factor(trained):
@@ -80,6 +80,9 @@ def test_joint1_frame_turn_is_inverted_exactly():
     q[:, 0] = torch.tensor(q1)
     local = to_joint1_frame(r, q1, axis)
     np.testing.assert_allclose(net._turn(torch.tensor(local), q).numpy(), r, atol=1e-12)
+    # one vector by one angle takes the Python-float path: the same turn as the matrices'
+    turn = AxisTurn(axis)
+    np.testing.assert_allclose([turn.apply(v, a) for v, a in zip(local, q1, strict=True)], r, atol=1e-12)
 
 
 @pytest.mark.parametrize("arch", ["D1", "D4", "D4w", "D4W", "Rw", "Rd", "mlp:32x3:relu"])

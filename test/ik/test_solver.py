@@ -10,7 +10,7 @@ import pytest
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.lm import lm_solve
 from hybrid_kinematics_ros.ik.seeds import VALLEY_STEPS_RAD, valley_seeds
-from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
+from hybrid_kinematics_ros.ik.solver import SINGULAR, IKOptions, IKSolver, pose_problem
 from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
 from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR, load_robot_config
@@ -91,6 +91,21 @@ def test_near_misses_at_a_wrist_singularity_restart_along_the_valley():
     assert valley_seeds(solver.model, regular, 0.01, solver.limits) == []  # not singular
 
 
+def test_the_rank_check_is_the_svds_verdict():
+    """_rank_lost's determinant shortcut proves regularity only: on regular, near-singular and singular
+    configurations of each family it says what the smallest singular value says."""
+    for robot in ("ur10", "rx160"):
+        chain = load_robot_config(robot).chain
+        solver = IKSolver(HybridModel.analytic_only(chain))
+        rng = np.random.default_rng(6)
+        for _ in range(60):
+            q = rng.uniform(-3, 3, 6)
+            q[4] = rng.choice([q[4], 0.0, 1e-9, 1e-7, 1e-5, 1e-3])  # the wrist at and near its singularity
+            q[2] = rng.choice([q[2], 0.0, 1e-8])  # the elbow stretched, or not
+            jac = solver.model.fk_and_jacobian_single(q, analytic=True)[1]
+            assert solver._rank_lost(q) == (np.linalg.svd(jac, compute_uv=False)[-1] < SINGULAR)
+
+
 def test_ur10_distinct_branches():
     """Full URDF limits: the UR10 has up to 8 analytic branches; they are distinct and all reach the target."""
     chain = chain_from_urdf(CONFIG_DIR / "ur10.urdf", "base_link", "tool0")
@@ -144,6 +159,10 @@ def test_bad_requests_raise(trained):
     bad[0, 0] = 2.0
     with pytest.raises(IKError, match="not orthonormal"):
         solver.solve(bad)
+    mirrored = np.eye(4)
+    mirrored[2, 2] = -1.0  # orthonormal columns, and a reflection
+    with pytest.raises(IKError, match="not orthonormal"):
+        solver.solve(mirrored)
 
 
 def test_trajectory(trained):
@@ -153,3 +172,37 @@ def test_trajectory(trained):
     path = q0 + np.linspace(0, 0.3, 25)[:, None] * np.array([1, 0.5, -0.5, 0.3, 0.2, 0.1])
     results = solver.solve_trajectory(model.fk(path), seed=q0)
     assert all(r.success for r in results)
+
+
+def test_the_requests_pose_check_is_numpys():
+    """pose_problem's float arithmetic against numpy's orthonormality and determinant, near the 1e-6 edge."""
+    rng = np.random.default_rng(3)
+    for scale in (0.0, 1e-7, 1e-6, 1e-5, 1e-3):
+        for _ in range(40):
+            pose = np.eye(4)
+            pose[:3, :3] = se3.exp_so3(rng.normal(size=3)) * rng.choice([1.0, -1.0]) + scale * rng.normal(size=(3, 3))
+            r = pose[:3, :3]
+            bad = np.abs(r @ r.T - np.eye(3)).max() > 1e-6 or np.linalg.det(r) < 0
+            assert (pose_problem(pose) is not None) == bad
+    pose = np.eye(4)
+    pose[1, 3] = np.inf
+    assert "finite" in pose_problem(pose)
+
+
+def test_the_pose_error_is_scipys_rotation_vector():
+    """error6's Python-float rotation vector against scipy's, from nearly zero to nearly a half turn."""
+    from scipy.spatial.transform import Rotation
+
+    from hybrid_kinematics_ros.ik.lm import error6
+
+    rng = np.random.default_rng(4)
+    for angle in (1e-12, 1e-7, 0.3, 2.0, 2.99, 3.01, np.pi - 1e-6):
+        axis = rng.normal(size=3)
+        w = angle * axis / np.linalg.norm(axis)
+        target, pose = np.eye(4), np.eye(4)
+        pose[:3, :3] = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+        target[:3, 3], pose[:3, 3] = rng.normal(size=3), rng.normal(size=3)
+        target[:3, :3] = Rotation.from_rotvec(w).as_matrix() @ pose[:3, :3]
+        e = error6(target, pose)
+        np.testing.assert_allclose(e[:3], target[:3, 3] - pose[:3, 3], atol=1e-15)
+        np.testing.assert_allclose(e[3:], w, atol=1e-13, rtol=0)

@@ -47,6 +47,7 @@ def test_fk_and_jacobian_match_pinocchio(case, example_robot_data):
     np.testing.assert_allclose(t, ref_t, atol=1e-9, rtol=0)
     np.testing.assert_allclose(j, ref_j, atol=1e-9, rtol=0)
     np.testing.assert_allclose(fk.fk(chain, q), ref_t, atol=1e-9, rtol=0)
+    np.testing.assert_allclose(fk.fk_single(chain, q[:3]), ref_t[:3], atol=1e-12, rtol=0)  # a few at once
     for i in range(0, N, 97):
         np.testing.assert_allclose(fk.fk_single(chain, q[i]), ref_t[i], atol=1e-12, rtol=0)
         t_single, j_single = fk.fk_and_jacobian_single(chain, q[i])
