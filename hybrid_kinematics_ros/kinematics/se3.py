@@ -6,6 +6,7 @@ Rotations go through scipy's ``Rotation``; only the tiny operations on hot paths
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -64,6 +65,21 @@ def quat_of_rows(rows: list[list[float]]) -> tuple[float, float, float, float]:
         q = ((m02 + m20) / s, (m12 + m21) / s, 0.25 * s, (m10 - m01) / s)
     scale = (-1.0 if q[3] < 0.0 else 1.0) / math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     return scale * q[0], scale * q[1], scale * q[2], scale * q[3]
+
+
+def matrix_of_pose_one(position: Sequence[float], quat_xyzw: Sequence[float]) -> np.ndarray:
+    """:func:`matrix_from_pose` of one position and unit quaternion, ``(4, 4)``, from Python floats with one
+    numpy call (a service's request; scipy's Rotation costs 20 µs for one)."""
+    x, y, z, w = quat_xyzw
+    xx, yy, zz, xy, xz, yz, wx, wy, wz = x * x, y * y, z * z, x * y, x * z, y * z, w * x, w * y, w * z
+    return np.array(
+        (
+            (1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy), position[0]),
+            (2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx), position[1]),
+            (2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy), position[2]),
+            (0.0, 0.0, 0.0, 1.0),
+        )
+    )
 
 
 def from_rotvec(position: np.ndarray, rotvec: np.ndarray) -> np.ndarray:

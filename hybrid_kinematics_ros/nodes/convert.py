@@ -13,7 +13,7 @@ from scipy.stats import chi2
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from hybrid_kinematics_ros.kinematics.se3 import matrix_from_pose, pose_from_matrix, quat_of_rows
+from hybrid_kinematics_ros.kinematics.se3 import matrix_of_pose_one, pose_from_matrix, quat_of_rows
 from hybrid_kinematics_ros.model.bounds import in_report_units
 
 QUAT_TOLERANCE = 1e-3  # |‖q‖ − 1| accepted (and normalised) in requests
@@ -77,14 +77,13 @@ def matrix_from_msg(msg: PoseStamped, frames: Sequence[str]) -> np.ndarray:
             f"'{frames[0]}' (or leave it empty) or in one of {', '.join(frames[1:])}"
         )
     p, o = msg.pose.position, msg.pose.orientation
-    position = np.array([p.x, p.y, p.z])
-    quat = np.array([o.x, o.y, o.z, o.w])
-    if not (np.all(np.isfinite(position)) and np.all(np.isfinite(quat))):
+    position, quat = (p.x, p.y, p.z), (o.x, o.y, o.z, o.w)
+    if not all(map(math.isfinite, position + quat)):
         raise RequestError("target pose has NaN or infinite values")
-    norm = float(np.linalg.norm(quat))
+    norm = math.sqrt(sum(v * v for v in quat))
     if abs(norm - 1.0) > QUAT_TOLERANCE:
         raise RequestError(f"target orientation is not a unit quaternion (norm {norm:.6g})")
-    return matrix_from_pose(position, quat / norm)[0]
+    return matrix_of_pose_one(position, [v / norm for v in quat])
 
 
 def pose_msg(T: np.ndarray, frame_id: str, stamp: Time, quat: np.ndarray | None = None) -> PoseStamped:

@@ -81,6 +81,15 @@ def test_single_quaternion_conversion_matches_scipy(q):
         assert ours[3] >= 0.0
 
 
+@settings(max_examples=200, deadline=None)
+@given(positions, quats)
+def test_one_pose_from_floats_matches_scipy(p, q):
+    q = normalised(q)
+    for position, quat in zip(p, q, strict=True):
+        ours = se3.matrix_of_pose_one(position.tolist(), quat.tolist())
+        np.testing.assert_allclose(ours, se3.matrix_from_pose(position, quat)[0], atol=1e-12, rtol=0)
+
+
 def test_fit_rigid_matches_scipy_align_vectors_and_recovers_a_known_pose():
     rng = np.random.default_rng(4)
     layout = rng.uniform(-0.1, 0.1, (4, 3))
