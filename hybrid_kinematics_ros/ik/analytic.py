@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hybrid_kinematics_ros.ik.lm import error6, joint_limits
+from hybrid_kinematics_ros.ik.lm import error6, error6_batch, joint_limits
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import Chain
 
@@ -181,7 +181,7 @@ class AnalyticIK:
         q = fold(self._answers_of(target, least_squares=True), seed, self.lower, self.upper)
         if not len(q):
             return q
-        e = _errors(target, fk.fk(self.chain, q))
+        e = error6_batch(target, fk.fk(self.chain, q))
         q = q[(np.linalg.norm(e[:, :3], axis=1) < miss_m) & (np.linalg.norm(e[:, 3:], axis=1) < miss_rad)]
         return q[np.argsort(np.linalg.norm(q - seed, axis=1), kind="stable")]
 
@@ -220,11 +220,11 @@ class AnalyticIK:
         if not len(q):
             return q, np.empty((0, 6)), None
         T, jac = fk.fk_and_jacobian(self.chain, q)
-        e = _errors(target, T)
+        e = error6_batch(target, T)
         rough = np.linalg.norm(e, axis=1) > POLISH
         if rough.any():
             q[rough] = np.clip(q[rough] + _newton(jac[rough], e[rough]), self.lower, self.upper)
-            e[rough] = _errors(target, fk.fk(self.chain, q[rough]))
+            e[rough] = error6_batch(target, fk.fk(self.chain, q[rough]))
         ok = (np.linalg.norm(e[:, :3], axis=1) < CHECK_M) & (np.linalg.norm(e[:, 3:], axis=1) < CHECK_RAD)
         return q[ok], e[ok], None
 
@@ -260,19 +260,6 @@ def _finite(rows: list[list[float]]) -> np.ndarray:
         q = q[np.isfinite(q).all(axis=1)]
     q.setflags(write=False)
     return q
-
-
-def _errors(target: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """``(k, 6)``: :func:`~hybrid_kinematics_ros.ik.lm.error6` of each pose ``T (k, 4, 4)``, in one call. The
-    rotation's angle is exact at any size (arctan2); its axis, from the skew part, loses accuracy near π,
-    where the branch fails the check anyway. scipy's Rotation costs 70 µs for these few poses."""
-    r = target[:3, :3] @ np.swapaxes(T[:, :3, :3], 1, 2)
-    skew = np.stack([r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0], r[:, 1, 0] - r[:, 0, 1]], axis=1)
-    s = 0.5 * np.linalg.norm(skew, axis=1)
-    angle = np.arctan2(s, 0.5 * (np.trace(r, axis1=1, axis2=2) - 1.0))
-    with np.errstate(divide="ignore", invalid="ignore"):  # a half turn with no skew part: NaN, never a pass
-        scale = np.where(angle < 1e-6, 0.5, angle / (2.0 * s))
-    return np.concatenate([target[:3, 3] - T[:, :3, 3], scale[:, None] * skew], axis=1)
 
 
 def _newton(jac: np.ndarray, e: np.ndarray) -> np.ndarray:

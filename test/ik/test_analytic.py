@@ -12,9 +12,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from bench.bench_ik_singular import cases
-from hybrid_kinematics_ros.ik.analytic import CHECK_M, AnalyticIK, _errors, classify, fold, geometry
+from hybrid_kinematics_ros.ik.analytic import CHECK_M, AnalyticIK, classify, fold, geometry
 from hybrid_kinematics_ros.ik.errors import IKError
-from hybrid_kinematics_ros.ik.lm import error6
+from hybrid_kinematics_ros.ik.lm import error6, error6_batch
 from hybrid_kinematics_ros.ik.seeds import NEAR_M, NEAR_RAD
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.kinematics import fk
@@ -217,7 +217,7 @@ def test_hybrid_targets_beyond_the_urdf_models_reach_start_from_its_nearest_answ
         beyond += 1
         near = solver.closed_form.approximations(target, q, NEAR_M, NEAR_RAD)
         assert len(near), "a least-squares answer within a correction's size of the target"
-        assert np.all(np.linalg.norm(_errors(target, fk.fk(model.chain, near))[:, :3], axis=1) > CHECK_M)
+        assert np.all(np.linalg.norm(error6_batch(target, fk.fk(model.chain, near))[:, :3], axis=1) > CHECK_M)
         result = solver.solve(target)
         assert result.success, (result.position_error_mm, result.stats)
         assert result.stats["beyond_urdf_reach"] and result.stats["attempts"] == 0
@@ -243,7 +243,11 @@ def test_the_batched_pose_error_is_lm_error6_at_every_angle():
     T[0, :3, :3] = target[:3, :3]  # no rotation
     T[1, :3, :3] = target[:3, :3] @ Rotation.from_rotvec([1e-9, 0.0, 0.0]).as_matrix().T
     T[2, :3, :3] = target[:3, :3] @ Rotation.from_rotvec([0.0, np.pi - 1e-3, 0.0]).as_matrix().T
-    np.testing.assert_allclose(_errors(target, T), [error6(target, t) for t in T], atol=1e-12)
+    np.testing.assert_allclose(error6_batch(target, T), [error6(target, t) for t in T], atol=1e-12)
+    # a target per pose, and scipy's rotation vector of each rotation between them
+    targets = np.concatenate([T[1:], T[:1]])
+    rotvec = Rotation.from_matrix(targets[:, :3, :3] @ T[:, :3, :3].transpose(0, 2, 1)).as_rotvec()
+    np.testing.assert_allclose(error6_batch(targets, T)[:, 3:], rotvec, atol=1e-12)
 
 
 def test_several_solutions_of_a_singular_target_include_the_singular_branch():
