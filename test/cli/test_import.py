@@ -14,6 +14,7 @@ from hybrid_kinematics_ros.cli.main import main
 from hybrid_kinematics_ros.io.pairs import read_pairs
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from test.cli.inprocess import cli
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures" / "ipa-robot-accuracy"
 SERIES_A = FIXTURES / "Series_A_measurements_grid_head40.csv"
@@ -111,17 +112,17 @@ def test_malformed_file_and_bad_spec_end_with_one_line(tmp_path):
     bad = tmp_path / "bad.csv"
     bad.write_bytes("\r\n".join(lines).encode())
     args = ["import", "--spec", "ipa_robot_accuracy_a", "--robot", "ur10", "--out", str(tmp_path / "out")]
-    line = one_line_error(run(*args, "--csv", str(bad)))
+    line = one_line_error(cli(*args, "--csv", str(bad)))
     assert f"bad.csv: line 7, column {column + 1} 'measurement_x': '2361,98x' is not a number" in line
     assert not (tmp_path / "out").exists()
 
-    line = one_line_error(run(*args, "--csv", str(SERIES_A), "--position", "measurement_x,measurement_y,z_mm"))
+    line = one_line_error(cli(*args, "--csv", str(SERIES_A), "--position", "measurement_x,measurement_y,z_mm"))
     assert "Series_A_measurements_grid_head40.csv: line 1: no column 'z_mm' in the header" in line
 
     spec = tmp_path / "spec.yaml"
     position = "{columns: [measurement_x, measurement_y, measurement_z], unit: inch}"
     spec.write_text(f"extends: ipa_robot_accuracy_a\nposition: {position}\n")
-    line = one_line_error(run(*args[:2], str(spec), *args[3:], "--csv", str(SERIES_A)))
+    line = one_line_error(cli(*args[:2], str(spec), *args[3:], "--csv", str(SERIES_A)))
     assert line.endswith(f"import spec {spec} with flags: position.unit 'inch' is not one of mm, m")
 
 

@@ -16,6 +16,7 @@ from hybrid_kinematics_ros.model import approach
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from hybrid_kinematics_ros.simulation.tracker import Tracker
+from test.cli.inprocess import cli
 
 FLANGE = {"xyz": [0.02, -0.03, 0.09], "rpy": [0.1, 0.0, 0.4]}
 STATIONS = {  # frame: (tracker placement, target on the flange)
@@ -92,7 +93,7 @@ def test_held_out_bags_of_every_station_evaluate_against_the_truth(stations_mode
     for k, (frame, cell) in enumerate(_cells(ur10, noise=True).items()):
         bag = tmp / f"test_{frame}"
         q = _bag(bag, ur10, cell, 300, seed=100 + k)
-        result = run("evaluate", "--model", str(out), "--bag", str(bag))
+        result = cli("evaluate", "--model", str(out), "--bag", str(bag))
         assert result.returncode == 0, result.stderr
         report = json.loads(result.stdout)
         # the stage is at the noise floor here, so the nets may rightly correct nothing: never worse than it
@@ -109,11 +110,11 @@ def test_unknown_frames_and_thin_stations_end_with_one_line(stations_model, ur10
     cell = _cells(ur10, noise=True)["tracker_a"]
     other = VirtualCell(ur10, cell.robot, replace(cell.tracker, frame_id="tracker_x"))
     _bag(tmp_path / "x", ur10, other, 200, seed=7)
-    result = run("evaluate", "--model", str(out), "--bag", str(tmp_path / "x"))
+    result = cli("evaluate", "--model", str(out), "--bag", str(tmp_path / "x"))
     assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
     assert "'tracker_x'" in result.stderr and "'tracker_a'" in result.stderr
     _bag(tmp_path / "thin", ur10, other, 9, seed=8)
-    result = run(
+    result = cli(
         *("train", "--bag", str(tmp / "tracker_a"), str(tmp_path / "thin"), "--robot", "ur10"),
         *("--out", str(tmp_path / "m"), "--split-blocks", "0"),
     )

@@ -1,4 +1,4 @@
-"""train, evaluate and fk through the console entry point, on a tiny bag."""
+"""train, evaluate and fk on a tiny bag: the first train through the console entry point, the rest in process."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import numpy as np
 from hybrid_kinematics_ros.cli.main import main
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.model.hybrid import HybridModel
+from test.cli.inprocess import cli
 
 
 def run(*args):
@@ -43,7 +44,7 @@ def test_train_evaluate_fk_workflow(tmp_path, capsys):
     assert "epoch" in result.stderr  # progress shows epoch, loss and validation error
 
     plots = tmp_path / "plots"
-    result = run(
+    result = cli(
         "evaluate",
         "--model",
         str(model_dir),
@@ -73,7 +74,7 @@ def test_train_evaluate_fk_workflow(tmp_path, capsys):
     )
     for flag, analytic in (([], False), (["--analytic"], True)):
         out = tmp_path / f"poses{analytic}.csv"
-        result = run("fk", "--model", str(model_dir), "--joints", str(joints), "--out", str(out), *flag)
+        result = cli("fk", "--model", str(model_dir), "--joints", str(joints), "--out", str(out), *flag)
         assert result.returncode == 0, result.stderr
         rows = np.loadtxt(out, delimiter=",", skiprows=1)
         np.testing.assert_allclose(
@@ -81,7 +82,7 @@ def test_train_evaluate_fk_workflow(tmp_path, capsys):
         )
     # each pose with its error bounds, in mm and degrees, as the model gives them
     out = tmp_path / "bounded.csv"
-    result = run("fk", "--model", str(model_dir), "--joints", str(joints), "--out", str(out), "--bounds")
+    result = cli("fk", "--model", str(model_dir), "--joints", str(joints), "--out", str(out), "--bounds")
     assert result.returncode == 0, result.stderr
     header = out.read_text().splitlines()[0].split(",")
     assert header[-2:] == ["position_bound_mm", "orientation_bound_deg"]
@@ -90,17 +91,17 @@ def test_train_evaluate_fk_workflow(tmp_path, capsys):
     np.testing.assert_allclose(rows[:, -2], 1e3 * position, rtol=1e-9)
     np.testing.assert_allclose(rows[:, -1], np.degrees(orientation), rtol=1e-9)
     assert np.all(rows[:, -2] > 0.0)
-    refused = run("fk", "--model", str(model_dir), "--joints", str(joints), "--out", str(out), "--bounds", "--analytic")
+    refused = cli("fk", "--model", str(model_dir), "--joints", str(joints), "--out", str(out), "--bounds", "--analytic")
     assert refused.returncode != 0 and "--bounds: --analytic answers carry none" in refused.stderr
     outside = np.zeros(6)
     outside[2] = model.trained_upper[2] + 0.005
     far = tmp_path / "far.csv"
     far.write_text(",".join(model.joint_names) + "\n" + ",".join(repr(float(v)) for v in outside) + "\n")
     out = str(tmp_path / "far_poses.csv")
-    refused = run("fk", "--model", str(model_dir), "--joints", str(far), "--out", out, "--out-of-range", "refuse")
+    refused = cli("fk", "--model", str(model_dir), "--joints", str(far), "--out", out, "--out-of-range", "refuse")
     assert refused.returncode == 2 and "outside the calibrated joint range" in refused.stderr
     assert model.joint_names[2] in refused.stderr
-    warned = run("fk", "--model", str(model_dir), "--joints", str(far), "--out", out)
+    warned = cli("fk", "--model", str(model_dir), "--joints", str(far), "--out", out)
     assert warned.returncode == 0 and "1 configuration(s) outside the calibrated range" in warned.stderr
     # inside every joint's range, but far from the training data: outside once a coverage radius is given
     middle = tmp_path / "middle.csv"
@@ -108,12 +109,12 @@ def test_train_evaluate_fk_workflow(tmp_path, capsys):
     middle.write_text(",".join(model.joint_names) + "\n" + ",".join(repr(float(v)) for v in centre) + "\n")
     radius = str(0.5 * float(model.coverage_distance(centre)[0]))
     args = ("fk", "--model", str(model_dir), "--joints", str(middle), "--out", out, "--out-of-range", "refuse")
-    assert run(*args).returncode == 0
-    refused = run(*args, "--coverage-radius", radius)
+    assert cli(*args).returncode == 0
+    refused = cli(*args, "--coverage-radius", radius)
     assert refused.returncode == 2 and "from the nearest training configuration" in refused.stderr
 
     urdf = tmp_path / "calibrated.urdf"
-    result = run("export-urdf", "--model", str(model_dir), "--out", str(urdf), "--bag", str(bag))
+    result = cli("export-urdf", "--model", str(model_dir), "--out", str(urdf), "--bag", str(bag))
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert report["exported_urdf"]["position_mm_mean"] < report["nominal_urdf"]["position_mm_mean"]
@@ -121,7 +122,7 @@ def test_train_evaluate_fk_workflow(tmp_path, capsys):
     assert "_calibrated" in urdf.read_text()
 
     # the report shows the parametric stage's joint error map, as a row per joint and as a plot
-    result = run("report", "--model", str(model_dir), "--bag", str(bag), "--out", str(tmp_path / "report"))
+    result = cli("report", "--model", str(model_dir), "--bag", str(bag), "--out", str(tmp_path / "report"))
     assert result.returncode == 0, result.stderr
     page = (tmp_path / "report" / "index.html").read_text()
     assert "joint error map of shoulder_lift_joint" in page and "joint_map.png" in page
@@ -135,16 +136,16 @@ def test_bad_inputs_get_one_line_errors(tmp_path):
     bad.write_text(
         "shoulder_pan_joint,shoulder_lift_joint,elbow_joint,wrist_1_joint,wrist_2_joint,wrist_3_joint\n0,0,x,0,0,0\n"
     )
-    result = run("fk", "--robot", "ur10", "--joints", str(bad), "--out", str(tmp_path / "o.csv"))
+    result = cli("fk", "--robot", "ur10", "--joints", str(bad), "--out", str(tmp_path / "o.csv"))
     assert result.returncode == 2
     assert result.stderr.strip() == (
         f"hybrid-kinematics fk: error: {bad}: line 2, column 'elbow_joint': 'x' is not a number"
     )
     missing = tmp_path / "missing.csv"
     missing.write_text("shoulder_pan_joint,shoulder_lift_joint\n0,0\n")
-    result = run("fk", "--robot", "ur10", "--joints", str(missing), "--out", str(tmp_path / "o.csv"))
+    result = cli("fk", "--robot", "ur10", "--joints", str(missing), "--out", str(tmp_path / "o.csv"))
     assert "missing column(s) elbow_joint" in result.stderr and result.returncode == 2
-    result = run("train", "--bag", str(tmp_path / "nobag"), "--robot", "ur10", "--out", str(tmp_path / "m"))
+    result = cli("train", "--bag", str(tmp_path / "nobag"), "--robot", "ur10", "--out", str(tmp_path / "m"))
     assert result.returncode == 2 and "does not exist" in result.stderr
     assert result.stderr.count("\n") == 1
 
@@ -165,10 +166,10 @@ def test_tracker_frame_position_only_workflow(tmp_path):
     robot = tmp_path / "cell.yaml"
     robot.write_text(yaml.safe_dump(cfg))
     bag = tmp_path / "bag"
-    sim = run("simulate", "--robot", str(robot), "--samples", "1500", "--out", str(bag), "--position-only")
+    sim = cli("simulate", "--robot", str(robot), "--samples", "1500", "--out", str(bag), "--position-only")
     assert sim.returncode == 0, sim.stderr
     model_dir = tmp_path / "model"
-    result = run(
+    result = cli(
         "train",
         "--bag",
         str(bag),
@@ -189,11 +190,11 @@ def test_tracker_frame_position_only_workflow(tmp_path):
     assert "orientation is not corrected" in manifest["note"]
     # judged on a bag it never saw, in the tracker frame through the stored referencing
     test_bag = tmp_path / "test_bag"
-    sim = run(
+    sim = cli(
         "simulate", "--robot", str(robot), "--samples", "300", "--out", str(test_bag), "--position-only", "--seed", "7"
     )
     assert sim.returncode == 0, sim.stderr
-    result = run("evaluate", "--model", str(model_dir), "--bag", str(test_bag))
+    result = cli("evaluate", "--model", str(model_dir), "--bag", str(test_bag))
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     # the stage is at the noise floor here, so the position net may rightly correct nothing: never worse than it
@@ -202,7 +203,7 @@ def test_tracker_frame_position_only_workflow(tmp_path):
     assert report["analytic"]["position_mm_mean"] > 20 * report["parametric"]["position_mm_mean"]
     assert "orientation_deg_mean" not in report["hybrid"]
     report_dir = tmp_path / "report"
-    result = run("report", "--model", str(model_dir), "--bag", str(test_bag), "--out", str(report_dir))
+    result = cli("report", "--model", str(model_dir), "--bag", str(test_bag), "--out", str(report_dir))
     assert result.returncode == 0, result.stderr
     page = (report_dir / "index.html").read_text()
     assert "Method: least squares; frame 'tracker'" in page and "Not identifiable" in page
