@@ -611,7 +611,7 @@ class IKSolver:
                 best, best_cost, best_errors, best_hybrid = q, cost, (1e3 * ep, float(np.degrees(er))), hybrid
             elif stepped:  # the Newton step went uphill (a near-singular Jacobian): closed-form rounds from the best
                 newton = False
-                q, e, hybrid = best, error6(target, best_hybrid), best_hybrid
+                q, hybrid = best, best_hybrid
             if ep <= tol_m and er <= tol_rad:
                 if converged or (ep <= polish_m and er <= polish_rad):
                     break

@@ -86,23 +86,27 @@ def fk_single(chain: Chain, q: np.ndarray) -> np.ndarray:
     product (``post`` and identities appended to a power of two) as a tree of 3 batched matrix products
     for 6 or 7 joints instead of a chain of 7. The association differs from :func:`fk`'s by rounding only.
     """
-    flat, ones, tail, revolute = chain.single_operands
+    tail = chain.single_operands[2]
     q = np.asarray(q, dtype=float)
-    if q.ndim == 2:
-        a, b = (np.sin(q), 1.0 - np.cos(q)) if revolute else chain.coefficients(q)
-        coef = np.stack((np.ones_like(q), a, b), axis=-1)[:, :, None]  # (k, n, 1, 3)
-        factors = np.concatenate(((coef @ flat).reshape(len(q), -1, 4, 4), tail[None].repeat(len(q), 0)), 1)
-        while factors.shape[1] > 1:
-            factors = factors[:, 0::2] @ factors[:, 1::2]
-        return factors[:, 0]
-    if revolute:
-        coef = np.array((ones, np.sin(q), 1.0 - np.cos(q))).T[:, None]
-    else:
-        coef = np.array((ones, *chain.coefficients(q))).T[:, None]
-    factors = np.concatenate(((coef @ flat).reshape(-1, 4, 4), tail))
+    factors = _joint_factors(chain, q)  # (n, 4, 4) or (k, n, 4, 4)
+    if q.ndim == 1:
+        factors = np.concatenate((factors, tail))
+    else:  # the factors' axis first, each factor a batch over the configurations
+        factors = np.concatenate((factors, tail[None].repeat(len(q), 0)), axis=1).swapaxes(0, 1)
     while len(factors) > 1:
         factors = factors[0::2] @ factors[1::2]
     return factors[0]
+
+
+def _joint_factors(chain: Chain, q: np.ndarray) -> np.ndarray:
+    """``(…, n, 4, 4)``: each joint's transform ``G0 + a G1 + b G2`` at ``q (…, n)``, in one batched product
+    (:func:`fk_single`, :func:`fk_and_jacobian_single`)."""
+    flat, ones, _, revolute = chain.single_operands
+    a, b = (np.sin(q), 1.0 - np.cos(q)) if revolute else chain.coefficients(q)
+    if q.ndim == 1:  # one configuration: np.array of the rows costs less than np.stack
+        return (np.array((ones, a, b)).T[:, None] @ flat).reshape(-1, 4, 4)
+    coef = np.stack((np.ones_like(q), a, b), axis=-1)[..., None, :]  # (…, n, 1, 3)
+    return (coef @ flat).reshape(*q.shape, 4, 4)
 
 
 def geometric_jacobian(
@@ -147,17 +151,11 @@ def fk_and_jacobian_single(chain: Chain, q: np.ndarray) -> tuple[np.ndarray, np.
 
     The joint factors as in :func:`fk_single`; the frames, their prefix products, in log₂ n batched steps
     (step k multiplies each frame from k on by the one k before it) instead of a loop of n products."""
-    flat, ones, _, revolute = chain.single_operands
-    q = np.asarray(q, dtype=float)
-    if revolute:
-        coef = np.array((ones, np.sin(q), 1.0 - np.cos(q))).T[:, None]
-    else:
-        coef = np.array((ones, *chain.coefficients(q))).T[:, None]
-    frames = (coef @ flat).reshape(-1, 4, 4)
+    frames = _joint_factors(chain, np.asarray(q, dtype=float))
     k = 1
     while k < len(frames):
         frames = np.concatenate((frames[:k], frames[:-k] @ frames[k:]))
         k *= 2
     tip = frames[-1] @ chain.post
     z = (frames[:, :3, :3] @ chain.axes[:, :, None])[:, :, 0]
-    return tip, geometric_jacobian(z, tip[:3, 3] - frames[:, :3, 3], chain.revolute, revolute)
+    return tip, geometric_jacobian(z, tip[:3, 3] - frames[:, :3, 3], chain.revolute, chain.single_operands[3])
