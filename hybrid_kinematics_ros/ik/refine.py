@@ -27,8 +27,8 @@ from hybrid_kinematics_ros.model.hybrid import HybridModel
 CHORD_ITERATIONS = 12
 GAUSS_NEWTON_DAMPING = 1e-9
 BRANCH_DAMPING = 1e-6  # the other branches' unbounded chord and hybrid LM (650d758)
-# At ~0.27 ms per hybrid Jacobian; at an exact singularity the error only halves per step, and 30 steps left
-# some fallback branches short (367d2b9 raised it from 30).
+# At ~0.18 ms per hybrid Jacobian (0.27 before its reverse mode); at an exact singularity the error only halves
+# per step, and 30 steps left some fallback branches short (367d2b9 raised it from 30).
 HYBRID_LM_ITERATIONS = 40
 BOX_BUDGET_SHARE = 0.25  # of the per-solution budget, for each LM pass inside one box (3a16967)
 # The box's LM aims at a thousandth of the success tolerances: its answer is then well inside them even

@@ -121,14 +121,19 @@ def exp_so3(w: np.ndarray) -> np.ndarray:
 
 
 def _exp_so3_one(x: float, y: float, z: float) -> np.ndarray:
-    """:func:`exp_so3` of one vector: ``I + a K + b K²`` written out, with ``K² = w wᵀ − θ² I``."""
+    """:func:`exp_so3` of one vector."""
     t2 = x * x + y * y + z * z
     if t2 == 0.0:
         return np.eye(3)
     t = math.sqrt(t2)
-    a = math.sin(t) / t
     half = math.sin(0.5 * t) / t
-    b = 2.0 * half * half
+    return rodrigues_one(x, y, z, math.sin(t) / t, 2.0 * half * half)
+
+
+def rodrigues_one(x: float, y: float, z: float, a: float, b: float) -> np.ndarray:
+    """``I + a K + b K²`` for ``K`` the skew matrix of ``(x, y, z)``, written out in Python floats with
+    ``K² = w wᵀ − θ² I``: the one-vector form of the exponential and of its Jacobians, which differ in
+    ``a`` and ``b`` only."""
     bxy, bxz, byz = b * x * y, b * x * z, b * y * z
     ax, ay, az = a * x, a * y, a * z
     return np.array(

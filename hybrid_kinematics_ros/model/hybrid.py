@@ -20,6 +20,7 @@ changes only its own thread's. Without either, every thread reads the model's ow
 from __future__ import annotations
 
 import copy
+import math
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -37,7 +38,7 @@ from hybrid_kinematics_ros.io.model_dir import load_model_dir
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
-from hybrid_kinematics_ros.kinematics.se3 import exp_so3, skew
+from hybrid_kinematics_ros.kinematics.se3 import exp_so3, rodrigues_one, skew
 from hybrid_kinematics_ros.kinematics.unrolled import Rows, unrolled_fk
 from hybrid_kinematics_ros.model import approach
 from hybrid_kinematics_ros.model.bounds import DISTANCE, Bounds, excess
@@ -54,7 +55,14 @@ NUMPY_ROWS = 16
 
 
 def left_jacobian_so3(w: np.ndarray) -> np.ndarray:
-    """``(B, 3, 3)``: maps d(ω) to the angular velocity of ``exp(ω)`` in the base frame."""
+    """``(B, 3, 3)``: maps d(ω) to the angular velocity of ``exp(ω)`` in the base frame; ``(3, 3)`` for one
+    vector ``(3,)``, in Python floats (6 against 15 µs)."""
+    if w.shape == (3,):
+        x, y, z = w.tolist()
+        t = math.sqrt(x * x + y * y + z * z)
+        if t < 1e-8:
+            return rodrigues_one(x, y, z, 0.5, 1.0 / 6.0)
+        return rodrigues_one(x, y, z, (1.0 - math.cos(t)) / (t * t), (t - math.sin(t)) / (t * t * t))
     theta = np.linalg.norm(w, axis=-1)[..., None, None]
     k = skew(w)
     small = theta < 1e-8

@@ -54,9 +54,15 @@ def to_joint1_frame(r: np.ndarray, q1: np.ndarray, axis: np.ndarray | None) -> n
     return r if axis is None else AxisTurn(axis).apply(r, -q1)
 
 
-def _silu_grad(x: np.ndarray) -> np.ndarray:
+def _silu_and_slope(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     sig = expit(x)
-    return sig * (1.0 + x * (1.0 - sig))
+    y = x * sig
+    return y, sig + y * (1.0 - sig)  # d(x σ(x))/dx = σ + x σ (1 − σ)
+
+
+def _tanh_and_slope(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    y = np.tanh(x)
+    return y, 1.0 - y * y
 
 
 class NumpyResidual:
@@ -67,10 +73,11 @@ class NumpyResidual:
     others, and callers then use the TorchScript module. Tests check it against TorchScript.
     """
 
+    # each activation: its value, and its value with its slope (for the Jacobian)
     _ACT: ClassVar[dict] = {
-        "ReLU": (lambda x: np.maximum(x, 0.0), lambda x: (x > 0).astype(x.dtype)),
-        "SiLU": (lambda x: x * expit(x), lambda x: _silu_grad(x)),
-        "Tanh": (np.tanh, lambda x: 1.0 - np.tanh(x) ** 2),
+        "ReLU": (lambda x: np.maximum(x, 0.0), lambda x: (np.maximum(x, 0.0), (x > 0).astype(x.dtype))),
+        "SiLU": (lambda x: x * expit(x), _silu_and_slope),
+        "Tanh": (np.tanh, _tanh_and_slope),
     }
 
     def __init__(self, module: torch.jit.ScriptModule, stacks: list[list]) -> None:
@@ -127,30 +134,41 @@ class NumpyResidual:
         return self.turner.apply(r, q[..., 0]) if self.turn else r
 
     def value_and_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Residual ``(3,)`` and its derivative ``(3, n)`` for one input ``(n,)`` (forward mode); with
-        condition columns the derivative covers them too."""
+        """Residual ``(3,)`` and its derivative ``(3, n)`` for one input ``(n,)``; with condition columns the
+        derivative covers them too. Reverse mode: the three outputs' gradients go back through each layer
+        as one ``(3, width)`` product (forward mode carries a row per input feature, 18 for six joints with
+        their sines and cosines), and through the features by the chain rule without building their
+        Jacobian: 91 → 65 µs for a UR10's 256×3 net."""
         x = (q - self.center) / self.half_span
-        jac = np.diag(1.0 / self.half_span)  # (inputs, features): row j is d(features)/d(q_j)
         if self.sincos:
             joints = q[: self.n_joints]
-            x = np.concatenate([x, np.sin(joints), np.cos(joints)])
-            trig = np.zeros((len(q), 2 * self.n_joints))
-            trig[: self.n_joints] = np.concatenate([np.diag(np.cos(joints)), np.diag(-np.sin(joints))], axis=1)
-            jac = np.concatenate([jac, trig], axis=1)
+            sin, cos = np.sin(joints), np.cos(joints)
+            x = np.concatenate([x, sin, cos])
         x = x.astype(np.float32)
-        jac = jac.astype(np.float32)
-        outs, jacs = [], []
+        outs, grads = [], []
         for layers in self.stacks:
-            y, dy = x, jac
+            y, slopes = x, []
             for kind, a, b in layers:
                 if kind == "linear":
-                    y, dy = y @ a + b, dy @ a
+                    y = y @ a + b
                 else:
-                    y, dy = a(y), dy * b(y)
+                    y, slope = b(y)
+                    slopes.append(slope)
+            g = np.eye(len(y), dtype=np.float32)  # d(outputs)/d(outputs), then back through each layer
+            for kind, a, _ in reversed(layers):
+                g = g @ a.T if kind == "linear" else g * slopes.pop()
             outs.append(y)
-            jacs.append(dy)
-        local = np.mean(outs, axis=0, dtype=np.float64) * self.scale + self.mean
-        dlocal = (np.mean(jacs, axis=0, dtype=np.float64) * self.scale).T  # (3, n)
+            grads.append(g)
+        single = len(outs) == 1
+        out = outs[0].astype(np.float64) if single else np.mean(outs, axis=0, dtype=np.float64)
+        grad = grads[0].astype(np.float64) if single else np.mean(grads, axis=0, dtype=np.float64)
+        grad *= self.scale[:, None]
+        local = out * self.scale + self.mean
+        k = len(q)
+        dlocal = grad[:, :k] / self.half_span  # (3, n): the features' chain rule, (q − centre) / half span first
+        if self.sincos:
+            n = self.n_joints
+            dlocal[:, :n] += grad[:, k : k + n] * cos - grad[:, k + n :] * sin
         if not self.turn:
             return local, dlocal
         rot = self.turner.matrix(q[0])

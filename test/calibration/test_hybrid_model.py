@@ -15,8 +15,8 @@ from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR
 from hybrid_kinematics_ros.model.errors import ModelError
-from hybrid_kinematics_ros.model.hybrid import HybridModel
-from hybrid_kinematics_ros.model.nets import AxisTurn, to_joint1_frame
+from hybrid_kinematics_ros.model.hybrid import HybridModel, left_jacobian_so3
+from hybrid_kinematics_ros.model.nets import AxisTurn, NumpyResidual, to_joint1_frame
 
 
 def test_training_cuts_the_error_by_a_large_factor(trained):
@@ -93,6 +93,35 @@ def test_paper_architectures_build_script_and_run(arch, tmp_path):
     scripted.save(str(tmp_path / "n.pt"))
     q = torch.rand(7, 6, dtype=torch.float64)
     assert torch.equal(torch.jit.load(str(tmp_path / "n.pt"))(q), net(q))
+
+
+@pytest.mark.parametrize("act", ["relu", "silu", "tanh"])
+@pytest.mark.parametrize("turn", [False, True])
+def test_the_numpy_nets_jacobian_is_autograds(act, turn):
+    """The numpy evaluator's reverse-mode Jacobian against torch's autograd, with the sines and cosines and
+    a condition column (7 inputs, 6 of them joints), with and without the joint-1 turn."""
+    torch.manual_seed(0)
+    lower, upper = np.array([-3.0, -2.0, -2.5, -3.0, -2.0, -3.0, 10.0]), np.array([3.0, 1.0, 2.5, 3.0, 2.0, 3.0, 40.0])
+    axis = np.array([0.0, 0.0, 1.0]) if turn else None
+    scale = np.array([2e-3, 1e-3, 3e-3])
+    net = nets.ResidualNet(f"mlp:32x3:{act}", lower, upper, np.full(3, 1e-4), scale, True, axis, 6)
+    net.eval()
+    fast = NumpyResidual.from_module(torch.jit.script(net))
+    for q in np.random.default_rng(3).uniform(lower, upper, (5, 7)):
+        value, jac = fast.value_and_jacobian(q)
+        auto = torch.autograd.functional.jacobian(lambda x: net(x[None])[0], torch.tensor(q)).numpy()
+        np.testing.assert_allclose(jac, auto, atol=1e-5 * np.abs(auto).max())
+        np.testing.assert_allclose(value, net(torch.tensor(q[None]))[0].detach().numpy(), atol=1e-9)
+
+
+def test_one_vectors_left_jacobian_is_the_batchs():
+    w = np.concatenate([np.random.default_rng(4).normal(size=(12, 3)) * s for s in (1e-10, 1e-4, 1.0, 3.0)])
+    np.testing.assert_allclose([left_jacobian_so3(v) for v in w], left_jacobian_so3(w), atol=1e-15)
+    # and it maps a change of the rotation vector to the angular velocity of exp(ω): against a difference
+    v, dv = np.array([0.3, -0.2, 0.5]), 1e-7 * np.array([1.0, 2.0, -1.0])
+    r0, r1 = se3.exp_so3(v), se3.exp_so3(v + dv)
+    omega = se3.rotvec((r1 @ r0.T)[None])[0]
+    np.testing.assert_allclose(left_jacobian_so3(v) @ dv, omega, atol=1e-13)
 
 
 def test_unknown_architecture_is_refused():
