@@ -92,8 +92,8 @@ def unscaled(model, q: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
 
 def neighbours_rho(q: np.ndarray, error: np.ndarray, revolute: np.ndarray) -> float:
     """The yardstick: Spearman between each test error and the mean error of its NEIGHBOURS nearest test
-    configurations (itself left out; joints by their sines and cosines). How far any smooth function of the
-    configuration can follow the error's rank on these pairs; it reads the test errors, so no bound can use it."""
+    configurations (itself left out; joints by their sines and cosines): how much of the error's rank the
+    configurations' neighbourhoods carry. It reads the test errors, so no bound can use it."""
     f = features(q, revolute)[:, 1:]
     _, near = cKDTree(f).query(f, NEIGHBOURS + 1)
     return float(spearmanr(error[near[:, 1:]].mean(axis=1), error)[0])
@@ -252,9 +252,10 @@ def main() -> None:
         "stage's training errors are around it (`model/bounds.py`); *without the scale*: the same model with "
         "one quantile for every configuration, as before the scale, from the same validation errors. "
         f"*Yardstick*: the Spearman correlation between each test error and the mean of its {NEIGHBOURS} nearest "
-        "test configurations' errors (itself left out): how far a smooth function of the configuration can "
-        "follow the error's rank on these pairs at all. It reads the test errors, so no bound can use it; a "
-        "bound's Spearman near it follows what is there to follow. "
+        "test configurations' errors (itself left out): how much of the error's rank the neighbourhoods of "
+        "the configurations carry. It reads the test errors, so no bound can use it; it is a reference, not a "
+        "ceiling: beyond the trained range a bound that grows with the distance follows the error's growth more "
+        "closely than a mean over 20 neighbours. "
         "Real cells: the held-out fifth of each series in contiguous blocks; series B lies elsewhere in the "
         "workspace than C, beyond C's range. The virtual UR10 with its shoulder in one radian: its own truth and "
         "tracker noise, trained on 1,600 poses, asked about its held-out blocks and about 600 poses beyond.\n\n"
