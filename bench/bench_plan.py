@@ -26,9 +26,10 @@ import numpy as np
 
 from bench.bench_real import load_series, noise_floor
 from bench.report import table, write_section
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import target_errors
 from hybrid_kinematics_ros.calibration.fit import approach_of, identify_stations, reference_all, split
-from hybrid_kinematics_ros.calibration.plan import MEAN_OVER_RMS, PlanOptions, draw_configurations, plan
+from hybrid_kinematics_ros.calibration.plan import MEAN_OVER_RMS, CyclicPrior, PlanOptions, draw_configurations, plan
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
@@ -39,17 +40,42 @@ from hybrid_kinematics_ros.simulation.cell import VirtualCell
 def stage_errors(cfg, train: Pairs, test: Pairs) -> tuple[float, float]:
     """Mean position (mm) and orientation (deg) errors on ``test`` of the stage identified on ``train``, its
     capacity chosen from it."""
+    return stage_fit(cfg, train, test)[:2]
+
+
+def stage_fit(cfg, train: Pairs, test: Pairs) -> tuple[float, float, CyclicPrior | None]:
+    """:func:`stage_errors`, and the cyclic joint errors the stage found (what ``plan --prior-model`` reads)."""
     payload = (cfg.payload_mass, cfg.payload_com)
     refs = reference_all(cfg.chain, [train])
     refs, result = identify_stations(cfg.chain, [train], refs, payload, gravity=cfg.gravity)
     base = to_base_frame([test], cfg.chain, refs)
     tip = result.model.fk(result.model.approached(base.q, approach_of(base)))
     position, orientation = target_errors(base, tip)
-    return float(np.mean(position)), float(np.mean(orientation))
+    return float(np.mean(position)), float(np.mean(orientation)), cyclic_of(result)
 
 
-def options(cfg, count: int, noise: tuple[float, float], floor: tuple[float, float]) -> PlanOptions:
-    """``noise``: the tracker's per axis (mm, deg); ``floor``: the mean errors the stage cannot learn."""
+def cyclic_of(result) -> CyclicPrior | None:
+    """The cyclic errors of an identified stage, read as ``plan --prior-model`` reads its model.json."""
+    try:
+        return CyclicPrior.from_manifest({"parametric": result.manifest(), "capacity": result.capacity})
+    except CalibrationError:  # the capacity selection chose no harmonics
+        return None
+
+
+def describe(cyclic: CyclicPrior | None) -> str:
+    if cyclic is None:
+        return "none chosen"
+    return (
+        f"{cyclic.harmonics} harmonics a joint, ridge {cyclic.ridge:g} pairs, coefficients "
+        f"{1e6 * cyclic.rms_rad:.0f} µrad RMS"
+    )
+
+
+def options(
+    cfg, count: int, noise: tuple[float, float], floor: tuple[float, float], cyclic: CyclicPrior | None
+) -> PlanOptions:
+    """``noise``: the tracker's per axis (mm, deg); ``floor``: the mean errors the stage cannot learn;
+    ``cyclic``: the cyclic joint errors of the stage fitted on the whole pool."""
     return PlanOptions(
         count=count,
         position_noise_m=1e-3 * noise[0],
@@ -59,11 +85,20 @@ def options(cfg, count: int, noise: tuple[float, float], floor: tuple[float, flo
         payload_mass=cfg.payload_mass,
         payload_com=cfg.payload_com,
         gravity=cfg.gravity,
+        cyclic=cyclic,
     )
 
 
 def compare(
-    cfg, pool_q: np.ndarray, error_of, counts, draws: int, noise: tuple, floor: tuple, noisy_test: bool = True
+    cfg,
+    pool_q: np.ndarray,
+    error_of,
+    counts,
+    draws: int,
+    noise: tuple,
+    floor: tuple,
+    cyclic: CyclicPrior | None,
+    noisy_test: bool = True,
 ) -> list[list]:
     """One row per count: planned, random (mean ± sd of ``draws``), predicted, and the plan's hours. A test
     against the truth (``noisy_test`` False) is predicted without the test measurement's noise."""
@@ -71,13 +106,16 @@ def compare(
     rows = []
     for count in counts:
         start = time.perf_counter()
-        planned = plan(cfg.chain, pool_q, options(cfg, count, noise, floor))
+        planned = plan(cfg.chain, pool_q, options(cfg, count, noise, floor, cyclic))
         seconds = time.perf_counter() - start
         mine = error_of(planned.rows)
         random = [error_of(np.sort(rng.choice(len(pool_q), count, replace=False))) for _ in range(draws)]
-        predicted = planned.predicted["position_mean_mm"]
-        if not noisy_test:
-            predicted = float(np.hypot(planned.predicted["parameters_part_mm"], floor[0]))
+        # the same plan's prediction without the cyclic errors (what plan says without --prior-model)
+        blind = plan(cfg.chain, pool_q, options(cfg, count, noise, floor, None)).predicted
+        predicted, without = (
+            p["position_mean_mm"] if noisy_test else float(np.hypot(p["parameters_part_mm"], floor[0]))
+            for p in (planned.predicted, blind)
+        )
         rows.append(
             [
                 count,
@@ -86,6 +124,8 @@ def compare(
                 round(mine / np.mean(random), 3),
                 round(predicted, 4),
                 f"{100 * (predicted / mine - 1):+.0f} %",
+                round(without, 4),
+                f"{100 * (without / mine - 1):+.0f} %",
                 round(planned.seconds / 3600, 2),
                 round(seconds, 1),
             ]
@@ -101,6 +141,8 @@ HEADERS = [
     "planned / random",
     "predicted (mm)",
     "prediction off by",
+    "predicted without the cyclic errors (mm)",
+    "off by",
     "measuring (h, 5 s a pose)",
     "planning (s)",
 ]
@@ -118,7 +160,7 @@ def main() -> None:
     pool, _, test = split(series, 0, (0.0, 0.2))
     noise_mm, noise_deg, _ = noise_floor(series, cfg.chain)
     per_axis = MEAN_OVER_RMS * np.sqrt(3.0)
-    whole = stage_errors(cfg, pool, test)
+    *whole, cyclic = stage_fit(cfg, pool, test)
     floor = (
         float(np.sqrt(max(whole[0] ** 2 - noise_mm**2, 0.0))),
         float(np.sqrt(max(whole[1] ** 2 - noise_deg**2, 0.0))),
@@ -132,6 +174,7 @@ def main() -> None:
         args.draws,
         (noise_mm / per_axis, noise_deg / per_axis),
         floor,
+        cyclic,
     )
 
     cell = VirtualCell.from_config(cfg, seed=3)
@@ -143,29 +186,42 @@ def main() -> None:
     test_T = cell.robot.fk(test_q)
     stamps = 10**9 + 10**7 * np.arange(len(pool_q))
 
-    def virtual_error(rows: np.ndarray) -> float:
+    def virtual_fit(rows: np.ndarray) -> tuple[float, CyclicPrior | None]:
         train = Pairs(pool_q[rows], pool_T[rows], stamps[rows], cfg.chain.joint_names, "base_link")
         refs = reference_all(cfg.chain, [train])
         _, result = identify_stations(
             cfg.chain, [train], refs, (cfg.payload_mass, cfg.payload_com), gravity=cfg.gravity
         )
-        return float(np.mean(se3.pose_errors(result.model.fk(test_q), test_T)[0]))
+        return float(np.mean(se3.pose_errors(result.model.fk(test_q), test_T)[0])), cyclic_of(result)
 
     virtual_noise = (
         float(cfg.tracker.get("position_noise_mm", 0.015)),
         float(cfg.tracker.get("orientation_noise_deg", 0.001)),
     )
-    virtual_whole = virtual_error(np.arange(len(pool_q)))
-    virtual = compare(cfg, pool_q, virtual_error, counts, args.draws, virtual_noise, (virtual_whole, 0.0), False)
+    virtual_whole, virtual_cyclic = virtual_fit(np.arange(len(pool_q)))
+    virtual = compare(
+        cfg,
+        pool_q,
+        lambda rows: virtual_fit(rows)[0],
+        counts,
+        args.draws,
+        virtual_noise,
+        (virtual_whole, 0.0),
+        virtual_cyclic,
+        False,
+    )
     body = (
         f"Stage alone, capacity chosen from each subset. Real A: pool {len(pool)} poses (the block-split training "
         f"part), test {len(test)} held-out poses; noise floor {noise_mm:.4f} mm / {noise_deg:.4f} deg; the stage on "
         f"the whole pool {whole[0]:.4f} mm / {whole[1]:.4f} deg, so {floor[0]:.4f} mm / {floor[1]:.4f} deg it cannot "
-        f"learn. The prediction uses those two figures and the "
-        f"parameters' covariance of each plan.\n\n{table(HEADERS, real)}\n\n"
+        f"learn. The prediction uses those two figures, the "
+        f"parameters' covariance of each plan, and the cyclic joint errors of the stage on the whole pool "
+        f"({describe(cyclic)}: what `plan --prior-model` reads from a previous calibration's model.json); without "
+        f"them, what `plan` predicts without a prior model.\n\n{table(HEADERS, real)}\n\n"
         f"Virtual UR10 (config/ur10.yaml's truth, {virtual_noise[0]} mm tracker noise per axis): pool of 5,000 "
         f"random configurations within 95 % of the limits, errors against the truth at 1,000 others; the stage "
-        f"on the whole pool {virtual_whole:.4f} mm (the prediction's floor; the test has no noise).\n\n"
+        f"on the whole pool {virtual_whole:.4f} mm (the prediction's floor; the test has no noise), its cyclic "
+        f"errors {describe(virtual_cyclic)}.\n\n"
         f"{table(HEADERS, virtual)}"
     )
     write_section("plan", "Planning the measurement: planned against random poses (bench_plan)", body)

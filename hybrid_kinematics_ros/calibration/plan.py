@@ -19,6 +19,15 @@ what the stage cannot learn (``floor_mm``, ``floor_deg``: e.g. a previous calibr
 nothing) and the test measurement's own noise. The noise that identification sees is the tracker's plus the
 floor, in position and in orientation.
 
+The cyclic joint errors (gear harmonics) weigh most where poses are few: on the real UR10 a stage without them
+is 0.37 mm off, with them 0.08. Their coefficients are many (80 a joint for 40 harmonics) and held towards zero
+by the stage's ridge, so few poses learn them only in part. Given what a previous calibration of the robot (or of
+one of its type) found (:class:`CyclicPrior`: how many harmonics, the ridge, the coefficients' size), the
+prediction counts what the ridge estimator leaves of them: its error ``A⁻¹ (Jᵀ Σ J + R T R) A⁻¹`` with
+``A = JᵀJ + R``, the ridge ``R`` and the coefficients' prior variance ``T`` (a Bayesian linear model; it is
+the posterior covariance when ``T`` matches the ridge). Without one, the harmonics are left out and the prediction
+is a lower bound where poses are few.
+
 The order is a short tour: nearest neighbour, then 2-opt, with the largest joint move as the distance (with
 every joint at the same speed, that is the time a move takes).
 
@@ -29,21 +38,27 @@ robot's links, and the cell's other objects, for want of collision geometry.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
+from hybrid_kinematics_ros.calibration.capacity import harmonic_ridge
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.calibration.parametric import linearise
+from hybrid_kinematics_ros.calibration.parametric import HARMONIC_PRIOR, linearise
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.kinematics.fk import fk
 
 PREDICTION_CAVEAT = (
-    "what the parameters' covariance gives if what the stage cannot learn behaves as noise: a lower bound "
-    "below a few hundred poses, where capacity selection and systematic errors weigh more (on the real UR10 "
-    "the error of 60-120 poses was about twice this; see BENCHMARKS.md, Planning the measurement)"
+    "what the parameters' covariance gives if what the stage cannot learn behaves as noise, without the cyclic "
+    "joint errors (no --prior-model): a lower bound below a few hundred poses (on the real UR10 the error of "
+    "60-120 poses was about twice this; see BENCHMARKS.md, Planning the measurement)"
+)
+PREDICTION_WITH_PRIOR = (
+    "what the parameters' covariance gives if what the stage cannot learn behaves as noise, with the cyclic joint "
+    "errors the prior model found (on the real UR10 within 20 % of the measured error from 60 to 1,000 poses; "
+    "see BENCHMARKS.md, Planning the measurement)"
 )
 # mean over RMS of the norm of an isotropic 3-D Gaussian error (chi distribution with 3 degrees of freedom)
 MEAN_OVER_RMS = float(np.sqrt(8.0 / (3.0 * np.pi)))
@@ -95,6 +110,34 @@ class TrackerView:
 
 
 @dataclass(frozen=True)
+class CyclicPrior:
+    """The cyclic joint errors the stage will fit, as a previous calibration found them: ``harmonics`` of each
+    joint's angle, each coefficient held by ``ridge`` (pairs' worth, the stage's ``harmonic_prior``), and the
+    coefficients' root mean square ``rms_rad`` (their prior's standard deviation)."""
+
+    harmonics: int
+    ridge: float
+    rms_rad: float
+
+    @classmethod
+    def from_manifest(cls, manifest: dict[str, Any], where: str = "model.json") -> CyclicPrior:
+        """From a trained model's ``model.json``: its stage's harmonic coefficients and the ridge its capacity
+        selection chose (else the stage's default)."""
+        try:
+            params = manifest["parametric"]["parameters"]
+            cyclic = [p for p in params if p["kind"] == "harmonic" and p["identifiable"]]
+            decisions = (manifest.get("capacity") or {}).get("decisions", [])
+            ridge = next((float(d["chosen"]) for d in decisions if d["setting"] == "harmonic_prior"), HARMONIC_PRIOR)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CalibrationError(f"{where}: no parametric stage to take the cyclic errors from ({exc!r})") from None
+        if not cyclic:
+            raise CalibrationError(f"{where}: its parametric stage has no cyclic joint errors (harmonics 0)")
+        values = np.array([p["value"] for p in cyclic], dtype=float)
+        harmonics = max(int(p["component"]) // 2 + 1 for p in cyclic)
+        return cls(harmonics, ridge, float(np.sqrt(np.mean(values**2))))
+
+
+@dataclass(frozen=True)
 class PlanOptions:
     count: int
     target: np.ndarray | None = None  # (3,) m in the tip frame: a plain reflector there (position only)
@@ -111,6 +154,7 @@ class PlanOptions:
     payload_mass: float = 0.0  # kg, and its centre of mass in the tip frame (m): the joints' torques need them
     payload_com: np.ndarray | None = None
     gravity: np.ndarray | None = None  # m/s², base frame (None: a floor mount)
+    cyclic: CyclicPrior | None = None  # the cyclic joint errors to predict with (None: left out)
 
 
 @dataclass
@@ -125,12 +169,18 @@ class Plan:
     candidates: dict[str, int]
     checks: dict[str, list[str]]
     curve: list[dict[str, float]] = field(default_factory=list)
+    cyclic: CyclicPrior | None = None  # what the prediction took the cyclic errors from
+
+    @property
+    def caveat(self) -> str:
+        return PREDICTION_CAVEAT if self.cyclic is None else PREDICTION_WITH_PRIOR
 
     def summary(self) -> dict[str, Any]:
         return {
             "poses": len(self.rows),
             "measuring_time_h": round(self.seconds / 3600.0, 2),
-            "predicted": {**self.predicted, "note": PREDICTION_CAVEAT},
+            "predicted": {**self.predicted, "note": self.caveat},
+            **({"cyclic_prior": asdict(self.cyclic)} if self.cyclic is not None else {}),
             "identifiable_parameters": self.parameters,
             "candidates": self.candidates,
             "tracker": self.checks,
@@ -156,14 +206,29 @@ def visible(chain: Chain, q: np.ndarray, view: TrackerView, target: np.ndarray |
     return kept, counts
 
 
-def _information(chain: Chain, q: np.ndarray, options: PlanOptions) -> tuple[np.ndarray, np.ndarray]:
-    """Each candidate's Jacobian on the identifiable parameters ``(N, w, P)`` (m, or rad × 1 m for orientation
-    rows, per scaled unit) and the noise each row will carry ``(w,)``: the tracker's and, as if it were noise,
-    what the stage cannot learn."""
+@dataclass(frozen=True)
+class _Problem:
+    """The stage's problem at the candidates, in scaled units: ``jacobian (N, w, P)`` (m, or rad × 1 m for
+    orientation rows) on the identifiable parameters and the cyclic coefficients, the noise each row will carry
+    ``sigma (w,)``, and per column the ridge ``ridge (P,)`` and the prior variance ``prior (P,)`` (both zero but
+    on the cyclic coefficients). ``design (P,)``: the columns the design maximises the information on (the
+    stage every capacity includes)."""
+
+    jacobian: np.ndarray
+    sigma: np.ndarray
+    ridge: np.ndarray
+    prior: np.ndarray
+    design: np.ndarray
+
+
+def _information(chain: Chain, q: np.ndarray, options: PlanOptions) -> _Problem:
+    """The stage's problem at candidates ``q``; its noise is the tracker's and, as if it were noise, what the
+    stage cannot learn."""
     frames = fk(chain, q)
     position_only = options.target is not None
     measured = frames.copy()
     measured[:, :3, 3] = se3.point_at(frames, options.target)
+    cyclic = options.cyclic
     lin = linearise(
         chain,
         q,
@@ -171,27 +236,32 @@ def _information(chain: Chain, q: np.ndarray, options: PlanOptions) -> tuple[np.
         position_only=position_only,
         target=options.target,
         max_pairs=len(q),
-        harmonics=0,
+        harmonics=0 if cyclic is None else cyclic.harmonics,
         map_step=0.0,
         payload_mass=options.payload_mass,
         payload_com=options.payload_com,
         gravity=options.gravity,
     )
     order = np.argsort(lin.pick)  # the linearisation's rows back in the candidates' order
-    jac = lin.jacobian[order][:, :, lin.identifiable]
+    harmonic = np.array([p.kind == "harmonic" for p in lin.params])
+    columns = lin.identifiable | harmonic  # the ridge holds every cyclic coefficient
+    ridge = np.zeros(len(columns)) if cyclic is None else harmonic_ridge(lin, cyclic.ridge)
+    prior = np.where(harmonic, (0.0 if cyclic is None else cyclic.rms_rad) / lin.scale, 0.0) ** 2
     per_axis = MEAN_OVER_RMS * np.sqrt(3.0)  # a mean error norm over the per-axis standard deviation
-    sigma = np.full(jac.shape[1], np.hypot(options.position_noise_m, 1e-3 * options.floor_mm / per_axis))
+    sigma = np.full(lin.jacobian.shape[1], np.hypot(options.position_noise_m, 1e-3 * options.floor_mm / per_axis))
     if not position_only:  # orientation rows are rad × 1 m (ORIENTATION_LENGTH)
         sigma[3:] = np.hypot(options.orientation_noise_rad, np.radians(options.floor_deg) / per_axis)
-    return jac, sigma
+    return _Problem(lin.jacobian[order][:, :, columns], sigma, ridge[columns], prior[columns], ~harmonic[columns])
 
 
-def _covariance(jac: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """The parameters' covariance from the poses' Jacobians ``(k, w, P)`` for the stage's own estimator:
-    least squares with every row weighted alike (position in m, orientation in rad × 1 m), whatever noise
-    each carries (``sigma``): ``A⁻¹ B A⁻¹`` with ``A = Σ JᵀJ`` and ``B = Σ Jᵀ diag(σ²) J``."""
-    a = np.einsum("kwp,kwq->pq", jac, jac)
-    b = np.einsum("kwp,w,kwq->pq", jac, sigma**2, jac)
+def _covariance(problem: _Problem, rows: np.ndarray) -> np.ndarray:
+    """The parameters' error covariance (scaled units) for the stage's own estimator from the poses ``rows``:
+    least squares with every row weighted alike (position in m, orientation in rad × 1 m), whatever noise each
+    carries, and the ridge on the cyclic coefficients: ``A⁻¹ (B + R T R) A⁻¹`` with ``A = Σ JᵀJ + R``,
+    ``B = Σ Jᵀ diag(σ²) J``, the ridge ``R`` and the coefficients' prior variance ``T``."""
+    jac = problem.jacobian[rows]
+    a = np.einsum("kwp,kwq->pq", jac, jac) + np.diag(problem.ridge)
+    b = np.einsum("kwp,w,kwq->pq", jac, problem.sigma**2, jac) + np.diag(problem.ridge**2 * problem.prior)
     a_inv = np.linalg.pinv(a, rcond=1e-12, hermitian=True)
     return a_inv @ b @ a_inv
 
@@ -323,8 +393,9 @@ def plan(
         pool = np.sort(rng.choice(usable, MAX_INFORMATION_CANDIDATES, replace=False))
     counts["considered"] = len(pool)
     q = candidates[pool]
-    jac, sigma = _information(chain, q, options)
-    info, position_rows = jac / sigma[None, :, None], jac[:, :3]
+    problem = _information(chain, q, options)
+    jac, sigma = problem.jacobian, problem.sigma
+    info, position_rows = jac[:, :, problem.design] / sigma[None, :, None], jac[:, :3]
     lower = q.min(axis=0) if spread_lower is None else np.asarray(spread_lower, dtype=float)
     upper = q.max(axis=0) if spread_upper is None else np.asarray(spread_upper, dtype=float)
     spread = (q - lower) / np.maximum(upper - lower, 1e-9)
@@ -334,7 +405,8 @@ def plan(
     at_eval = position_rows[evaluate]
     metric = None
     if options.criterion == "i-optimal":
-        metric = np.einsum("nip,niq->pq", at_eval, at_eval) / len(at_eval)
+        designed = at_eval[:, :, problem.design]
+        metric = np.einsum("nip,niq->pq", designed, designed) / len(designed)
     elif options.criterion != "d-optimal":
         raise CalibrationError(f"criterion {options.criterion!r}: choose i-optimal or d-optimal")
     order, _ = _greedy(info, spread, last, options.coverage_weight, metric)
@@ -345,7 +417,7 @@ def plan(
     curve = [
         {
             "poses": c,
-            **_predicted(_covariance(jac[order[:c]], sigma), at_eval, options),
+            **_predicted(_covariance(problem, order[:c]), at_eval, options),
             "measuring_time_h": round(c * _per_pose(times) / 3600, 2),
         }
         for c in stops
@@ -354,11 +426,12 @@ def plan(
         rows=pool[path],
         q=candidates[pool[path]],
         seconds=float(times[-1]),
-        predicted=_predicted(_covariance(jac[chosen], sigma), at_eval, options),
+        predicted=_predicted(_covariance(problem, chosen), at_eval, options),
         parameters=int(info.shape[2]),
         candidates=counts,
         checks=view.checks(),
         curve=curve,
+        cyclic=options.cyclic,
     )
 
 

@@ -17,7 +17,7 @@ import yaml
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.plan import (
-    PREDICTION_CAVEAT,
+    CyclicPrior,
     PlanOptions,
     TrackerView,
     draw_configurations,
@@ -66,6 +66,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--noise-deg", type=float, default=0.001, help="tracker orientation noise per axis (deg)")
     p.add_argument("--floor-mm", type=float, default=0.0, help="mean error the stage cannot learn (mm), if known")
     p.add_argument("--floor-deg", type=float, default=0.0, help="mean orientation error it cannot learn (deg)")
+    p.add_argument(
+        "--prior-model",
+        type=Path,
+        help="a previous calibration of this robot (model directory or model.json): the prediction then counts the "
+        "cyclic joint errors its stage found",
+    )
     p.add_argument("--coverage-weight", type=float, default=3.0, help="weight of joint-space coverage (0: none)")
     p.add_argument("--seconds-per-pose", type=float, default=5.0, help="settling and measuring at each pose (s)")
     p.add_argument("--joint-speed", type=float, default=0.5, help="joint speed between poses (rad/s)")
@@ -97,6 +103,19 @@ def working_range(chain: Chain, specs: list[str]) -> tuple[np.ndarray, np.ndarra
     return lower, upper
 
 
+def prior_from(path: Path, chain: Chain) -> CyclicPrior:
+    """The cyclic joint errors of a previous calibration of this robot, from its model directory or model.json."""
+    file = path / "model.json" if path.is_dir() else path
+    try:
+        manifest = json.loads(file.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise DataError(f"{file}: cannot read a model.json ({exc}); --prior-model takes a trained model") from None
+    joints = manifest.get("joint_names") if isinstance(manifest, dict) else None
+    if joints != list(chain.joint_names):
+        raise DataError(f"{file}: joints {joints} differ from the chain's {list(chain.joint_names)}")
+    return CyclicPrior.from_manifest(manifest, str(file))
+
+
 def run(args: argparse.Namespace) -> int:
     chain = chain_from_args(args)
     if args.candidates and args.joint_range:
@@ -114,6 +133,7 @@ def run(args: argparse.Namespace) -> int:
         lower, upper = working_range(chain, args.joint_range)
         candidates = draw_configurations(lower, upper, DRAWN, args.seed)
     payload = payload_from_args(args)
+    cyclic = None if args.prior_model is None else prior_from(args.prior_model, chain)
     view = TrackerView(
         position=None if args.tracker_xyz is None else np.asarray(args.tracker_xyz),
         cone_deg=args.cone_deg,
@@ -136,6 +156,7 @@ def run(args: argparse.Namespace) -> int:
         payload_mass=payload[0],
         payload_com=payload[1],
         gravity=gravity_from_args(args),
+        cyclic=cyclic,
     )
     for name in ("noise_mm", "noise_deg", "floor_mm", "floor_deg", "coverage_weight", "seconds_per_pose"):
         if getattr(args, name) < 0:
@@ -165,8 +186,9 @@ def run(args: argparse.Namespace) -> int:
         f"predicted mean position error of the parametric stage {predicted['position_mean_mm']:.4f} mm "
         f"(parameters {predicted['parameters_part_mm']:.4f} mm, floor {predicted['floor_mm']:g} mm, "
         f"tracker noise {predicted['tracker_noise_mm']:.4f} mm); {result.parameters} identifiable parameters"
+        + (f", {cyclic.harmonics} harmonics of each joint's error from --prior-model" if cyclic else "")
     )
-    print(f"the prediction is {PREDICTION_CAVEAT}")
+    print(f"the prediction is {result.caveat}")
     print("checked: " + ("; ".join(result.checks["checked"]) or "nothing about the tracker"))
     print("not checked: " + "; ".join(result.checks["not_checked"]))
     for row in result.curve:

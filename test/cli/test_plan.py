@@ -10,9 +10,11 @@ import subprocess
 import numpy as np
 import yaml
 
+from hybrid_kinematics_ros.calibration.parametric import identify
 from hybrid_kinematics_ros.calibration.plan import draw_configurations
 from hybrid_kinematics_ros.cli.main import main
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.simulation.truth import TrueRobot
 
 
 def cli(*args: str) -> subprocess.CompletedProcess:
@@ -66,3 +68,36 @@ def test_bad_input_is_one_line_naming_it(tmp_path, capsys):
         code = main(["plan", "--robot", "ur10", "--out", str(tmp_path / "out"), *args])
         lines = capsys.readouterr().err.strip().splitlines()
         assert code == 2 and len(lines) == 1 and message in lines[0], (args, lines)
+
+
+def test_a_previous_calibration_adds_its_cyclic_errors_to_the_prediction(tmp_path, capsys):
+    """``--prior-model`` reads a model's cyclic joint errors (here the parametric section of a stage identified
+    with two harmonics on a virtual UR10 with gear ripple, as ``train`` writes it): the same poses, a larger
+    predicted error. A model of other joints, or no model at all, is one line."""
+    cfg = load_robot_config("ur10")
+    truth = TrueRobot.from_config(cfg, seed=3)
+    q = draw_configurations(np.full(6, -3.0), np.full(6, 3.0), 600, seed=2)
+    stage = identify(cfg.chain, q, truth.fk(q), harmonics=2, payload_mass=cfg.payload_mass, gravity=cfg.gravity)
+    manifest = {"joint_names": list(cfg.chain.joint_names), "parametric": stage.manifest()}
+    (tmp_path / "model").mkdir()
+    (tmp_path / "model" / "model.json").write_text(json.dumps(manifest))
+    common = ["plan", "--robot", "ur10", "--count", "40"]
+    assert main([*common, "--out", str(tmp_path / "blind")]) == 0
+    assert main([*common, "--out", str(tmp_path / "prior"), "--prior-model", str(tmp_path / "model")]) == 0
+    printed = capsys.readouterr().out
+    assert "2 harmonics of each joint's error from --prior-model" in printed and "prior model found" in printed
+    blind, prior = (json.loads((tmp_path / d / "plan.json").read_text()) for d in ("blind", "prior"))
+    assert (tmp_path / "blind" / "poses.csv").read_text() == (tmp_path / "prior" / "poses.csv").read_text()
+    assert prior["cyclic_prior"]["harmonics"] == 2 and "cyclic_prior" not in blind
+    assert prior["predicted"]["parameters_part_mm"] > 1.2 * blind["predicted"]["parameters_part_mm"]
+
+    manifest["joint_names"] = [f"j{k}" for k in range(6)]
+    (tmp_path / "other.json").write_text(json.dumps(manifest))
+    cases = {
+        str(tmp_path / "missing"): f"{tmp_path / 'missing'}: cannot read a model.json",
+        str(tmp_path / "other.json"): f"{tmp_path / 'other.json'}: joints ['j0'",
+    }
+    for path, message in cases.items():
+        code = main([*common, "--out", str(tmp_path / "bad"), "--prior-model", path])
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(lines) == 1 and message in lines[0], (path, lines)
