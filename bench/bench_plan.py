@@ -65,10 +65,7 @@ def cyclic_of(result) -> CyclicPrior | None:
 def describe(cyclic: CyclicPrior | None) -> str:
     if cyclic is None:
         return "none chosen"
-    return (
-        f"{cyclic.harmonics} harmonics a joint, ridge {cyclic.ridge:g} pairs, coefficients "
-        f"{1e6 * cyclic.rms_rad:.0f} µrad RMS"
-    )
+    return f"{cyclic.harmonics} harmonics a joint, coefficients {1e6 * cyclic.rms_rad:.0f} µrad RMS"
 
 
 def options(

@@ -22,11 +22,12 @@ floor, in position and in orientation.
 The cyclic joint errors (gear harmonics) weigh most where poses are few: on the real UR10 a stage without them
 is 0.37 mm off, with them 0.08. Their coefficients are many (80 a joint for 40 harmonics) and held towards zero
 by the stage's ridge, so few poses learn them only in part. Given what a previous calibration of the robot (or of
-one of its type) found (:class:`CyclicPrior`: how many harmonics, the ridge, the coefficients' size), the
-prediction counts what the ridge estimator leaves of them: its error ``A⁻¹ (Jᵀ Σ J + R T R) A⁻¹`` with
-``A = JᵀJ + R``, the ridge ``R`` and the coefficients' prior variance ``T`` (a Bayesian linear model; it is
-the posterior covariance when ``T`` matches the ridge). Without one, the harmonics are left out and the prediction
-is a lower bound where poses are few.
+one of its type) found (:class:`CyclicPrior`: how many harmonics, the coefficients' size), the prediction counts
+what the ridge estimator leaves of them, ``A⁻¹ (Jᵀ Σ J + R T R) A⁻¹`` with ``A = JᵀJ + R``, the ridge ``R`` and
+the coefficients' prior variance ``T`` (a Bayesian linear model), for the capacity the selection will choose
+from that many poses: of the harmonic counts and ridges :mod:`calibration.capacity` offers, the one that leaves
+the least (fewer harmonics leave the others' prior whole). Without a prior, the harmonics are left out and the
+prediction is a lower bound where poses are few.
 
 The order is a short tour: nearest neighbour, then 2-opt, with the largest joint move as the distance (with
 every joint at the same speed, that is the time a move takes).
@@ -43,9 +44,9 @@ from typing import Any
 
 import numpy as np
 
-from hybrid_kinematics_ros.calibration.capacity import harmonic_ridge
+from hybrid_kinematics_ros.calibration.capacity import HARMONIC_PRIORS, HARMONICS
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.calibration.parametric import HARMONIC_PRIOR, linearise
+from hybrid_kinematics_ros.calibration.parametric import linearise
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.kinematics.fk import fk
@@ -111,30 +112,25 @@ class TrackerView:
 
 @dataclass(frozen=True)
 class CyclicPrior:
-    """The cyclic joint errors the stage will fit, as a previous calibration found them: ``harmonics`` of each
-    joint's angle, each coefficient held by ``ridge`` (pairs' worth, the stage's ``harmonic_prior``), and the
-    coefficients' root mean square ``rms_rad`` (their prior's standard deviation)."""
+    """The cyclic joint errors of the robot, as a previous calibration found them: ``harmonics`` of each joint's
+    angle and their coefficients' root mean square ``rms_rad`` (the prior's standard deviation)."""
 
     harmonics: int
-    ridge: float
     rms_rad: float
 
     @classmethod
     def from_manifest(cls, manifest: dict[str, Any], where: str = "model.json") -> CyclicPrior:
-        """From a trained model's ``model.json``: its stage's harmonic coefficients and the ridge its capacity
-        selection chose (else the stage's default)."""
+        """From a trained model's ``model.json``: its stage's harmonic coefficients."""
         try:
             params = manifest["parametric"]["parameters"]
             cyclic = [p for p in params if p["kind"] == "harmonic" and p["identifiable"]]
-            decisions = (manifest.get("capacity") or {}).get("decisions", [])
-            ridge = next((float(d["chosen"]) for d in decisions if d["setting"] == "harmonic_prior"), HARMONIC_PRIOR)
+            values = np.array([p["value"] for p in cyclic], dtype=float)
+            harmonics = max((int(p["component"]) // 2 + 1 for p in cyclic), default=0)
         except (KeyError, TypeError, ValueError) as exc:
             raise CalibrationError(f"{where}: no parametric stage to take the cyclic errors from ({exc!r})") from None
         if not cyclic:
             raise CalibrationError(f"{where}: its parametric stage has no cyclic joint errors (harmonics 0)")
-        values = np.array([p["value"] for p in cyclic], dtype=float)
-        harmonics = max(int(p["component"]) // 2 + 1 for p in cyclic)
-        return cls(harmonics, ridge, float(np.sqrt(np.mean(values**2))))
+        return cls(harmonics, float(np.sqrt(np.mean(values**2))))
 
 
 @dataclass(frozen=True)
@@ -210,15 +206,19 @@ def visible(chain: Chain, q: np.ndarray, view: TrackerView, target: np.ndarray |
 class _Problem:
     """The stage's problem at the candidates, in scaled units: ``jacobian (N, w, P)`` (m, or rad × 1 m for
     orientation rows) on the identifiable parameters and the cyclic coefficients, the noise each row will carry
-    ``sigma (w,)``, and per column the ridge ``ridge (P,)`` and the prior variance ``prior (P,)`` (both zero but
-    on the cyclic coefficients). ``design (P,)``: the columns the design maximises the information on (the
-    stage every capacity includes)."""
+    ``sigma (w,)``, and per column its harmonic order ``order (P,)`` (0: not cyclic), its SI value per scaled
+    unit ``scale (P,)`` and the prior variance of a cyclic coefficient ``prior (P,)``. ``design (P,)``: the
+    columns the design maximises the information on (the stage every capacity includes)."""
 
     jacobian: np.ndarray
     sigma: np.ndarray
-    ridge: np.ndarray
+    order: np.ndarray
+    scale: np.ndarray
     prior: np.ndarray
-    design: np.ndarray
+
+    @property
+    def design(self) -> np.ndarray:
+        return self.order == 0
 
 
 def _information(chain: Chain, q: np.ndarray, options: PlanOptions) -> _Problem:
@@ -242,28 +242,54 @@ def _information(chain: Chain, q: np.ndarray, options: PlanOptions) -> _Problem:
         payload_com=options.payload_com,
         gravity=options.gravity,
     )
-    order = np.argsort(lin.pick)  # the linearisation's rows back in the candidates' order
-    harmonic = np.array([p.kind == "harmonic" for p in lin.params])
-    columns = lin.identifiable | harmonic  # the ridge holds every cyclic coefficient
-    ridge = np.zeros(len(columns)) if cyclic is None else harmonic_ridge(lin, cyclic.ridge)
-    prior = np.where(harmonic, (0.0 if cyclic is None else cyclic.rms_rad) / lin.scale, 0.0) ** 2
+    rows = np.argsort(lin.pick)  # the linearisation's rows back in the candidates' order
+    order = np.array([p.component // 2 + 1 if p.kind == "harmonic" else 0 for p in lin.params])
+    columns = lin.identifiable | (order > 0)  # the ridge holds every cyclic coefficient
+    prior = np.where(order > 0, (0.0 if cyclic is None else cyclic.rms_rad) / lin.scale, 0.0) ** 2
     per_axis = MEAN_OVER_RMS * np.sqrt(3.0)  # a mean error norm over the per-axis standard deviation
     sigma = np.full(lin.jacobian.shape[1], np.hypot(options.position_noise_m, 1e-3 * options.floor_mm / per_axis))
     if not position_only:  # orientation rows are rad × 1 m (ORIENTATION_LENGTH)
         sigma[3:] = np.hypot(options.orientation_noise_rad, np.radians(options.floor_deg) / per_axis)
-    return _Problem(lin.jacobian[order][:, :, columns], sigma, ridge[columns], prior[columns], ~harmonic[columns])
+    return _Problem(lin.jacobian[rows][:, :, columns], sigma, order[columns], lin.scale[columns], prior[columns])
 
 
-def _covariance(problem: _Problem, rows: np.ndarray) -> np.ndarray:
-    """The parameters' error covariance (scaled units) for the stage's own estimator from the poses ``rows``:
-    least squares with every row weighted alike (position in m, orientation in rad × 1 m), whatever noise each
-    carries, and the ridge on the cyclic coefficients: ``A⁻¹ (B + R T R) A⁻¹`` with ``A = Σ JᵀJ + R``,
-    ``B = Σ Jᵀ diag(σ²) J``, the ridge ``R`` and the coefficients' prior variance ``T``."""
-    jac = problem.jacobian[rows]
-    a = np.einsum("kwp,kwq->pq", jac, jac) + np.diag(problem.ridge)
-    b = np.einsum("kwp,w,kwq->pq", jac, problem.sigma**2, jac) + np.diag(problem.ridge**2 * problem.prior)
+def _covariance(jac: np.ndarray, sigma: np.ndarray, ridge: np.ndarray | None = None, prior: np.ndarray | None = None):
+    """The parameters' error covariance (scaled units) for the stage's own estimator from the poses' Jacobians
+    ``(k, w, P)``: least squares with every row weighted alike (position in m, orientation in rad × 1 m),
+    whatever noise each carries (``sigma``), and a ridge on the cyclic coefficients: ``A⁻¹ (B + R T R) A⁻¹``
+    with ``A = Σ JᵀJ + R``, ``B = Σ Jᵀ diag(σ²) J``, the ridge ``R`` and the coefficients' prior variance ``T``
+    (the ridge's bias: the coefficients are drawn from the prior)."""
+    a = np.einsum("kwp,kwq->pq", jac, jac)
+    b = np.einsum("kwp,w,kwq->pq", jac, sigma**2, jac)
+    if ridge is not None:
+        a = a + np.diag(ridge)
+        b = b + np.diag(ridge**2 * prior)
     a_inv = np.linalg.pinv(a, rcond=1e-12, hermitian=True)
     return a_inv @ b @ a_inv
+
+
+def _stage_variance(problem: _Problem, rows: np.ndarray, metric: np.ndarray) -> tuple[float, dict[str, float]]:
+    """The mean squared position error (m², over the evaluation poses, ``metric``: the mean of their position
+    rows' ``JᵀJ``) that the parameters leave after the poses ``rows``, for the capacity the selection will
+    choose: without a prior on the cyclic errors, the stage every capacity includes; with one, the candidate
+    (harmonics and their ridge, as :mod:`calibration.capacity` offers them) that leaves the least. The
+    harmonics a candidate leaves out are errors of their prior's size."""
+    jac = problem.jacobian[rows]
+    design = problem.design
+    if not (problem.order > 0).any():
+        return float(np.trace(_covariance(jac, problem.sigma) @ metric)), {}
+    best: tuple[float, dict[str, float]] = (np.inf, {})
+    top = int(problem.order.max())
+    for harmonics in sorted({h for h in HARMONICS if h < top} | {top}):
+        kept = design | ((problem.order > 0) & (problem.order <= harmonics))
+        left = float(np.sum(np.diag(metric)[~kept] * problem.prior[~kept]))
+        for ridge_pairs in HARMONIC_PRIORS if harmonics else (0.0,):
+            ridge = np.where(problem.order[kept] > 0, ridge_pairs * problem.scale[kept] ** 2, 0.0)
+            cov = _covariance(jac[:, :, kept], problem.sigma, ridge, problem.prior[kept])
+            variance = float(np.trace(cov @ metric[np.ix_(kept, kept)])) + left
+            if variance < best[0]:
+                best = (variance, {"harmonics": harmonics, "harmonic_prior": ridge_pairs})
+    return best
 
 
 def _greedy(
@@ -313,10 +339,10 @@ def _greedy(
     return order, cov
 
 
-def _predicted(cov: np.ndarray, position_rows: np.ndarray, options: PlanOptions) -> dict[str, float]:
+def _predicted(problem: _Problem, rows: np.ndarray, metric: np.ndarray, options: PlanOptions) -> dict[str, Any]:
     """Mean position error (mm) the stage will show on test measurements like these, and its parts."""
-    model_var = np.einsum("nip,pq,niq->n", position_rows, cov, position_rows)  # trace of each 3x3 covariance
-    parameters_rms = float(np.sqrt(np.mean(model_var)))  # m
+    variance, capacity = _stage_variance(problem, rows, metric)
+    parameters_rms = float(np.sqrt(variance))  # m
     floor_rms = 1e-3 * options.floor_mm / MEAN_OVER_RMS
     measured_rms = np.sqrt(parameters_rms**2 + floor_rms**2 + 3.0 * options.position_noise_m**2)
     return {
@@ -324,6 +350,7 @@ def _predicted(cov: np.ndarray, position_rows: np.ndarray, options: PlanOptions)
         "parameters_part_mm": round(1e3 * MEAN_OVER_RMS * parameters_rms, 4),
         "floor_mm": options.floor_mm,
         "tracker_noise_mm": round(1e3 * MEAN_OVER_RMS * np.sqrt(3.0) * options.position_noise_m, 4),
+        **({"capacity": capacity} if capacity else {}),
     }
 
 
@@ -403,10 +430,10 @@ def plan(
     last = max((options.count, *stops))
     evaluate = rng.choice(len(pool), min(EVALUATION_POSES, len(pool)), replace=False)
     at_eval = position_rows[evaluate]
+    everywhere = np.einsum("nip,niq->pq", at_eval, at_eval) / len(at_eval)  # mean prediction variance = tr(C ·)
     metric = None
     if options.criterion == "i-optimal":
-        designed = at_eval[:, :, problem.design]
-        metric = np.einsum("nip,niq->pq", designed, designed) / len(designed)
+        metric = everywhere[np.ix_(problem.design, problem.design)]
     elif options.criterion != "d-optimal":
         raise CalibrationError(f"criterion {options.criterion!r}: choose i-optimal or d-optimal")
     order, _ = _greedy(info, spread, last, options.coverage_weight, metric)
@@ -417,7 +444,7 @@ def plan(
     curve = [
         {
             "poses": c,
-            **_predicted(_covariance(problem, order[:c]), at_eval, options),
+            **_predicted(problem, order[:c], everywhere, options),
             "measuring_time_h": round(c * _per_pose(times) / 3600, 2),
         }
         for c in stops
@@ -426,7 +453,7 @@ def plan(
         rows=pool[path],
         q=candidates[pool[path]],
         seconds=float(times[-1]),
-        predicted=_predicted(_covariance(problem, chosen), at_eval, options),
+        predicted=_predicted(problem, chosen, everywhere, options),
         parameters=int(info.shape[2]),
         candidates=counts,
         checks=view.checks(),
