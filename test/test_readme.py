@@ -187,6 +187,10 @@ def check_docs_output(name: str, work: Path, stdout: str) -> None:
         assert summary["pairs"] > 1000 and abs(summary["clock_offset_ms"] - 12.3) < 1e-6, summary
     elif name == "real-cell-plan":
         assert len((work / "plan" / "poses.csv").read_text().splitlines()) == 31
+    elif name == "real-cell-plan-prior":  # the README's model chose harmonics on the virtual cell's gear ripple
+        summary = json.loads((work / "plan_again" / "plan.json").read_text())
+        assert summary["cyclic_prior"]["harmonics"] >= 1 and "capacity" in summary["predicted"], summary
+        assert all("capacity" in row for row in summary["curve"]), summary["curve"]
     elif name.startswith("tracker-exports-"):
         imported = [json.loads(line) for line in stdout.splitlines() if line.startswith("{")]
         assert imported and all(i["imported"] == i["rows"] == 40 for i in imported), stdout

@@ -253,14 +253,19 @@ def _information(chain: Chain, q: np.ndarray, options: PlanOptions) -> _Problem:
     return _Problem(lin.jacobian[rows][:, :, columns], sigma, order[columns], lin.scale[columns], prior[columns])
 
 
-def _covariance(jac: np.ndarray, sigma: np.ndarray, ridge: np.ndarray | None = None, prior: np.ndarray | None = None):
-    """The parameters' error covariance (scaled units) for the stage's own estimator from the poses' Jacobians
-    ``(k, w, P)``: least squares with every row weighted alike (position in m, orientation in rad × 1 m),
-    whatever noise each carries (``sigma``), and a ridge on the cyclic coefficients: ``A⁻¹ (B + R T R) A⁻¹``
-    with ``A = Σ JᵀJ + R``, ``B = Σ Jᵀ diag(σ²) J``, the ridge ``R`` and the coefficients' prior variance ``T``
-    (the ridge's bias: the coefficients are drawn from the prior)."""
-    a = np.einsum("kwp,kwq->pq", jac, jac)
-    b = np.einsum("kwp,w,kwq->pq", jac, sigma**2, jac)
+def _normal(jac: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``Σ JᵀJ`` and ``Σ Jᵀ diag(σ²) J`` over the poses' Jacobians ``(k, w, P)`` (one product each)."""
+    flat = jac.reshape(-1, jac.shape[2])
+    weighted = (jac * sigma[None, :, None] ** 2).reshape(flat.shape)
+    return flat.T @ flat, weighted.T @ flat
+
+
+def _covariance(a: np.ndarray, b: np.ndarray, ridge: np.ndarray | None = None, prior: np.ndarray | None = None):
+    """The parameters' error covariance (scaled units) for the stage's own estimator from the normal matrices
+    ``a = Σ JᵀJ`` and ``b = Σ Jᵀ diag(σ²) J`` (:func:`_normal`): least squares with every row weighted alike
+    (position in m, orientation in rad × 1 m), whatever noise each carries, and a ridge on the cyclic
+    coefficients: ``A⁻¹ (b + R T R) A⁻¹`` with ``A = a + R``, the ridge ``R`` and the coefficients' prior
+    variance ``T`` (the ridge's bias: the coefficients are drawn from the prior)."""
     if ridge is not None:
         a = a + np.diag(ridge)
         b = b + np.diag(ridge**2 * prior)
@@ -274,19 +279,20 @@ def _stage_variance(problem: _Problem, rows: np.ndarray, metric: np.ndarray) -> 
     choose: without a prior on the cyclic errors, the stage every capacity includes; with one, the candidate
     (harmonics and their ridge, as :mod:`calibration.capacity` offers them) that leaves the least. The
     harmonics a candidate leaves out are errors of their prior's size."""
-    jac = problem.jacobian[rows]
-    design = problem.design
-    if not (problem.order > 0).any():
-        return float(np.trace(_covariance(jac, problem.sigma) @ metric)), {}
+    a, b = _normal(problem.jacobian[rows], problem.sigma)
+    cyclic = problem.order > 0
+    if not cyclic.any():
+        return float(np.trace(_covariance(a, b) @ metric)), {}
     best: tuple[float, dict[str, float]] = (np.inf, {})
     top = int(problem.order.max())
     for harmonics in sorted({h for h in HARMONICS if h < top} | {top}):
-        kept = design | ((problem.order > 0) & (problem.order <= harmonics))
+        kept = ~cyclic | (problem.order <= harmonics)
         left = float(np.sum(np.diag(metric)[~kept] * problem.prior[~kept]))
+        inside = np.ix_(kept, kept)
         for ridge_pairs in HARMONIC_PRIORS if harmonics else (0.0,):
-            ridge = np.where(problem.order[kept] > 0, ridge_pairs * problem.scale[kept] ** 2, 0.0)
-            cov = _covariance(jac[:, :, kept], problem.sigma, ridge, problem.prior[kept])
-            variance = float(np.trace(cov @ metric[np.ix_(kept, kept)])) + left
+            ridge = np.where(cyclic[kept], ridge_pairs * problem.scale[kept] ** 2, 0.0)
+            cov = _covariance(a[inside], b[inside], ridge, problem.prior[kept])
+            variance = float(np.sum(cov * metric[inside])) + left  # tr(cov · metric), both symmetric
             if variance < best[0]:
                 best = (variance, {"harmonics": harmonics, "harmonic_prior": ridge_pairs})
     return best
@@ -430,7 +436,8 @@ def plan(
     last = max((options.count, *stops))
     evaluate = rng.choice(len(pool), min(EVALUATION_POSES, len(pool)), replace=False)
     at_eval = position_rows[evaluate]
-    everywhere = np.einsum("nip,niq->pq", at_eval, at_eval) / len(at_eval)  # mean prediction variance = tr(C ·)
+    flat_eval = at_eval.reshape(-1, at_eval.shape[2])
+    everywhere = flat_eval.T @ flat_eval / len(at_eval)  # the mean prediction variance is tr(C · everywhere)
     metric = None
     if options.criterion == "i-optimal":
         metric = everywhere[np.ix_(problem.design, problem.design)]

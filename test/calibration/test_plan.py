@@ -52,6 +52,26 @@ def test_the_greedy_covariance_is_the_inverse_of_the_chosen_poses_information(ur
         assert chosen < -np.linalg.slogdet(info_random)[1]
 
 
+def test_the_ridge_estimators_error_covariance_is_what_draws_of_it_give():
+    """A linear model with some coefficients under a ridge and drawn from their prior, and rows with their own
+    noise: the error covariance of the ridge estimate over 20,000 draws is ``_covariance``'s."""
+    rng = np.random.default_rng(4)
+    jac = rng.normal(size=(30, 3, 5))  # 30 poses, 3 rows each, 5 parameters: the last 3 cyclic
+    sigma = np.array([0.5, 1.0, 2.0])
+    ridge = np.array([0.0, 0.0, 40.0, 40.0, 40.0])
+    prior = np.array([0.0, 0.0, 0.3, 0.3, 0.3])
+    a, b = planning._normal(jac, sigma)
+    predicted = planning._covariance(a, b, ridge, prior)
+    draws = 20000
+    theta = np.column_stack([rng.normal(size=(draws, 2)), rng.normal(0.0, np.sqrt(0.3), (draws, 3))])
+    y = np.einsum("kwp,dp->dkw", jac, theta) + rng.normal(size=(draws, 30, 3)) * sigma
+    estimate = np.linalg.solve(a + np.diag(ridge), np.einsum("kwp,dkw->pd", jac, y)).T
+    error = estimate - theta
+    assert np.allclose(error.T @ error / draws, predicted, rtol=0.05, atol=0.02 * np.abs(predicted).max())
+    unridged = planning._covariance(a, b)  # the plain least squares' sandwich, smaller on the cyclic ones here
+    assert np.all(np.diag(predicted)[2:] > np.diag(unridged)[2:])
+
+
 def test_the_tour_is_a_permutation_near_the_shortest():
     rng = np.random.default_rng(1)
     for _ in range(5):
