@@ -188,6 +188,12 @@ def run(args: argparse.Namespace) -> int:
         f"tracker noise {predicted['tracker_noise_mm']:.4f} mm); {result.parameters} identifiable parameters"
         + (f", {cyclic.harmonics} harmonics of each joint's error from --prior-model" if cyclic else "")
     )
+    if "capacity" in predicted:
+        chosen = predicted["capacity"]
+        print(
+            f"predicted for the capacity that leaves the least: {chosen['harmonics']} harmonics, "
+            f"ridge {chosen['harmonic_prior']:g} pairs"
+        )
     print(f"the prediction is {result.caveat}")
     print("checked: " + ("; ".join(result.checks["checked"]) or "nothing about the tracker"))
     print("not checked: " + "; ".join(result.checks["not_checked"]))

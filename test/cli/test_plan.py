@@ -86,6 +86,7 @@ def test_a_previous_calibration_adds_its_cyclic_errors_to_the_prediction(tmp_pat
     assert main([*common, "--out", str(tmp_path / "prior"), "--prior-model", str(tmp_path / "model")]) == 0
     printed = capsys.readouterr().out
     assert "2 harmonics of each joint's error from --prior-model" in printed and "prior model found" in printed
+    assert "predicted for the capacity that leaves the least: " in printed
     blind, prior = (json.loads((tmp_path / d / "plan.json").read_text()) for d in ("blind", "prior"))
     assert (tmp_path / "blind" / "poses.csv").read_text() == (tmp_path / "prior" / "poses.csv").read_text()
     assert prior["cyclic_prior"]["harmonics"] == 2 and "cyclic_prior" not in blind
