@@ -797,7 +797,9 @@ class IKSolver:
         the first half of the time left, refinement the rest; solutions not refined by then are dropped.
         Where the closed forms give every exact branch (a target singular on none), those are the solutions'
         starts and no seed is searched: the seed's and ``extra_seeds``' searches would end on one of them (half
-        the time of a UR10's or RX160's eight branches went there).
+        the time of a UR10's or RX160's eight branches went there). A target just beyond the URDF model's reach
+        (no exact branch; a hybrid target can lie there) starts from each branch's nearest point instead, as
+        :meth:`solve` does: the seeds' URDF searches all failed there, after half the request's budget.
         """
         start = time.perf_counter()
         given = seed is not None
@@ -811,9 +813,12 @@ class IKSolver:
         branches = list(self.branches(target, seed))  # every branch at once: the seeds below only add the rest
         # a branch at a singularity has no closed-form answer: the spread of seeds searches for it too
         singular = self.closed_form is not None and self.closed_form.singular(target)
-        complete = bool(branches) and not singular
-        if complete:  # every exact solution is a checked branch (within the limits, nearest the seed): no search
-            for q in branches:
+        # every exact solution is a checked branch (within the limits, nearest the seed); without one, a target
+        # just beyond the URDF model's reach has its branches' nearest points: no seed search finds more
+        starts = [] if singular else branches or list(self._beyond_reach(target, seed, np.empty((0, len(seed)))))
+        complete = bool(starts)
+        if complete:
+            for q in starts:
                 if not any(seeding.same_solution(q, f, self.model.chain.revolute) for f in found):
                     found.append(q)
         spread = () if branches and not singular else self.seeds.spread

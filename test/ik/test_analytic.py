@@ -205,8 +205,8 @@ def test_hybrid_targets_near_a_shoulder_singularity_take_the_fixed_point(trained
 def test_hybrid_targets_beyond_the_urdf_models_reach_start_from_its_nearest_answers(trained):
     """The UR10's wrist on the cylinder its shoulder offset leaves around axis 1 (its shoulder singularity): a
     hybrid target there lies beyond the URDF model's reach about half the time, with no exact branch. The
-    closed forms' least-squares answers, a correction's size away, start the hybrid solutions: no URDF-model
-    restart runs (they all failed, and took half the budget)."""
+    closed forms' least-squares answers, a correction's size away, start the hybrid solutions, of ``solve`` and
+    of ``solve_many``: no URDF-model restart runs (they all failed, and took half the budget)."""
     _, model, _, _ = trained
     solver = IKSolver(model, GENEROUS)
     qs = cases(model.chain, 20, np.random.default_rng(7))["wrist centre on axis 1"]
@@ -222,6 +222,9 @@ def test_hybrid_targets_beyond_the_urdf_models_reach_start_from_its_nearest_answ
         assert result.success, (result.position_error_mm, result.stats)
         assert result.stats["beyond_urdf_reach"] and result.stats["attempts"] == 0
         assert max(hybrid_errors(model, result.q, target)) < 1e-4
+        # several solutions start from the same answers (the URDF-model seed searches found none here)
+        many = solver.solve_many(target, max_solutions=8)
+        assert many and all(max(hybrid_errors(model, r.q, target)) < 1e-4 for r in many), len(many)
     assert beyond >= 5, beyond
 
 
