@@ -596,13 +596,51 @@ class IKSolver:
         where the answer is not yet within a tenth of it (the refiner's ``polish_tol``)."""
         if self.closed_form is None:
             return q0, None, False
+        rounds_of = self._fixed_point_rounds(target, q0, deadline, rounds)
+        try:
+            q, _ = next(rounds_of)
+            while True:
+                q, _ = rounds_of.send(self.model.fk_single(q))
+        except StopIteration as done:
+            return done.value
+
+    def fixed_points(
+        self, target: np.ndarray, starts: list[np.ndarray], deadline: float, rounds: int = FIXED_POINT_ROUNDS
+    ) -> list[tuple[np.ndarray, tuple[float, float] | None, bool]]:
+        """:meth:`fixed_point` from each of ``starts`` side by side, their rounds in step: the hybrid FK of the
+        rounds before a Newton step (errors of a millimetre, then a micrometre) in one batch, a few times
+        cheaper than one configuration at a time (8 UR10 configurations: 240 against 550 µs); the rounds after
+        one, where the answer is judged against the polish tolerance, one at a time on the same path as
+        :meth:`fixed_point` (a batch's float32 products differ by a nanometre)."""
+        if self.closed_form is None:
+            return [(q, None, False) for q in starts]
+        runs = [self._fixed_point_rounds(target, q, deadline, rounds) for q in starts]
+        results: list = [None] * len(runs)
+        pending = {i: next(run) for i, run in enumerate(runs)}  # each run's next (q, precise) to evaluate
+        while pending:
+            coarse = [i for i, (_, precise) in pending.items() if not precise]
+            poses = {}
+            if len(coarse) > 1:
+                poses = dict(zip(coarse, self.model.fk(np.array([pending[i][0] for i in coarse])), strict=True))
+            asked, pending = pending, {}
+            for i, (q, _) in asked.items():
+                try:
+                    pending[i] = runs[i].send(poses[i] if i in poses else self.model.fk_single(q))
+                except StopIteration as done:
+                    results[i] = done.value
+        return results
+
+    def _fixed_point_rounds(self, target: np.ndarray, q0: np.ndarray, deadline: float, rounds: int):
+        """:meth:`fixed_point`'s rounds as a coroutine: yields ``(q, precise)``, the configuration whose hybrid
+        pose it needs next (``precise``: after a Newton step, where the answer is judged against the polish
+        tolerance), is sent that pose, and returns what :meth:`fixed_point` returns."""
         tol_m, tol_rad = self.inner_tol
         polish_m, polish_rad = self.refiner.polish_tol
         best, best_cost, best_errors, best_hybrid, q = q0, np.inf, None, None, q0
         least_squares = converged = stepped = False
         newton = True
         for round_ in range(rounds + 1):
-            hybrid = self.model.fk_single(q)
+            hybrid = yield q, stepped
             e = error6(target, hybrid)
             ep, er = math.sqrt(e[:3] @ e[:3]), math.sqrt(e[3:] @ e[3:])
             cost = math.hypot(ep, er)  # m and rad, as LM weighs them
@@ -836,16 +874,21 @@ class IKSolver:
             if not any(seeding.same_solution(q, f, self.model.chain.revolute) for f in found):
                 found.append(q)
         found.sort(key=lambda q: float(np.linalg.norm(q - seed)))
+        found = found[:max_solutions]
+        corrected = not analytic and self.model.is_corrected
+        arrivals = [self._arrival(origin, q0) for q0 in found]
+        fixed = {}  # the fixed points side by side, where every start moves with the same approach directions
+        if corrected and self.closed_form is not None and all(a is None for a in arrivals):
+            fixed = dict(enumerate(self.fixed_points(target, found, end)))
         results = []
-        for q0 in found[:max_solutions]:
+        for k, q0 in enumerate(found):
             if time.perf_counter() > end:
                 break
-            corrected = not analytic and self.model.is_corrected
-            with self.model.approaching(self._arrival(origin, q0)):
+            with self.model.approaching(arrivals[k]):
                 result = None
                 beyond = False
                 if corrected and self.closed_form is not None:
-                    q0, errors, beyond = self.fixed_point(target, q0, end)
+                    q0, errors, beyond = fixed[k] if k in fixed else self.fixed_point(target, q0, end)
                     result = self.result(q0, target, analytic, start, {"method": "closed-form fixed point"}, errors)
                 if result is None or not (result.success or beyond):
                     q, stats = self.refiner.refine(target, q0, deadline=end) if corrected else (q0, {})

@@ -228,6 +228,29 @@ def test_hybrid_targets_beyond_the_urdf_models_reach_start_from_its_nearest_answ
     assert beyond >= 5, beyond
 
 
+def test_the_fixed_points_side_by_side_are_each_branchs_own(trained):
+    """``solve_many``'s fixed points run in step, the rounds before a Newton step batched: each branch ends where
+    its fixed point alone ends (the batch's float32 products differ by about a nanometre, which the Newton
+    rounds after absorb), within the polish tolerance through the hybrid FK."""
+    _, model, _, _ = trained
+    solver = IKSolver(model, GENEROUS)
+    rng = np.random.default_rng(11)
+    q = rng.uniform(model.chain.lower, model.chain.upper, (15, 6))
+    checked = 0
+    for target in model.fk(q):
+        starts = list(solver.branches(target, model.chain.mid_limits()))
+        if len(starts) < 2:
+            continue
+        together = solver.fixed_points(target, starts, float("inf"))
+        for start, (q_many, errors, beyond) in zip(starts, together, strict=True):
+            q_one, errors_one, beyond_one = solver.fixed_point(target, start, float("inf"))
+            assert beyond == beyond_one and np.allclose(q_many, q_one, atol=1e-8), (q_many - q_one, errors, errors_one)
+            if not beyond:
+                assert max(hybrid_errors(model, q_many, target)) < 1e-5, errors  # mm and degrees
+            checked += 1
+    assert checked >= 20, checked
+
+
 def test_a_chain_of_five_joints_gets_one_clear_line(example_robot_data):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
