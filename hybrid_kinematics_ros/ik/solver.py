@@ -855,12 +855,16 @@ class IKSolver:
         # just beyond the URDF model's reach has its branches' nearest points: no seed search finds more
         starts = [] if singular else branches or list(self._beyond_reach(target, seed, np.empty((0, len(seed)))))
         complete = bool(starts)
-        if complete:
+        corrected = not analytic and self.model.is_corrected
+        search = [*branches, seed, *(extra_seeds or []), *(() if branches and not singular else self.seeds.spread)]
+        if complete and corrected:  # the hybrid fixed points start from the branches as they are
+            search = []
             for q in starts:
                 if not any(seeding.same_solution(q, f, self.model.chain.revolute) for f in found):
                     found.append(q)
-        spread = () if branches and not singular else self.seeds.spread
-        for s in [] if complete else [*branches, seed, *(extra_seeds or []), *spread]:
+        elif complete:  # the URDF model's own answers: LM polishes each to the inner tolerance, in a step or none
+            search = starts
+        for s in search:
             now = time.perf_counter()
             if now > search_end:
                 break
@@ -875,14 +879,14 @@ class IKSolver:
                 found.append(q)
         found.sort(key=lambda q: float(np.linalg.norm(q - seed)))
         found = found[:max_solutions]
-        corrected = not analytic and self.model.is_corrected
         arrivals = [self._arrival(origin, q0) for q0 in found]
         fixed = {}  # the fixed points side by side, where every start moves with the same approach directions
-        if corrected and self.closed_form is not None and all(a is None for a in arrivals):
+        batch = corrected and self.closed_form is not None and all(a is None for a in arrivals)
+        if batch and time.perf_counter() <= end:
             fixed = dict(enumerate(self.fixed_points(target, found, end)))
         results = []
         for k, q0 in enumerate(found):
-            if time.perf_counter() > end:
+            if k not in fixed and time.perf_counter() > end:  # a fixed point run before the deadline is kept
                 break
             with self.model.approaching(arrivals[k]):
                 result = None
@@ -890,7 +894,7 @@ class IKSolver:
                 if corrected and self.closed_form is not None:
                     q0, errors, beyond = fixed[k] if k in fixed else self.fixed_point(target, q0, end)
                     result = self.result(q0, target, analytic, start, {"method": "closed-form fixed point"}, errors)
-                if result is None or not (result.success or beyond):
+                if result is None or (not (result.success or beyond) and time.perf_counter() <= end):
                     q, stats = self.refiner.refine(target, q0, deadline=end) if corrected else (q0, {})
                     result = self.result(q, target, analytic, start, stats, stats.pop("errors", None))
             result.stats["path"] = self.path
