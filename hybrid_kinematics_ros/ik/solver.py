@@ -594,15 +594,7 @@ class IKSolver:
         the error fell by less than STALLED, so the branch's nearest point to the target is found, and the
         branch has no hybrid solution here. It stops within the solver's inner tolerance, after one round more
         where the answer is not yet within a tenth of it (the refiner's ``polish_tol``)."""
-        if self.closed_form is None:
-            return q0, None, False
-        rounds_of = self._fixed_point_rounds(target, q0, deadline, rounds)
-        try:
-            q, _ = next(rounds_of)
-            while True:
-                q, _ = rounds_of.send(self.model.fk_single(q))
-        except StopIteration as done:
-            return done.value
+        return self.fixed_points(target, [q0], deadline, rounds)[0]  # one start: every round on fk_single
 
     def fixed_points(
         self, target: np.ndarray, starts: list[np.ndarray], deadline: float, rounds: int = FIXED_POINT_ROUNDS
