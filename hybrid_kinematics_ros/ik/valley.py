@@ -8,14 +8,19 @@ Jacobian is singular there, and LM, whose basin is a few milliradians wide) craw
 minimum of the valley.
 
 The search here is global along the valley and local across it:
-1. The joint ``j`` that moves most along ``v`` becomes the valley's parameter ``t``; the other five joints
-   span the pose directions the URDF model keeps, with a well-conditioned 6×5 Jacobian.
-2. On a grid of ``t`` over a turn, all points at once (batched hybrid FK), Gauss-Newton's chord steps in
-   those five joints remove the error the model can remove; what is left is a scalar ``r(t)``: the error
-   along the lost direction, signed by the 6×5 Jacobian's cofactor vector, which turns smoothly with ``t``.
-3. Each sign change of ``r`` brackets a hybrid solution; a few regula falsi steps find ``r(t) = 0``, where
-   the whole 6-D error vanishes up to the five joints' convergence. The caller's LM on the hybrid model
-   finishes from there, in its basin.
+1. The valley is traced on the URDF model from its first point (:func:`trace`): steps along the weak motion,
+   each followed by a Newton step back onto it, one period of it or from joint limit to joint limit. No single
+   joint parameterises a valley everywhere: a UR10's wrist continuum whose wrist circle crosses the arm's
+   reach passes the stretched elbow and turns back in every joint there (a grid over one joint, the search
+   before the trace, followed one side of it: UR10 targets from the other elbow's branch, 18 of 29 found
+   against 26 of 29 traced, ``test_valley.py``).
+2. At every traced point, all at once (batched hybrid FK), Gauss-Newton's chord steps in the five joints but
+   the one that moves most along the valley there remove the error the model can remove; what is left is a
+   scalar ``r``: the error along the lost direction, signed by the 6×5 Jacobian's cofactor vector, which
+   turns smoothly along the valley (neighbours compare it in one joint's convention).
+3. Each sign change of ``r`` between neighbours brackets a hybrid solution; a few regula falsi steps find
+   ``r = 0``, where the whole 6-D error vanishes up to the five joints' convergence. The caller's LM on the
+   hybrid model finishes from there, in its basin.
 
 Every closed-form branch has its own valley, and the hybrid solution need not lie on the seed's: at a shoulder
 singularity (the wrist centre on axis 1) it can lie on the valley of the shoulder flipped, and a valley that
@@ -30,25 +35,30 @@ import time
 
 import numpy as np
 
-from hybrid_kinematics_ros.ik.lm import Limits, error6_batch, project
+from hybrid_kinematics_ros.ik.lm import Limits, error6, error6_batch, project
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
-# The grid over each valley's turn, the chord steps that settle the five joints at each point (the chord
-# Jacobian is exact to the corrections' derivative, a thousandth: each step gains ~1000x), and the regula falsi
-# steps within a bracket. All valleys' grids go through the hybrid FK in one batch (8 branches × 16 points:
-# one evaluation ~2 ms). Measured on RX160 targets with the wrist centre on axis 1 (60 at 50 ms, a model trained
-# for a minute): 24 points and 3 rings of restarts 96.7-100 % at a median 38-42 ms; 16 points and 1 ring 100 % at
-# 25 ms; no ring 96.7-98.3 % at 22 ms.
-GRID_POINTS = 16
-GRID_STEPS = 3
+# Each valley is traced from its first point, TRACE_STEP (rad, joint space) apart, one period or from limit to
+# limit, at most TRACE_POINTS points a way (a UR10's wrist continuum: 15-30 points); it has closed when it
+# comes back within CLOSED steps of its start; where one Newton step moves a point further than TURN times
+# the step along (a sharp turn), the step halves, up to TURN_HALVINGS times (without: jumps of 1-3.6 rad
+# across a turn; with TURN 0.3, 50 % slower for no more found). Then POINT_STEPS chord steps settle the five
+# joints at each point (the traced points lie on the URDF model's valley, millimetres from the hybrid one), all
+# valleys' points in one batch through the hybrid FK, and the regula falsi steps within a bracket. Measured by
+# the roots found from the closed forms' branches, 200 UR10 targets each (a model trained for a minute): a
+# step of 0.5 found 153 at the wrist centre on axis 1, against 163 at 0.35; one chord step 154 at q5 = 0,
+# against 185 with two.
+TRACE_STEP = 0.35
+TRACE_POINTS = 40
+CLOSED = 0.75
+TURN, TURN_HALVINGS = 1.0, 3
+POINT_STEPS = 2
 BRACKET_STEPS = 6
 MAX_ROOTS = 4  # brackets refined (all at once), over all valleys, nearest the first q_near first
 TOUCH_STEPS = 3  # parabola steps at a double root
 SETTLE_STEPS = 1  # a bracket's points lie between settled ones: one chord step (2 gave the same answers, slower)
-RINGS = 1  # rounds of restarts from settled neighbours, each reaching at least one grid step further
 SINGLE_ROWS = 2  # settle's rows evaluated one by one up to this many
-SAME_RAD = 1e-6  # rows of q_near this close start the same valley
-SETTLED = 1e-5  # m (or rad): a grid point whose five joints leave more across the valley brackets nothing
+SETTLED = 1e-5  # m (or rad): a point whose five joints leave more across the valley brackets nothing
 # Where the URDF model counts as near-singular for this search: the Jacobian's smallest singular value (m or
 # rad per rad; a regular UR10 pose has 0.05-0.5; a hybrid target at q5 = 0 gives the URDF model's answer
 # 1e-4 to 2e-2, as far as its millimetres of correction take it from the singularity).
@@ -61,12 +71,15 @@ def weak_direction(model: HybridModel, q: np.ndarray) -> tuple[np.ndarray, float
     return vt[-1], float(sv[-1])
 
 
+_MINORS = np.array([[r for r in range(6) if r != i] for i in range(6)])  # the rows of each 5×5 minor
+_SIGNS = (-1.0) ** np.arange(6)
+
+
 def _normal(J5: np.ndarray) -> np.ndarray:
     """``(K, 6)``: a unit vector normal to the five columns of each ``J5 (K, 6, 5)``, from their signed 5×5
     minors (the generalised cross product), so that it turns continuously with the columns (an SVD's sign
     is arbitrary)."""
-    rows = np.arange(6)
-    u = np.stack([(-1) ** i * np.linalg.det(J5[:, rows != i, :]) for i in range(6)], axis=1)
+    u = _SIGNS * np.linalg.det(J5[:, _MINORS, :])
     return u / np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-300)
 
 
@@ -79,27 +92,111 @@ def _poses_and_jacobians(model: HybridModel, Q: np.ndarray) -> tuple[np.ndarray,
     return model.fk(Q), model.fk_and_jacobian(Q, analytic=True)[1]
 
 
+def trace(model: HybridModel, q0: np.ndarray, v0: np.ndarray, limits: Limits) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The valley of the URDF model through ``q0``, in order: points TRACE_STEP apart along its weak motion
+    (``v0`` at ``q0``), each moved back onto the valley by a Newton step in the five strong directions of the
+    error to the URDF pose at ``q0``. One period of it (closed: it comes back next to ``q0`` up to whole
+    turns), else from joint limit to joint limit, at most TRACE_POINTS a way. Returns the points ``(m, n)``,
+    their weak motions ``(m, n)`` and whether it closed.
+
+    Along the valley, no single joint need move monotonically: where the elbow stretches on the way (a UR10's
+    wrist continuum whose wrist circle crosses the arm's reach) the valley turns back in every joint, and a
+    grid over one joint follows one side of it only."""
+    lower, upper, revolute = limits
+    pose = model.fk_single(q0, analytic=True)
+    halves, closed = [], False
+    eye = np.eye(len(q0))
+
+    def onto(x: np.ndarray, border: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """One Newton step from ``x`` back onto the valley, along no ``border``: the point, the weak motion
+        there and the step's length. With J's weak motion w, (JᵀJ + v vᵀ) w = v (w·v): the bordered matrix
+        turns v into w, and Jᵀe has next to nothing along w (J's smallest singular value times the error's
+        lost part)."""
+        T, J = model.fk_and_jacobian_single(x, analytic=True)
+        step, w = np.linalg.solve(J.T @ J + np.outer(border, border), np.stack([J.T @ error6(pose, T), v], 1)).T
+        return x + step, w / np.linalg.norm(w), float(np.linalg.norm(step))
+
+    for sign in (1.0, -1.0):
+        q, v, points, motions = q0, sign * v0, [], []
+        for _ in range(TRACE_POINTS):
+            h = TRACE_STEP
+            for _ in range(TURN_HALVINGS):  # where the valley turns sharply, shorter steps keep to it
+                x, w, moved = onto(q + h * v, v, v)
+                if moved < TURN * h:
+                    break
+                h /= 2
+            beyond = (x < lower) | (x > upper)
+            if beyond.any():
+                # a last point on the limit, that joint held there (and settled so): a root between the
+                # last point and the limit is bracketed
+                reach = (np.where(x < lower, lower, upper) - q) / np.where(beyond, x - q, np.inf)
+                first = int(np.argmin(np.where(beyond, reach, np.inf)))
+                if reach[first] > 0.1:  # else the last point is on the limit already
+                    x = np.clip(onto(q + reach[first] * (x - q), eye[first], v)[0], lower, upper)
+                    points.append(x)
+                    motions.append(eye[first])
+                break
+            q, v = x, w
+            points.append(q)
+            motions.append(v)
+            if len(points) > 2 and np.linalg.norm(_turned(q - q0, revolute)) < CLOSED * TRACE_STEP:
+                closed = True
+                break
+        halves.append((points, motions))
+        if closed:
+            break
+    if closed:  # its last point is q0 again, a turn on
+        points, motions = [q0, *halves[0][0][:-1]], [v0, *halves[0][1][:-1]]
+    else:
+        back, ahead = halves
+        points = [*back[0][::-1], q0, *ahead[0]]
+        motions = [*(-m for m in back[1][::-1]), v0, *ahead[1]]
+    return np.array(points), np.array(motions), closed
+
+
+def _turned(d: np.ndarray, revolute: np.ndarray) -> np.ndarray:
+    """Joint differences ``d`` with the revolute ones taken to within half a turn."""
+    return np.where(revolute, (d + np.pi) % (2 * np.pi) - np.pi, d)
+
+
 def settle(
     model: HybridModel, target: np.ndarray, Q: np.ndarray, j: np.ndarray, limits: Limits, steps: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Chord steps in the free joints of every row of ``Q (K, n)`` (in place), each row's valley joint
-    ``j (K,)`` held. Returns ``Q``, the signed error along the lost direction ``(K,)`` and the error left
-    across it ``(K,)`` (m and rad as one vector: what the free joints did not remove)."""
+    ``j (K,)`` held. Returns ``Q``, the pose errors ``(K, 6)`` and the URDF Jacobians ``(K, 6, n)`` there."""
     n = Q.shape[1]
     free = np.nonzero(np.arange(n) != j[:, None])[1].reshape(len(Q), n - 1)
     rows = np.arange(len(Q))[:, None]
     free_limits = tuple(side[free] for side in limits)
     for step in range(steps + 1):
         T, J = _poses_and_jacobians(model, Q)
-        e, J5 = error6_batch(target, T), np.take_along_axis(J, free[:, None, :], axis=2)
+        e = error6_batch(target, T)
         if step == steps:  # the last evaluation measures, no step follows it
             break
+        J5 = np.take_along_axis(J, free[:, None, :], axis=2)
         jt = J5.mT
         delta = np.linalg.solve(jt @ J5 + 1e-12 * np.eye(n - 1), jt @ e[:, :, None])[:, :, 0]
         Q[rows, free] = project(Q[rows, free] + delta, *free_limits)
-    u = _normal(J5)
+    return Q, e, J
+
+
+def along(e: np.ndarray, J: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The signed error along the lost direction ``(K,)``, normal to the URDF Jacobian's columns but joint
+    ``j (K,)``'s, and the error left across it ``(K,)`` (m and rad as one vector: what those five joints did
+    not remove). The sign depends on ``j``: compare rows in one joint's convention."""
+    n = J.shape[2]
+    free = np.nonzero(np.arange(n) != j[:, None])[1].reshape(len(J), n - 1)
+    u = _normal(np.take_along_axis(J, free[:, None, :], axis=2))
     r = np.einsum("ki,ki->k", u, e)
-    return Q, r, np.linalg.norm(e - r[:, None] * u, axis=1)
+    return r, np.linalg.norm(e - r[:, None] * u, axis=1)
+
+
+def _settle_along(
+    model: HybridModel, target: np.ndarray, Q: np.ndarray, j: np.ndarray, limits: Limits, steps: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`settle`, then :func:`along` in each row's own joint: ``Q``, ``r`` and the error across."""
+    Q, e, J = settle(model, target, Q, j, limits, steps)
+    return (Q, *along(e, J, j))
 
 
 def valley_starts(
@@ -113,81 +210,77 @@ def valley_starts(
     """Starts next to the hybrid solutions along the valleys through ``q_near`` (``(n,)``, or ``(B, n)``: the
     closed forms' branches, whose valleys are searched in one batch), at most MAX_ROOTS, nearest the first
     row first (module docstring), each within ``tol`` (m or rad) of the target where the search converged;
-    None when no row of ``q_near`` is near a singularity of the URDF model (no search)."""
-    lower, upper, _ = limits
-    valleys = []  # per valley: its rows in the batch, its grid, its joint, its weak direction
-    distinct = []
+    None when no row of ``q_near`` is near a singularity of the URDF model, or the chain has other than six
+    joints (no search)."""
+    revolute = limits[2]
+    if len(revolute) != 6:
+        return None
+    paths = []  # per valley: its points in order, their weak motions, whether it closed
     for q in np.atleast_2d(q_near):
-        if any(np.abs(q - d).max() < SAME_RAD for d in distinct):
-            continue
-        distinct.append(q)
+        if any(np.linalg.norm(_turned(points - q, revolute), axis=1).min() < TRACE_STEP for points, _, _ in paths):
+            continue  # on a valley traced already
         v, sigma = weak_direction(model, q)
         if sigma > NEAR_SINGULAR:
             continue
-        j = int(np.argmax(np.abs(v)))
-        t = np.linspace(max(lower[j], q[j] - np.pi), min(upper[j], q[j] + np.pi), GRID_POINTS)
-        # each point starts along the weak motion (the other joints follow ``v``), where the free joints have
-        # least to remove: from ``q`` with joint j alone turned, a rotation error near π has no clean log
-        Q = project(q + np.outer((t - q[j]) / v[j], v), *limits)
-        Q[:, j] = t
-        rows = slice(len(valleys) * GRID_POINTS, (len(valleys) + 1) * GRID_POINTS)
-        valleys.append((rows, t, j, v, Q))
-    if not valleys or time.perf_counter() > deadline:
-        return None if not valleys else []
-    Q = np.vstack([valley[4] for valley in valleys])
-    joint = np.repeat([valley[2] for valley in valleys], GRID_POINTS)
-    Q, r, across = settle(model, target, Q, joint, limits, GRID_STEPS)
-    for _ in range(RINGS):  # the valley curves: points far from q_near restart from a settled neighbour
+        paths.append(trace(model, q, v, limits))
         if time.perf_counter() > deadline:
-            break
-        restarted = np.concatenate(
-            [
-                rows.start + _restart_from_neighbours(Q[rows], t, across[rows] < SETTLED, v, j, limits)
-                for rows, t, j, v, _ in valleys
-            ]
-        )
-        if not len(restarted):
-            break
-        Q[restarted], r[restarted], across[restarted] = settle(
-            model, target, Q[restarted], joint[restarted], limits, GRID_STEPS
-        )
-    # a point whose free joints could not settle (a joint at its limit, a start too far) brackets nothing
-    settled = across < SETTLED
-    crosses, touches = [], []
-    for rows, t, _, _, _ in valleys:
-        k0, rv, ok = rows.start, r[rows], settled[rows]
-        crossing = (np.sign(rv[:-1]) * np.sign(rv[1:]) <= 0) & ok[:-1] & ok[1:]
-        # a target at the fold itself (q5 = 0 exactly: the pose moves along the lost direction with q5²) has a
-        # double root, where r touches zero without crossing it: a local minimum of |r| between settled points
-        inner = np.arange(1, len(t) - 1)
-        touching = inner[
-            ok[inner - 1]
-            & ok[inner]
-            & ok[inner + 1]
-            & (np.abs(rv[inner]) <= np.abs(rv[inner - 1]))
-            & (np.abs(rv[inner]) <= np.abs(rv[inner + 1]))
-            & (np.sign(rv[inner - 1]) == np.sign(rv[inner + 1]))
-            & ~crossing[inner - 1]
-            & ~crossing[inner]
-        ]
-        crosses += [k0 + k for k in np.flatnonzero(crossing)]
-        touches += [(k0 + k, t[k - 1 : k + 2]) for k in touching]
+            return []
+    if not paths:
+        return None
+    Q = np.vstack([points for points, _, _ in paths])
+    joint = np.concatenate([np.argmax(np.abs(motions), axis=1) for _, motions, _ in paths])
+    Q, e, J = settle(model, target, Q, joint, limits, POINT_STEPS)
+    settled = along(e, J, joint)[1] < SETTLED  # a point whose free joints could not settle brackets nothing
+    # neighbours along each valley: (k, k + 1), and across the seam of a closed one
+    pairs, offset = [], 0
+    for points, _, closed in paths:
+        m = len(points)
+        ks = np.arange(offset, offset + m)
+        pairs += [np.stack([ks[:-1], ks[1:]], axis=1)] + ([[(ks[-1], ks[0])]] if closed and m > 2 else [])
+        offset += m
+    pairs = np.vstack([np.reshape(p, (-1, 2)) for p in pairs]).astype(int)
+    a, b = pairs[:, 0], pairs[:, 1]
+    qb = Q[a] + _turned(Q[b] - Q[a], revolute)  # b taken to a's turn
+    jb = np.argmax(np.abs(qb - Q[a]), axis=1)  # each pair compares r in the joint that moves most between them
+    ra, rb = along(e[a], J[a], jb)[0], along(e[b], J[b], jb)[0]
+    ok = settled[a] & settled[b]
+    crossing = ok & (np.sign(ra) * np.sign(rb) <= 0)
+    # a target at the fold itself (q5 = 0 exactly: the pose moves along the lost direction with q5²) has a
+    # double root, where r touches zero without crossing it: a local minimum of |r| between settled points
+    nxt = np.full(len(Q), -1)
+    nxt[a] = np.arange(len(pairs))  # the pair that leaves each point
+    k = np.flatnonzero(nxt[b] >= 0)  # pairs followed by another: triples (x, y, z)
+    k2 = nxt[b[k]]
+    k = k[ok[k] & ok[k2] & ~crossing[k] & ~crossing[k2]]
+    k2 = nxt[b[k]]
+    x, y, z = a[k], b[k], b[k2]
+    three = Q[y][:, None] + _turned(np.stack([Q[x], Q[y], Q[z]], axis=1) - Q[y][:, None], revolute)  # y's turn
+    jt = np.argmax(np.abs(three[:, 2] - three[:, 0]), axis=1)
+    t = np.take_along_axis(three, jt[:, None, None], axis=2)[:, :, 0]
+    monotonic = ((t[:, 0] < t[:, 1]) & (t[:, 1] < t[:, 2])) | ((t[:, 0] > t[:, 1]) & (t[:, 1] > t[:, 2]))
+    r3 = np.stack([along(e[w], J[w], jt)[0] for w in (x, y, z)], axis=1)
+    touching = (
+        monotonic & (np.abs(r3[:, 1]) <= np.abs(r3[:, [0, 2]]).min(axis=1)) & (np.sign(r3[:, 0]) == np.sign(r3[:, 2]))
+    )
+    touches = []
+    for i in np.flatnonzero(touching):
+        order = slice(None) if t[i, 0] < t[i, 2] else slice(None, None, -1)
+        touches.append((y[i], three[i, order], t[i, order], r3[i, order], int(jt[i])))
     # nearest the first row first: the member of the valleys the solver would reach from the seed
     near = np.atleast_2d(q_near)[0]
-    candidates = [(float(np.linalg.norm(Q[k] - near)), "cross", k, None) for k in crosses]
-    candidates += [(float(np.linalg.norm(Q[k] - near)), "touch", k, t) for k, t in touches]
+    candidates = [(float(np.linalg.norm(Q[a[k]] - near)), "cross", k) for k in np.flatnonzero(crossing)]
+    candidates += [(float(np.linalg.norm(Q[touch[0]] - near)), "touch", i) for i, touch in enumerate(touches)]
     candidates.sort(key=lambda c: c[0])
     candidates = candidates[:MAX_ROOTS]
     cross = np.array([c[2] for c in candidates if c[1] == "cross"], dtype=int)
-    roots = iter(
-        _roots(model, target, Q[cross], Q[cross + 1], r[cross], r[cross + 1], joint[cross], limits, deadline, tol)
-    )
+    roots = iter(_roots(model, target, Q[a[cross]], qb[cross], ra[cross], rb[cross], jb[cross], limits, deadline, tol))
     starts = []
-    for _, kind, k, t in candidates:
+    for _, kind, k in candidates:
         if kind == "cross":
             starts.append(next(roots))
         elif time.perf_counter() < deadline:
-            starts.append(_touch(model, target, Q[k - 1 : k + 2], t, r[k - 1 : k + 2], joint[k], limits))
+            _, three, t, r3, jt = touches[k]
+            starts.append(_touch(model, target, three, t, r3, jt, limits))
     return starts
 
 
@@ -211,7 +304,7 @@ def _touch(
         w = (x - t[0]) / (t[2] - t[0])
         q = Q[0] + w * (Q[2] - Q[0])
         q[j] = x
-        q, rx, _ = settle(model, target, q[None], np.array([j]), limits, SETTLE_STEPS)
+        q, rx, _ = _settle_along(model, target, q[None], np.array([j]), limits, SETTLE_STEPS)
         # the vertex with its two nearest neighbours, in order
         keep = np.argsort(np.abs(t - x))[:2]
         order = np.argsort(np.r_[t[keep], x])
@@ -220,31 +313,6 @@ def _touch(
         if np.min(np.diff(t)) < 1e-12:
             break
     return Q[np.argmin(np.abs(r))]
-
-
-def _restart_from_neighbours(
-    Q: np.ndarray, t: np.ndarray, settled: np.ndarray, v: np.ndarray, j: int, limits: Limits
-) -> np.ndarray:
-    """Each unsettled grid point next to a settled one starts again from it, along the valley's tangent there
-    (from the two settled points on that side, else the weak direction ``v``); returns their indices."""
-    revolute = limits[2]
-    restarted = []
-    for k in np.flatnonzero(~settled):
-        for step in (-1, 1):
-            near, beyond = k + step, k + 2 * step
-            if not (0 <= near < len(t) and settled[near]):
-                continue
-            if 0 <= beyond < len(t) and settled[beyond]:
-                d = Q[near] - Q[beyond]
-                d[revolute] = (d[revolute] + np.pi) % (2 * np.pi) - np.pi  # across a wrap by 2π
-                tangent = d / (t[near] - t[beyond])
-            else:
-                tangent = v / v[j]
-            Q[k] = project(Q[near] + (t[k] - t[near]) * tangent, *limits)
-            Q[k, j] = t[k]
-            restarted.append(k)
-            break
-    return np.array(restarted, dtype=int)
 
 
 def _roots(
@@ -270,7 +338,7 @@ def _roots(
             break
         k = np.flatnonzero(active)
         w = (ra[k] / (ra[k] - rb[k]))[:, None]
-        q[k], r, across = settle(model, target, qa[k] + w * (qb[k] - qa[k]), j[k], limits, SETTLE_STEPS)
+        q[k], r, across = _settle_along(model, target, qa[k] + w * (qb[k] - qa[k]), j[k], limits, SETTLE_STEPS)
         done = (np.abs(r) <= tol) & (across <= tol)
         a = np.sign(r) == np.sign(ra[k])  # the new point replaces end a, else end b
         ka, kb = k[a], k[~a]
