@@ -8,6 +8,7 @@ import re
 import shlex
 import subprocess
 import sys
+import time
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -41,6 +42,23 @@ def commit(script: str) -> str:
     return head + (" + uncommitted changes" if dirty else "")
 
 
+def speed_check() -> str:
+    """A yardstick of the machine's speed when a section is written: on this shared machine it varies up to
+    threefold between runs, and every timing figure moves with it. One UR10 ``fk_single``, best of 5 × 2,000."""
+    from hybrid_kinematics_ros.kinematics import fk
+    from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+
+    chain = load_robot_config("ur10").chain
+    q = chain.mid_limits()
+    best = float("inf")
+    for _ in range(5):
+        start = time.perf_counter()
+        for _ in range(2000):
+            fk.fk_single(chain, q)
+        best = min(best, (time.perf_counter() - start) / 2000)
+    return f"one UR10 `fk_single` {1e6 * best:.1f} µs at the end of the run (best of 5 × 2,000)"
+
+
 def write_section(key: str, title: str, body: str) -> None:
     """Replace (or append) the section ``key`` of BENCHMARKS.md."""
     module = "bench." + Path(sys.argv[0]).stem
@@ -48,7 +66,8 @@ def write_section(key: str, title: str, body: str) -> None:
     stamp = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
     section = (
         f"<!-- section:{key} -->\n## {title}\n\n"
-        f"Command: `{command}`  \nMachine: {machine()}  \nRun: {stamp}  \nCommit: {commit(Path(sys.argv[0]).stem)}\n\n"
+        f"Command: `{command}`  \nMachine: {machine()}  \nSpeed check: {speed_check()}  \nRun: {stamp}  \n"
+        f"Commit: {commit(Path(sys.argv[0]).stem)}\n\n"
         f"{body.strip()}\n<!-- end:{key} -->\n"
     )
     text = BENCHMARKS.read_text() if BENCHMARKS.exists() else HEADER
