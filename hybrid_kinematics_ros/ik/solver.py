@@ -772,8 +772,9 @@ class IKSolver:
         starts = valley_starts(self.model, target, near, self.limits, deadline, self.inner_tol[0])
         if starts is None:
             return None
-        stats["valley"] = len(starts)
-        for q in starts:
+        stats["valley"] = 0
+        for q in starts:  # valley by valley, the seed's first: the next one is searched when these fail
+            stats["valley"] += 1
             result = self.result(q, target, False, start, dict(stats, method="singular valley"))
             if not result.success and time.perf_counter() < deadline:  # a double root: LM finishes from next to it
                 q, *_ = self.refiner.unbounded(target, q, deadline)

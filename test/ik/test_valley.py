@@ -62,6 +62,7 @@ def test_a_start_a_radian_along_the_valley_finds_a_hybrid_solution(trained):
             assert weak_direction(model, start)[1] > NEAR_SINGULAR
             continue
         searched += 1
+        starts = list(starts)
         assert len(starts) >= 1
         q, _, _ = solver.refiner.unbounded(target, starts[0], time.perf_counter() + 60.0)  # as the solver does
         position, rotation = hybrid_errors(model, q, target)
