@@ -95,7 +95,9 @@ def _poses_and_jacobians(model: HybridModel, Q: np.ndarray) -> tuple[np.ndarray,
     return model.fk(Q), model.fk_and_jacobian(Q, analytic=True)[1]
 
 
-def trace(model: HybridModel, q0: np.ndarray, v0: np.ndarray, limits: Limits) -> tuple[np.ndarray, np.ndarray, bool]:
+def trace(
+    model: HybridModel, q0: np.ndarray, v0: np.ndarray, limits: Limits, deadline: float = float("inf")
+) -> tuple[np.ndarray, np.ndarray, bool]:
     """The valley of the URDF model through ``q0``, in order: points TRACE_STEP apart along its weak motion
     (``v0`` at ``q0``), each moved back onto the valley by a Newton step in the five strong directions of the
     error to the URDF pose at ``q0``. One period of it (closed: it comes back next to ``q0`` up to whole
@@ -104,7 +106,8 @@ def trace(model: HybridModel, q0: np.ndarray, v0: np.ndarray, limits: Limits) ->
 
     Along the valley, no single joint need move monotonically: where the elbow stretches on the way (a UR10's
     wrist continuum whose wrist circle crosses the arm's reach) the valley turns back in every joint, and a
-    grid over one joint follows one side of it only."""
+    grid over one joint follows one side of it only. ``deadline``: the part traced by then (the search goes on
+    with it)."""
     lower, upper, revolute = limits
     pose = model.fk_single(q0, analytic=True)
     halves, closed = [], False
@@ -122,6 +125,8 @@ def trace(model: HybridModel, q0: np.ndarray, v0: np.ndarray, limits: Limits) ->
     for sign in (1.0, -1.0):
         q, v, points, motions = q0, sign * v0, [], []
         for _ in range(TRACE_POINTS):
+            if time.perf_counter() > deadline:  # the part traced so far is searched
+                break
             h = TRACE_STEP
             for _ in range(TURN_HALVINGS):  # where the valley turns sharply, shorter steps keep to it
                 x, w, moved = onto(q + h * v, v, v)
@@ -246,7 +251,7 @@ def _search(
             return
         if any(np.linalg.norm(_turned(points - q, revolute), axis=1).min() < TRACE_STEP for points in traced):
             continue
-        path = trace(model, q, v, limits)
+        path = trace(model, q, v, limits, deadline)
         traced.append(path[0])
         yield from _starts_along(model, target, path, near, limits, deadline, tol)
 
