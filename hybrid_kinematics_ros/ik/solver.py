@@ -766,7 +766,7 @@ class IKSolver:
         none is near a singularity or no root of the valleys reaches the target."""
         if not self.options.valley or deadline - time.perf_counter() < VALLEY_SHARE * self.options.timeout_s:
             return None  # tracing the valleys and settling their points take a few batched hybrid FKs: too late
-        # the valleys of every closed-form branch at once: at a shoulder singularity the solution can lie on
+        # the valleys of every closed-form branch, one by one: at a shoulder singularity the solution can lie on
         # another branch's valley (the shoulder flipped), and the seed's wanders across the wrist's
         near = np.vstack([*([] if nearest is None else [nearest]), q0, *self.branches(target, q0)])
         starts = valley_starts(self.model, target, near, self.limits, deadline, self.inner_tol[0])

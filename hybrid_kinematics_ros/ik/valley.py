@@ -46,8 +46,8 @@ from hybrid_kinematics_ros.model.hybrid import HybridModel
 # comes back within CLOSED steps of its start; where one Newton step moves a point further than TURN times
 # the step along (a sharp turn), the step halves, up to TURN_HALVINGS times (without: jumps of 1-3.6 rad
 # across a turn; with TURN 0.3, 50 % slower for no more found). Then POINT_STEPS chord steps settle the five
-# joints at each point (the traced points lie on the URDF model's valley, millimetres from the hybrid one), all
-# valleys' points in one batch through the hybrid FK, and the regula falsi steps within a bracket. Measured by
+# joints at each point (the traced points lie on the URDF model's valley, millimetres from the hybrid one), a
+# valley's points in one batch through the hybrid FK, and the regula falsi steps within a bracket. Measured by
 # the roots found from the closed forms' branches, 200 UR10 targets each (a model trained for a minute): a
 # step of 0.5 found 153 at the wrist centre on axis 1, against 163 at 0.35; one chord step 154 at q5 = 0,
 # against 185 with two.
@@ -57,7 +57,7 @@ CLOSED = 0.75
 TURN, TURN_HALVINGS = 1.0, 3
 POINT_STEPS = 2
 BRACKET_STEPS = 6
-MAX_ROOTS = 4  # brackets refined (all at once), over all valleys, nearest the first q_near first
+MAX_ROOTS = 4  # brackets refined (all at once) on each valley, nearest the first q_near first
 TOUCH_STEPS = 3  # parabola steps at a double root
 SETTLE_STEPS = 1  # a bracket's points lie between settled ones: one chord step (2 gave the same answers, slower)
 SINGLE_ROWS = 2  # settle's rows evaluated one by one up to this many
@@ -128,11 +128,13 @@ def trace(
             if time.perf_counter() > deadline:  # the part traced so far is searched
                 break
             h = TRACE_STEP
-            for _ in range(TURN_HALVINGS):  # where the valley turns sharply, shorter steps keep to it
+            for _ in range(TURN_HALVINGS + 1):  # where the valley turns sharply, shorter steps keep to it
                 x, w, moved = onto(q + h * v, v, v)
                 if moved < TURN * h:
                     break
                 h /= 2
+            else:  # no step short enough keeps to it: this way ends here
+                break
             beyond = (x < lower) | (x > upper)
             if beyond.any():
                 # a last point on the limit, that joint held there (and settled so): a root between the
@@ -153,8 +155,9 @@ def trace(
         halves.append((points, motions))
         if closed:
             break
-    if closed:  # its last point is q0 again, a turn on
-        points, motions = [q0, *halves[0][0][:-1]], [v0, *halves[0][1][:-1]]
+    if closed:  # the half that came back (the second, if the first ended at a limit); its last point is q0 again
+        (way, way_motions), facing = halves[-1], (-1.0) ** (len(halves) - 1)
+        points, motions = [q0, *way[:-1]], [facing * v0, *way_motions[:-1]]
     else:
         back, ahead = halves
         points = [*back[0][::-1], q0, *ahead[0]]
@@ -244,12 +247,12 @@ def _search(
 ) -> Iterator[np.ndarray]:
     """:func:`valley_starts`' generator: ``singular`` holds the rows near a singularity with their weak
     motions; a row on a valley traced already starts none of its own."""
-    revolute = limits[2]
     traced: list[np.ndarray] = []
     for q, v in singular:
         if time.perf_counter() > deadline:
             return
-        if any(np.linalg.norm(_turned(points - q, revolute), axis=1).min() < TRACE_STEP for points in traced):
+        # a row on a valley traced already (in raw joint values: the nets see another turn as another problem)
+        if any(np.linalg.norm(points - q, axis=1).min() < TRACE_STEP for points in traced):
             continue
         path = trace(model, q, v, limits, deadline)
         traced.append(path[0])
@@ -377,6 +380,7 @@ def _roots(
         k = np.flatnonzero(active)
         w = (ra[k] / (ra[k] - rb[k]))[:, None]
         q[k], r, across = _settle_along(model, target, qa[k] + w * (qb[k] - qa[k]), j[k], limits, SETTLE_STEPS)
+        q[k] = qa[k] + _turned(q[k] - qa[k], limits[2])  # on the bracket's turn, if settling wrapped a joint
         done = (np.abs(r) <= tol) & (across <= tol)
         a = np.sign(r) == np.sign(ra[k])  # the new point replaces end a, else end b
         ka, kb = k[a], k[~a]

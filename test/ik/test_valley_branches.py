@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import time
+from collections.abc import Iterable
 from dataclasses import replace
 
 import numpy as np
@@ -43,7 +44,7 @@ def shoulder_targets(rx160_model):
     return rx160_model.fk(q)
 
 
-def reaches(solver: IKSolver, target: np.ndarray, starts: list[np.ndarray] | None) -> bool:
+def reaches(solver: IKSolver, target: np.ndarray, starts: Iterable[np.ndarray] | None) -> bool:
     """Whether one of the valley's starts, finished by LM on the hybrid model as the solver does, reaches the
     target within 1e-4 mm and 1e-4° on the hybrid FK."""
     for q in starts or []:
