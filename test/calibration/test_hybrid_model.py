@@ -54,7 +54,10 @@ def test_hybrid_jacobian_matches_finite_differences(trained):
     q = test_pairs.q[:3]
     T, J = model.fk_and_jacobian(q)
     np.testing.assert_allclose(T, model.fk(q), atol=1e-12)
-    eps = 1e-4  # float32 nets: smaller steps drown in rounding
+    # float32 nets: the difference quotient's rounding error grows as 1/eps (measured on this fixture, worst over
+    # the 36 entries: 2.0e-6, 4.6e-6, 1.05e-5, 2.2e-5 at eps 4e-4, 2e-4, 1e-4, 5e-5), its truncation error is
+    # below that at 4e-4
+    eps = 4e-4
     for j in range(6):
         dq = np.zeros(6)
         dq[j] = eps
