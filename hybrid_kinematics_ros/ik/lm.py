@@ -85,6 +85,11 @@ def joint_limits(chain: Chain) -> Limits:
     return lower, upper, chain.revolute
 
 
+def turned(d: np.ndarray, revolute: np.ndarray) -> np.ndarray:
+    """Joint differences ``d`` (``(..., n)``) with the revolute ones taken to within half a turn."""
+    return np.where(revolute, (d + np.pi) % (2 * np.pi) - np.pi, d)
+
+
 def project(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, revolute: np.ndarray) -> np.ndarray:
     """Into the limits: wrap revolute joints by 2π where that lands inside, clip the rest."""
     two_pi = 2.0 * np.pi

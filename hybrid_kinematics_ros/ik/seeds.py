@@ -11,7 +11,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.stats import qmc
 
-from hybrid_kinematics_ros.ik.lm import Limits, project
+from hybrid_kinematics_ros.ik.lm import Limits, project, turned
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
@@ -95,6 +95,4 @@ def nearest_equivalent(q: np.ndarray, seed: np.ndarray, limits: Limits) -> np.nd
 
 def same_solution(a: np.ndarray, b: np.ndarray, revolute: np.ndarray) -> bool:
     """Equal within SAME_SOLUTION_RAD on every joint, modulo 2π on revolute ones."""
-    d = a - b
-    d[revolute] = (d[revolute] + np.pi) % (2 * np.pi) - np.pi
-    return bool(np.all(np.abs(d) < SAME_SOLUTION_RAD))
+    return bool(np.all(np.abs(turned(a - b, revolute)) < SAME_SOLUTION_RAD))

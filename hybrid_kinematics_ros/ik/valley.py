@@ -38,7 +38,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from hybrid_kinematics_ros.ik.lm import Limits, error6, error6_batch, project
+from hybrid_kinematics_ros.ik.lm import Limits, error6, error6_batch, project, turned
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 # Each valley is traced from its first point, TRACE_STEP (rad, joint space) apart, one period or from limit to
@@ -149,7 +149,7 @@ def trace(
             q, v = x, w
             points.append(q)
             motions.append(v)
-            if len(points) > 2 and np.linalg.norm(_turned(q - q0, revolute)) < CLOSED * TRACE_STEP:
+            if len(points) > 2 and np.linalg.norm(turned(q - q0, revolute)) < CLOSED * TRACE_STEP:
                 closed = True
                 break
         halves.append((points, motions))
@@ -165,9 +165,9 @@ def trace(
     return np.array(points), np.array(motions), closed
 
 
-def _turned(d: np.ndarray, revolute: np.ndarray) -> np.ndarray:
-    """Joint differences ``d`` with the revolute ones taken to within half a turn."""
-    return np.where(revolute, (d + np.pi) % (2 * np.pi) - np.pi, d)
+def _free(j: np.ndarray, n: int) -> np.ndarray:
+    """``(K, n - 1)``: each row's joints but ``j (K,)``."""
+    return np.nonzero(np.arange(n) != j[:, None])[1].reshape(len(j), n - 1)
 
 
 def settle(
@@ -176,7 +176,7 @@ def settle(
     """Chord steps in the free joints of every row of ``Q (K, n)`` (in place), each row's valley joint
     ``j (K,)`` held. Returns ``Q``, the pose errors ``(K, 6)`` and the URDF Jacobians ``(K, 6, n)`` there."""
     n = Q.shape[1]
-    free = np.nonzero(np.arange(n) != j[:, None])[1].reshape(len(Q), n - 1)
+    free = _free(j, n)
     rows = np.arange(len(Q))[:, None]
     free_limits = tuple(side[free] for side in limits)
     for step in range(steps + 1):
@@ -195,8 +195,7 @@ def along(e: np.ndarray, J: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.n
     """The signed error along the lost direction ``(K,)``, normal to the URDF Jacobian's columns but joint
     ``j (K,)``'s, and the error left across it ``(K,)`` (m and rad as one vector: what those five joints did
     not remove). The sign depends on ``j``: compare rows in one joint's convention."""
-    n = J.shape[2]
-    free = np.nonzero(np.arange(n) != j[:, None])[1].reshape(len(J), n - 1)
+    free = _free(j, J.shape[2])
     u = _normal(np.take_along_axis(J, free[:, None, :], axis=2))
     r = np.einsum("ki,ki->k", u, e)
     return r, np.linalg.norm(e - r[:, None] * u, axis=1)
@@ -282,7 +281,7 @@ def _starts_along(
     if closed and m > 2:
         pairs = np.vstack([pairs, [[m - 1, 0]]])
     a, b = pairs[:, 0], pairs[:, 1]
-    qb = Q[a] + _turned(Q[b] - Q[a], revolute)  # b taken to a's turn
+    qb = Q[a] + turned(Q[b] - Q[a], revolute)  # b taken to a's turn
     jb = np.argmax(np.abs(qb - Q[a]), axis=1)  # each pair compares r in the joint that moves most between them
     ra, rb = along(e[a], J[a], jb)[0], along(e[b], J[b], jb)[0]
     ok = settled[a] & settled[b]
@@ -296,7 +295,7 @@ def _starts_along(
     k = k[ok[k] & ok[k2] & ~crossing[k] & ~crossing[k2]]
     k2 = nxt[b[k]]
     x, y, z = a[k], b[k], b[k2]
-    three = Q[y][:, None] + _turned(np.stack([Q[x], Q[y], Q[z]], axis=1) - Q[y][:, None], revolute)  # y's turn
+    three = Q[y][:, None] + turned(np.stack([Q[x], Q[y], Q[z]], axis=1) - Q[y][:, None], revolute)  # y's turn
     jt = np.argmax(np.abs(three[:, 2] - three[:, 0]), axis=1)
     t = np.take_along_axis(three, jt[:, None, None], axis=2)[:, :, 0]
     monotonic = ((t[:, 0] < t[:, 1]) & (t[:, 1] < t[:, 2])) | ((t[:, 0] > t[:, 1]) & (t[:, 1] > t[:, 2]))
@@ -380,7 +379,7 @@ def _roots(
         k = np.flatnonzero(active)
         w = (ra[k] / (ra[k] - rb[k]))[:, None]
         q[k], r, across = _settle_along(model, target, qa[k] + w * (qb[k] - qa[k]), j[k], limits, SETTLE_STEPS)
-        q[k] = qa[k] + _turned(q[k] - qa[k], limits[2])  # on the bracket's turn, if settling wrapped a joint
+        q[k] = qa[k] + turned(q[k] - qa[k], limits[2])  # on the bracket's turn, if settling wrapped a joint
         done = (np.abs(r) <= tol) & (across <= tol)
         a = np.sign(r) == np.sign(ra[k])  # the new point replaces end a, else end b
         ka, kb = k[a], k[~a]
