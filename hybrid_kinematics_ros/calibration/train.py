@@ -108,6 +108,9 @@ def build_net(job: NetJob) -> ResidualNet:
     )
 
 
+GATE_CHUNKS = 10  # the validation pairs' chunks the nets' gate takes its noise from (one a block, by default)
+
+
 def _validation_error(net: ResidualNet, q: torch.Tensor, y: torch.Tensor) -> float:
     net.eval()
     with torch.no_grad():
@@ -118,15 +121,20 @@ def _validation_error(net: ResidualNet, q: torch.Tensor, y: torch.Tensor) -> flo
 
 def _beats_nothing(net: ResidualNet, q: torch.Tensor, y: torch.Tensor) -> bool:
     """Whether ``net`` corrects the validation pairs better than correcting nothing by more than the
-    validation noise (one standard error of the per-pair differences): the simpler model, the stage alone,
-    wins a tie, as in the stage's own capacity choice."""
+    validation noise: the simpler model, the stage alone, wins a tie, as in the stage's own capacity choice.
+
+    The noise is one standard error of the differences' means over :data:`GATE_CHUNKS` consecutive chunks of
+    the validation pairs (they come in recording order, whole blocks of it), not over single pairs: neighbours
+    along a recording share their errors, so single pairs count the same evidence many times over.
+    """
     if not len(y):
         return True
     net.eval()
     with torch.no_grad():
         diff = (torch.linalg.vector_norm(net(q) - y, dim=1) - torch.linalg.vector_norm(y, dim=1)).numpy()
     net.train()
-    noise = float(np.std(diff, ddof=1) / np.sqrt(len(diff))) if len(diff) > 1 else 0.0
+    chunks = [c.mean() for c in np.array_split(diff, min(GATE_CHUNKS, len(diff)))]
+    noise = float(np.std(chunks, ddof=1) / np.sqrt(len(chunks))) if len(chunks) > 1 else 0.0
     return float(np.mean(diff)) < -noise
 
 
