@@ -381,7 +381,8 @@ def select_capacity(
 
     # The joint error map, fitted per fold on what that fold's stage leaves of its training pairs (and, with
     # approach directions, of the backlash they explain: the nets will carry that part).
-    folds = _Folds.build(lin, total, interleaved=True, base=base, blocks=MAP_BLOCKS)
+    # (fewer blocks than pairs, or some folds would hold out nothing, or everything)
+    folds = _Folds.build(lin, total, interleaved=True, base=base, blocks=min(MAP_BLOCKS, len(lin.pick)))
     use = stage_columns(elastic, harmonics, backlash)
     stage = [folds.solve(f, use, prior(settings["harmonic_prior"])) for f in range(FOLDS)]
     # what each fold's stage leaves of its held-out and of its training pairs (the same for every map)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hybrid_kinematics_ros.calibration.capacity import FOLDS, MAP_BLOCKS, _Folds, _normal
+from hybrid_kinematics_ros.calibration.capacity import FOLDS, MAP_BLOCKS, _Folds, _normal, select_capacity
 from hybrid_kinematics_ros.calibration.parametric import linearise
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.simulation.truth import TrueRobot
@@ -48,3 +48,16 @@ def test_each_fold_holds_out_its_blocks_and_solves_the_rest(lin, interleaved):
         w = base.weight[keep].reshape(-1)
         np.testing.assert_allclose(folds.normal[f], a.T @ (w[:, None] * a), rtol=1e-8, atol=1e-8 * np.abs(a).max() ** 2)
         np.testing.assert_allclose(folds.gradient[f], a.T @ (w * lin.residual[keep].reshape(-1)), rtol=1e-8, atol=1e-14)
+
+
+def test_a_few_pairs_still_get_every_fold():
+    """20 pairs (the fewest a stage takes): the map's folds use as many blocks as there are pairs, so each
+    holds out some and keeps some, and the selection runs through."""
+    cfg = load_robot_config("ur10")
+    q = np.random.default_rng(4).uniform(cfg.chain.lower, cfg.chain.upper, (20, cfg.chain.dof))
+    T = TrueRobot.from_config(cfg).fk(q)
+    few = linearise(cfg.chain, q, T, payload_mass=cfg.payload_mass, payload_com=cfg.payload_com, harmonics=2)
+    chosen = select_capacity(few, len(q))
+    assert [d["setting"] for d in chosen.decisions][-1].startswith("map")
+    folds = _Folds.build(few, len(q), interleaved=True, base=_normal(few), blocks=min(MAP_BLOCKS, len(few.pick)))
+    assert all(0 < h.sum() < len(q) for h in folds.held)
