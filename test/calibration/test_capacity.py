@@ -59,5 +59,5 @@ def test_a_few_pairs_still_get_every_fold():
     few = linearise(cfg.chain, q, T, payload_mass=cfg.payload_mass, payload_com=cfg.payload_com, harmonics=2)
     chosen = select_capacity(few, len(q))
     assert [d["setting"] for d in chosen.decisions][-1].startswith("map")
-    folds = _Folds.build(few, len(q), interleaved=True, base=_normal(few), blocks=min(MAP_BLOCKS, len(few.pick)))
+    folds = _Folds.build(few, len(q), interleaved=True, base=_normal(few), blocks=MAP_BLOCKS)
     assert all(0 < h.sum() < len(q) for h in folds.held)
