@@ -17,6 +17,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
+from scipy import stats
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.nets import ResidualNet
@@ -109,49 +110,115 @@ def build_net(job: NetJob) -> ResidualNet:
 
 
 GATE_CHUNKS = 10  # the validation pairs' chunks the nets' gate takes its noise from (one a block, by default)
+GATE_CONFIDENCE = 0.95  # the nets are kept when their gain over the stage is significant at this level
 
 
-def _validation_error(net: ResidualNet, q: torch.Tensor, y: torch.Tensor) -> float:
+def _predict(net: ResidualNet, q: torch.Tensor) -> np.ndarray:
     net.eval()
     with torch.no_grad():
-        err = torch.linalg.vector_norm(net(q) - y, dim=1).mean().item()
+        out = net(q).numpy()
     net.train()
-    return err
+    return out
 
 
-def _beats_nothing(net: ResidualNet, q: torch.Tensor, y: torch.Tensor) -> bool:
-    """Whether ``net`` corrects the validation pairs better than correcting nothing by more than the
-    validation noise: the simpler model, the stage alone, wins a tie, as in the stage's own capacity choice.
+def _halves(n: int) -> np.ndarray:
+    """The half (0 or 1) of each of ``n`` validation pairs: alternate ones of :data:`GATE_CHUNKS` consecutive
+    chunks, so that each half holds whole blocks from all along the recording."""
+    chunk = np.zeros(n, dtype=int)
+    for i, idx in enumerate(np.array_split(np.arange(n), min(GATE_CHUNKS, max(n, 1)))):
+        chunk[idx] = i
+    return chunk % 2
 
-    The noise is one standard error of the differences' means over :data:`GATE_CHUNKS` consecutive chunks of
-    the validation pairs (they come in recording order, whole blocks of it), not over single pairs: neighbours
-    along a recording share their errors, so single pairs count the same evidence many times over.
+
+def _beats_nothing(diff: np.ndarray) -> bool:
+    """Whether a net's errors beat those of correcting nothing significantly; ``diff``: per validation pair,
+    in recording order, the net's error less the size of what the stage left. The simpler model, the stage
+    alone, wins unless the nets' gain passes a one-sided t-test at :data:`GATE_CONFIDENCE`: the nets add
+    tens of thousands of weights to the stage's hundreds, so they must show their worth, not merely tie.
+
+    The test is over the means of :data:`GATE_CHUNKS` consecutive chunks of the validation pairs (they come
+    in recording order, whole blocks of it), not over single pairs: neighbours along a recording share their
+    errors, so single pairs count the same evidence many times over.
     """
-    if not len(y):
+    if not len(diff):
         return True
-    net.eval()
-    with torch.no_grad():
-        diff = (torch.linalg.vector_norm(net(q) - y, dim=1) - torch.linalg.vector_norm(y, dim=1)).numpy()
-    net.train()
     chunks = [c.mean() for c in np.array_split(diff, min(GATE_CHUNKS, len(diff)))]
-    noise = float(np.std(chunks, ddof=1) / np.sqrt(len(chunks))) if len(chunks) > 1 else 0.0
-    return float(np.mean(diff)) < -noise
+    if len(chunks) < 2:
+        return bool(np.mean(chunks) < 0.0)
+    error = float(np.std(chunks, ddof=1) / np.sqrt(len(chunks)))
+    return bool(np.mean(chunks) < -stats.t.ppf(GATE_CONFIDENCE, len(chunks) - 1) * error)
 
 
-def train_net(
-    job: NetJob, report: Callable[[dict], None] | None = None, gate: bool = True
-) -> tuple[ResidualNet, list[dict]]:
+class _Selection:
+    """The epochs a net keeps, chosen on the validation pairs: the best on every pair, which is served, and,
+    for the gate, the best on each half of them (:func:`_halves`). An epoch chosen on some pairs cannot be
+    judged on them: the best of thousands of epochs beats nothing on the pairs that chose it even where the
+    net learned only noise. So the gate judges each half by the epoch the *other* half chose (a cross-fit)."""
+
+    def __init__(self, y: np.ndarray) -> None:
+        self.y = y
+        self.nothing = np.linalg.norm(y, axis=1)
+        self.best = float(self.nothing.mean()) if len(y) else math.inf  # correcting nothing, to beat
+        half = _halves(len(y))
+        self.sides = [half == h for h in (0, 1)]
+        self.side_best = [float(self.nothing[s].mean()) if s.any() else -math.inf for s in self.sides]
+        self.crossed = np.zeros_like(y)  # each pair's correction by the epoch the other half chose
+
+    def update(self, pred: np.ndarray) -> tuple[float, bool]:
+        """One epoch's corrections of the validation pairs: their mean error, and whether it is the best yet."""
+        err = np.linalg.norm(pred - self.y, axis=1)
+        for h, side in enumerate(self.sides):
+            if side.any() and err[side].mean() < self.side_best[h]:
+                self.side_best[h] = float(err[side].mean())
+                self.crossed[self.sides[1 - h]] = pred[self.sides[1 - h]]
+        val = float(err.mean()) if len(err) else math.inf
+        if val < self.best:
+            self.best = val
+            return val, True
+        return val, False
+
+
+def _gain(crossed: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Per validation pair: the error after the crossed correction less that of correcting nothing (what
+    :func:`_beats_nothing` judges)."""
+    return np.linalg.norm(crossed - y, axis=1) - np.linalg.norm(y, axis=1)
+
+
+@dataclass
+class _Fitted:
+    """One net's training run: the weights served and what the gate may judge them by."""
+
+    state: dict[str, torch.Tensor]  # the epoch best on every validation pair (or the last one, if none was)
+    beat: bool  # whether any epoch beat correcting nothing on every validation pair
+    crossed: np.ndarray  # (N_val, 3): each validation pair's correction by the epoch the *other* half chose
+    history: list[dict]
+
+
+def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tuple[ResidualNet, list[dict]]:
     """Train one residual net; returns the best net on validation and the per-epoch history.
 
-    The net must beat correcting nothing: if no epoch's validation error is below that of the stage
-    before it (the targets' own size) by more than the validation noise (:func:`_beats_nothing`), the net
-    is silenced (outputs zero), so the nets never make the model worse on validation. With little or
-    unstructured data this happens (real UR10, 1k pairs; 300 poses of a virtual cell).
-    An ensemble's members train one after the other (:func:`_train_members`); ``gate=False`` (a member)
-    leaves the noise test to the ensemble.
+    The net must beat correcting nothing: if the epochs it would keep do not beat the stage before it (the
+    targets' own size) on validation significantly (:func:`_beats_nothing`), judged by a cross-fit of the
+    epoch's choice (:class:`_Selection`), the net is silenced (outputs zero), so the nets do not make the
+    model worse where it can be checked. With little or unstructured data the net is silenced (real UR10,
+    250 pairs; 300 poses of a virtual cell).
+    An ensemble's members train one after the other (:func:`_train_members`) and are gated together.
     """
     if job.preset.members > 1:
         return _train_members(job, report)
+    fitted = _fit(job, report)
+    net = build_net(job)
+    net.load_state_dict(fitted.state)
+    if not fitted.beat or not _beats_nothing(_gain(fitted.crossed, job.y_val)):
+        net.silence()
+        fitted.history[-1]["silenced"] = True
+    net.eval()
+    return net, fitted.history
+
+
+def _fit(job: NetJob, report: Callable[[dict], None] | None) -> _Fitted:
+    """The training loop of one net (one body), keeping the best epoch on every validation pair and on each
+    half of them (:func:`_halves`)."""
     torch.manual_seed(job.seed)
     p = job.preset
     net = build_net(job)
@@ -160,7 +227,8 @@ def train_net(
     y_std = (to_joint1_frame(job.y_train, job.q_train[:, 0], axis) - mean) / scale
     q_train = torch.tensor(job.q_train)
     y_train = torch.tensor(y_std, dtype=torch.float32)
-    q_val, y_val = torch.tensor(job.q_val), torch.tensor(job.y_val)
+    q_val = torch.tensor(job.q_val)
+    selection = _Selection(job.y_val)
     if p.optimizer == "adam":
         opt: torch.optim.Optimizer = torch.optim.Adam(net.parameters(), lr=p.lr)
     else:
@@ -168,8 +236,7 @@ def train_net(
     n = len(q_train)
     batch = min(p.batch, n)
     gen = torch.Generator().manual_seed(job.seed)
-    nothing = torch.linalg.vector_norm(y_val, dim=1).mean().item() if len(y_val) else math.inf
-    best = (nothing, None)
+    state = None
     history: list[dict] = []
     start = time.perf_counter()
     stale = 0
@@ -207,9 +274,9 @@ def train_net(
             done_steps += 1
         if steps == 0:
             break
-        val = _validation_error(net, q_val, y_val)
-        if val < best[0]:
-            best = (val, {k: v.clone() for k, v in net.state_dict().items()})
+        val, improved = selection.update(_predict(net, q_val))
+        if improved:
+            state = {k: v.clone() for k, v in net.state_dict().items()}
             stale = 0
         else:
             stale += 1
@@ -219,7 +286,7 @@ def train_net(
             "seconds": round(time.perf_counter() - start, 2),
             "loss": total / steps,
             f"val_{unit}": val * factor,
-            f"best_val_{unit}": best[0] * factor,
+            f"best_val_{unit}": selection.best * factor,
         }
         history.append(entry)
         if report:
@@ -228,13 +295,9 @@ def train_net(
             break
     if not history:
         raise CalibrationError(f"{job.kind} net: no training step fitted in the time budget; give more time")
-    if best[1] is not None:
-        net.load_state_dict(best[1])
-    if best[1] is None or (gate and not _beats_nothing(net, q_val, y_val)):
-        net.silence()
-        history[-1]["silenced"] = True
-    net.eval()
-    return net, history
+    if state is None:
+        return _Fitted(net.state_dict(), False, selection.crossed, history)
+    return _Fitted(state, True, selection.crossed, history)
 
 
 MEMBER_SEED_STRIDE = 1000  # member i trains from seed + i * this: apart from the other net's seed (+1)
@@ -242,7 +305,8 @@ MEMBER_SEED_STRIDE = 1000  # member i trains from seed + i * this: apart from th
 
 def _train_members(job: NetJob, report: Callable[[dict], None] | None) -> tuple[ResidualNet, list[dict]]:
     """Each member as a single net from its own seed, with an equal share of the steps and the time
-    budget; the ensemble is silenced like a single net if its average does not beat correcting nothing.
+    budget; the ensemble is silenced like a single net if its average does not beat correcting nothing
+    (judged as a single net's, each half of the validation pairs by the members the other half chose).
     History entries carry ``member``; their epochs and seconds count on across members."""
     k = job.preset.members
     single = replace(job, preset=replace(job.preset, members=1), max_seconds=job.max_seconds / k)
@@ -256,23 +320,26 @@ def _train_members(job: NetJob, report: Callable[[dict], None] | None) -> tuple[
             "seconds": round(entry["seconds"] + seconds, 2),
         }
 
-    bodies = []
-    for i in range(k):
+    net = build_net(job)
+    crossed = np.zeros_like(job.y_val)
+    for i, target in enumerate(net.body.members):
         epochs, seconds = (history[-1]["epoch"], history[-1]["seconds"]) if history else (0, 0.0)
         relay = None if report is None else (lambda e, a=epochs, b=seconds, m=i: report(counted_on(e, a, b, m)))
-        member, member_history = train_net(replace(single, seed=job.seed + i * MEMBER_SEED_STRIDE), relay, gate=False)
-        history += [counted_on(e, epochs, seconds, i) for e in member_history]
-        bodies.append(member.body)
-    net = build_net(job)
-    for target, body in zip(net.body.members, bodies, strict=True):
-        target.load_state_dict(body.state_dict())
+        member_job = replace(single, seed=job.seed + i * MEMBER_SEED_STRIDE)
+        fitted = _fit(member_job, relay)
+        history += [counted_on(e, epochs, seconds, i) for e in fitted.history]
+        member = build_net(member_job)
+        member.load_state_dict(fitted.state)
+        target.load_state_dict(member.body.state_dict())
+        crossed += fitted.crossed / k  # the members share the output's scale, so their average is linear
     q_val, y_val = torch.tensor(job.q_val), torch.tensor(job.y_val)
     unit, factor = UNIT[job.kind]
     nothing = torch.linalg.vector_norm(y_val, dim=1).mean().item() if len(y_val) else math.inf
-    val = _validation_error(net, q_val, y_val)
+    err = np.linalg.norm(_predict(net, q_val) - job.y_val, axis=1)
+    val = float(err.mean()) if len(err) else math.inf
     last = {k: v for k, v in history[-1].items() if k != "silenced"}
     history[-1] = {**last, f"val_{unit}": val * factor, f"best_val_{unit}": min(val, nothing) * factor}
-    if val >= nothing or not _beats_nothing(net, q_val, y_val):
+    if val >= nothing or not _beats_nothing(_gain(crossed, job.y_val)):
         net.silence()
         history[-1]["silenced"] = True
     net.eval()

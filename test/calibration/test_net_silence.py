@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import torch
 
 from hybrid_kinematics_ros.calibration import train
@@ -43,17 +44,6 @@ def test_a_net_that_helps_is_kept():
     assert err < 0.5 * nothing
 
 
-class _Fixed(torch.nn.Module):
-    """A stand-in for a trained net: a fixed answer for each validation pair (its index in ``q[:, 0]``)."""
-
-    def __init__(self, answers: np.ndarray):
-        super().__init__()
-        self.register_buffer("answers", torch.tensor(answers))
-
-    def forward(self, q: torch.Tensor) -> torch.Tensor:
-        return self.answers[q[:, 0].long()]
-
-
 def test_the_gate_counts_a_block_of_the_recording_once():
     """Along a recording, neighbours share their errors: a net that helps on half of the validation blocks
     and hurts on the other half helps on average, by less than the blocks' spread. Counted by single pairs
@@ -63,11 +53,44 @@ def test_the_gate_counts_a_block_of_the_recording_once():
     # the net's error per block, as a share of y: 0 (it fixes the block) or 1.8 (it overshoots)
     share = np.repeat(np.where(np.arange(blocks) % 2 == 0, 0.0, 1.8), per_block)
     answers = y * (1.0 - share[:, None])
-    q = torch.tensor(np.column_stack([np.arange(len(y)), np.zeros((len(y), 5))]), dtype=torch.float64)
-    net = _Fixed(answers)
-    diff = np.linalg.norm(answers - y, axis=1) - np.linalg.norm(y, axis=1)
+    diff = train._gain(answers, y)
     assert diff.mean() < -3 * diff.std(ddof=1) / np.sqrt(len(diff))  # by single pairs: beats nothing
-    assert not train._beats_nothing(net, q, torch.tensor(y))
+    assert not train._beats_nothing(diff)
     # the same mean gain, the same in every block: the net is kept
     steady = y * (1.0 - np.full(len(y), 0.9)[:, None])
-    assert train._beats_nothing(_Fixed(steady), q, torch.tensor(y))
+    assert train._beats_nothing(train._gain(steady, y))
+
+
+def test_the_gate_judges_each_half_by_the_epoch_the_other_half_chose():
+    """The epoch served is the one the validation pairs chose, so they cannot also judge it. Two epochs that
+    each fit one half of the validation pairs (by chance, say) and miss the other look perfect on the pairs
+    that chose them; the gate judges each half by the other half's choice, and silences them."""
+    y = np.random.default_rng(1).normal(0.0, 1e-4, (300, 3))  # what the stage leaves
+    half = train._halves(len(y))
+    assert set(np.bincount(half)) == {150}  # alternate chunks of the recording
+    assert (np.diff(half) != 0).sum() == train.GATE_CHUNKS - 1
+    selection = train._Selection(y)
+    nothing = np.linalg.norm(y, axis=1)
+    first = np.where(half[:, None] == 0, y, -0.5 * y)  # fixes half 0, overshoots half 1
+    second = np.where(half[:, None] == 1, y, -0.6 * y)  # fixes half 1, overshoots half 0
+    assert selection.update(0.5 * y) == (pytest.approx(0.5 * nothing.mean()), True)  # a fair epoch first
+    assert selection.update(first)[1] is False  # 0 on half 0, 1.5 times what the stage left on half 1
+    assert selection.update(second)[1] is False
+    # half 0 chose `first`, half 1 `second`; each judges the other's choice
+    np.testing.assert_array_equal(selection.crossed[half == 1], first[half == 1])
+    np.testing.assert_array_equal(selection.crossed[half == 0], second[half == 0])
+    assert not train._beats_nothing(train._gain(selection.crossed, y))
+    # judged on the pairs that chose them, the same choices looked perfect
+    assert train._beats_nothing(train._gain(np.where(half[:, None] == 0, first, second), y))
+
+
+def test_a_net_is_kept_only_on_a_significant_gain():
+    """A mean gain within the spread of the chunks' means does not keep the nets (it passed one standard
+    error, the former rule); a larger one over the same spread does."""
+    rng = np.random.default_rng(2)
+    chunk = np.repeat(np.arange(train.GATE_CHUNKS), 100)
+    spread = rng.normal(0.0, 1.0, train.GATE_CHUNKS)
+    spread = (spread - spread.mean()) / spread.std(ddof=1)  # mean 0, standard deviation 1
+    for gain_in_errors, kept in ((1.2, False), (3.0, True)):  # the mean gain, in standard errors of the chunks
+        share = 0.1 * (gain_in_errors / np.sqrt(train.GATE_CHUNKS) + spread[chunk])
+        assert train._beats_nothing(-share * 1e-4) is kept
