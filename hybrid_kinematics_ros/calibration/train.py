@@ -141,7 +141,7 @@ def _beats_nothing(diff: np.ndarray) -> bool:
     errors, so single pairs count the same evidence many times over.
     """
     if not len(diff):
-        return True
+        return False  # no validation pair: nothing shows the nets' worth
     chunks = [c.mean() for c in np.array_split(diff, min(GATE_CHUNKS, len(diff)))]
     if len(chunks) < 2:
         return bool(np.mean(chunks) < 0.0)
@@ -151,9 +151,15 @@ def _beats_nothing(diff: np.ndarray) -> bool:
 
 class _Selection:
     """The epochs a net keeps, chosen on the validation pairs: the best on every pair, which is served, and,
-    for the gate, the best on each half of them (:func:`_halves`). An epoch chosen on some pairs cannot be
-    judged on them: the best of thousands of epochs beats nothing on the pairs that chose it even where the
-    net learned only noise. So the gate judges each half by the epoch the *other* half chose (a cross-fit)."""
+    for the gate, the best on each half of them (:func:`_halves`), or correcting nothing where no epoch beats
+    it there. An epoch chosen on some pairs cannot be judged on them: the best of thousands of epochs beats
+    nothing on the pairs that chose it even where the net learned only noise. So the gate judges each half by
+    the epoch the *other* half chose (a cross-fit). With one validation pair there is no other half, and the
+    net is silenced.
+
+    The halves alternate along the recording, so a block at the edge of one half shares some of its errors
+    with its neighbour in the other: the cross-fit is honest about the choice of epoch, less so about errors
+    that drift slowly along the recording."""
 
     def __init__(self, y: np.ndarray) -> None:
         self.y = y
@@ -163,6 +169,7 @@ class _Selection:
         self.sides = [half == h for h in (0, 1)]
         self.side_best = [float(self.nothing[s].mean()) if s.any() else -math.inf for s in self.sides]
         self.crossed = np.zeros_like(y)  # each pair's correction by the epoch the other half chose
+        self.chosen = np.zeros(len(y), dtype=bool)  # whether the other half chose an epoch (else: nothing)
 
     def update(self, pred: np.ndarray) -> tuple[float, bool]:
         """One epoch's corrections of the validation pairs: their mean error, and whether it is the best yet."""
@@ -171,6 +178,7 @@ class _Selection:
             if side.any() and err[side].mean() < self.side_best[h]:
                 self.side_best[h] = float(err[side].mean())
                 self.crossed[self.sides[1 - h]] = pred[self.sides[1 - h]]
+                self.chosen[self.sides[1 - h]] = True
         val = float(err.mean()) if len(err) else math.inf
         if val < self.best:
             self.best = val
@@ -191,6 +199,7 @@ class _Fitted:
     state: dict[str, torch.Tensor]  # the epoch best on every validation pair (or the last one, if none was)
     beat: bool  # whether any epoch beat correcting nothing on every validation pair
     crossed: np.ndarray  # (N_val, 3): each validation pair's correction by the epoch the *other* half chose
+    chosen: np.ndarray  # (N_val,): whether that half chose an epoch; where not, ``crossed`` is zero (nothing)
     history: list[dict]
 
 
@@ -296,8 +305,9 @@ def _fit(job: NetJob, report: Callable[[dict], None] | None) -> _Fitted:
     if not history:
         raise CalibrationError(f"{job.kind} net: no training step fitted in the time budget; give more time")
     if state is None:
-        return _Fitted(net.state_dict(), False, selection.crossed, history)
-    return _Fitted(state, True, selection.crossed, history)
+        last = {k: v.clone() for k, v in net.state_dict().items()}
+        return _Fitted(last, False, selection.crossed, selection.chosen, history)
+    return _Fitted(state, True, selection.crossed, selection.chosen, history)
 
 
 MEMBER_SEED_STRIDE = 1000  # member i trains from seed + i * this: apart from the other net's seed (+1)
@@ -306,7 +316,8 @@ MEMBER_SEED_STRIDE = 1000  # member i trains from seed + i * this: apart from th
 def _train_members(job: NetJob, report: Callable[[dict], None] | None) -> tuple[ResidualNet, list[dict]]:
     """Each member as a single net from its own seed, with an equal share of the steps and the time
     budget; the ensemble is silenced like a single net if its average does not beat correcting nothing
-    (judged as a single net's, each half of the validation pairs by the members the other half chose).
+    (judged as a single net's, each half of the validation pairs by the members the other half chose; a
+    member cannot correct nothing, so where a half chose no epoch of it, by the member as served).
     History entries carry ``member``; their epochs and seconds count on across members."""
     k = job.preset.members
     single = replace(job, preset=replace(job.preset, members=1), max_seconds=job.max_seconds / k)
@@ -331,7 +342,9 @@ def _train_members(job: NetJob, report: Callable[[dict], None] | None) -> tuple[
         member = build_net(member_job)
         member.load_state_dict(fitted.state)
         target.load_state_dict(member.body.state_dict())
-        crossed += fitted.crossed / k  # the members share the output's scale, so their average is linear
+        served = _predict(member, torch.tensor(job.q_val)) if not fitted.chosen.all() else fitted.crossed
+        # the members share the output's scale, so the ensemble's correction is their average
+        crossed += np.where(fitted.chosen[:, None], fitted.crossed, served) / k
     q_val, y_val = torch.tensor(job.q_val), torch.tensor(job.y_val)
     unit, factor = UNIT[job.kind]
     nothing = torch.linalg.vector_norm(y_val, dim=1).mean().item() if len(y_val) else math.inf

@@ -85,12 +85,35 @@ def test_the_gate_judges_each_half_by_the_epoch_the_other_half_chose():
 
 
 def test_a_net_is_kept_only_on_a_significant_gain():
-    """A mean gain within the spread of the chunks' means does not keep the nets (it passed one standard
-    error, the former rule); a larger one over the same spread does."""
+    """A mean gain within the spread of the chunks' means does not keep the nets (1.2 standard errors passed
+    the former rule, 1.7 would pass a normal test at 95 %); a larger one over the same spread does (2.0 fails a
+    two-sided test at 95 %: the test is one-sided, a t over the 10 chunks)."""
     rng = np.random.default_rng(2)
     chunk = np.repeat(np.arange(train.GATE_CHUNKS), 100)
     spread = rng.normal(0.0, 1.0, train.GATE_CHUNKS)
     spread = (spread - spread.mean()) / spread.std(ddof=1)  # mean 0, standard deviation 1
-    for gain_in_errors, kept in ((1.2, False), (3.0, True)):  # the mean gain, in standard errors of the chunks
+    # the mean gain, in standard errors of the chunks
+    for gain_in_errors, kept in ((1.2, False), (1.7, False), (2.0, True), (3.0, True)):
         share = 0.1 * (gain_in_errors / np.sqrt(train.GATE_CHUNKS) + spread[chunk])
         assert train._beats_nothing(-share * 1e-4) is kept
+
+
+@pytest.mark.parametrize("members", [1, 3])
+def test_the_served_net_is_gated_by_the_crossed_choice(monkeypatch, members):
+    """The net served beats nothing on every validation pair; whether it is kept is up to the crossed choice
+    alone, for a single net and an ensemble alike (where a half chose no epoch of a member, the member as served
+    stands in: it cannot correct nothing)."""
+    job = _job(1.0)
+    job = replace(job, preset=replace(job.preset, members=members))
+    trained = train._fit(replace(job, preset=replace(job.preset, members=1)), None)
+    assert trained.beat
+    for crossed, chosen, kept in (
+        (job.y_val, np.ones(len(job.y_val), bool), True),  # the other half's choice fixes every pair
+        (-job.y_val, np.ones(len(job.y_val), bool), False),  # it doubles every error
+        (np.zeros_like(job.y_val), np.zeros(len(job.y_val), bool), members > 1),  # no half chose an epoch
+    ):
+        fitted = train._Fitted(trained.state, True, crossed, chosen, [dict(e) for e in trained.history])
+        monkeypatch.setattr(train, "_fit", lambda *_a, f=fitted: f)
+        net, history = train.train_net(job)
+        assert ("silenced" not in history[-1]) is kept, (crossed[:1], chosen[:1])
+        assert bool(net(torch.tensor(job.q_val)).detach().numpy().any()) is kept
