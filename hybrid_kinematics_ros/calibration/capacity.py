@@ -205,7 +205,8 @@ class _Folds:
         """The folds of ``lin``: each a contiguous fifth of the recording, or, ``interleaved``, every fifth
         block. ``base``: the normal equations over every pair (:func:`_normal`), formed once for every fold
         design. ``blocks`` is capped at one block a pair, so that no fold is ever empty of training pairs."""
-        block = _blocks(lin, total, min(blocks, len(lin.pick)))
+        blocks = min(blocks, len(lin.pick))
+        block = _blocks(lin, total, blocks)
         columns, jac, weight = base.columns, base.jacobian, base.weight
         res = lin.residual
         fold = block % FOLDS if interleaved else block * FOLDS // blocks
@@ -381,7 +382,6 @@ def select_capacity(
 
     # The joint error map, fitted per fold on what that fold's stage leaves of its training pairs (and, with
     # approach directions, of the backlash they explain: the nets will carry that part).
-    # (fewer blocks than pairs, or some folds would hold out nothing, or everything)
     folds = _Folds.build(lin, total, interleaved=True, base=base, blocks=MAP_BLOCKS)
     use = stage_columns(elastic, harmonics, backlash)
     stage = [folds.solve(f, use, prior(settings["harmonic_prior"])) for f in range(FOLDS)]

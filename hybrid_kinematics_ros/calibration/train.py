@@ -121,13 +121,19 @@ def _predict(net: ResidualNet, q: torch.Tensor) -> np.ndarray:
     return out
 
 
+def _chunks(n: int) -> np.ndarray:
+    """The chunk of each of ``n`` validation pairs: :data:`GATE_CHUNKS` consecutive runs of the recording (one
+    a pair when fewer), the unit both the gate's test and the cross-fit's halves count in."""
+    if not n:
+        return np.zeros(0, dtype=int)
+    sizes = [len(c) for c in np.array_split(np.arange(n), min(GATE_CHUNKS, n))]
+    return np.repeat(np.arange(len(sizes)), sizes)
+
+
 def _halves(n: int) -> np.ndarray:
-    """The half (0 or 1) of each of ``n`` validation pairs: alternate ones of :data:`GATE_CHUNKS` consecutive
-    chunks, so that each half holds whole blocks from all along the recording."""
-    chunk = np.zeros(n, dtype=int)
-    for i, idx in enumerate(np.array_split(np.arange(n), min(GATE_CHUNKS, max(n, 1)))):
-        chunk[idx] = i
-    return chunk % 2
+    """The half (0 or 1) of each of ``n`` validation pairs: alternate chunks (:func:`_chunks`), so that each
+    half holds whole blocks from all along the recording."""
+    return _chunks(n) % 2
 
 
 def _beats_nothing(diff: np.ndarray) -> bool:
@@ -142,7 +148,8 @@ def _beats_nothing(diff: np.ndarray) -> bool:
     """
     if not len(diff):
         return False  # no validation pair: nothing shows the nets' worth
-    chunks = [c.mean() for c in np.array_split(diff, min(GATE_CHUNKS, len(diff)))]
+    chunk = _chunks(len(diff))
+    chunks = np.bincount(chunk, diff) / np.bincount(chunk)
     if len(chunks) < 2:
         return bool(np.mean(chunks) < 0.0)
     error = float(np.std(chunks, ddof=1) / np.sqrt(len(chunks)))
@@ -332,6 +339,7 @@ def _train_members(job: NetJob, report: Callable[[dict], None] | None) -> tuple[
         }
 
     net = build_net(job)
+    q_val = torch.tensor(job.q_val)
     crossed = np.zeros_like(job.y_val)
     for i, target in enumerate(net.body.members):
         epochs, seconds = (history[-1]["epoch"], history[-1]["seconds"]) if history else (0, 0.0)
@@ -342,12 +350,11 @@ def _train_members(job: NetJob, report: Callable[[dict], None] | None) -> tuple[
         member = build_net(member_job)
         member.load_state_dict(fitted.state)
         target.load_state_dict(member.body.state_dict())
-        served = _predict(member, torch.tensor(job.q_val)) if not fitted.chosen.all() else fitted.crossed
-        # the members share the output's scale, so the ensemble's correction is their average
-        crossed += np.where(fitted.chosen[:, None], fitted.crossed, served) / k
-    q_val, y_val = torch.tensor(job.q_val), torch.tensor(job.y_val)
+        if not fitted.chosen.all():  # a member cannot correct nothing: where no epoch was chosen, as served
+            fitted.crossed[~fitted.chosen] = _predict(member, q_val)[~fitted.chosen]
+        crossed += fitted.crossed / k  # the members share the output's scale: the ensemble is their average
     unit, factor = UNIT[job.kind]
-    nothing = torch.linalg.vector_norm(y_val, dim=1).mean().item() if len(y_val) else math.inf
+    nothing = float(np.linalg.norm(job.y_val, axis=1).mean()) if len(job.y_val) else math.inf
     err = np.linalg.norm(_predict(net, q_val) - job.y_val, axis=1)
     val = float(err.mean()) if len(err) else math.inf
     last = {k: v for k, v in history[-1].items() if k != "silenced"}
