@@ -92,7 +92,8 @@ def test_thirty_seconds_recorded_and_aligned(cell, tmp_path):
     client.node.destroy_subscription(sub)
     assert stop(proc, signal.SIGINT, timeout=60) == 0
     ours = recording_status(diagnostics, "recorder_run")
-    assert len(ours) >= 20 and float(ours[-1]["tracker_rate_hz"]) > 2500, ours[-1:]
+    # the cell publishes 3 kHz; a saturated machine (CI, two test workers) publishes less: half, as the bag below
+    assert len(ours) >= 20 and float(ours[-1]["tracker_rate_hz"]) > 0.5 * 3000, ours[-1:]
     live = [float(d["clock_offset_ms"]) for d in ours if "clock_offset_ms" in d]
     assert live and abs(live[-1] - 1e3 * OFFSET) < 0.5, live  # the running estimate over the last 30 s
     log = (tmp_path / "run.log").read_text()
