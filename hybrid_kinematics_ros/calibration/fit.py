@@ -345,10 +345,7 @@ def fit(
     metrics = evaluate(model, test_pairs)  # eager nets here; the saved TorchScript is checked against them
     manifest.update(
         {
-            "nets": {
-                kind: {"arch": job.preset.arch, "epochs": len(histories[kind]), **_best(histories[kind])}
-                for kind, job in jobs.items()
-            },
+            "nets": {kind: {"epochs": len(histories[kind]), **_best(histories[kind])} for kind in jobs},
             "preset": asdict(preset),
             "seed": seed,
             "training_seconds": round(seconds, 1),
@@ -437,12 +434,16 @@ def thinned(q: np.ndarray, spacing: float = COVERAGE_SPACING) -> np.ndarray:
     return q[np.sort(keep)]
 
 
-def _best(history: list[dict]) -> dict[str, float]:
-    """The net's validation figures, and the epoch its kept weights come from: how long to train is chosen
-    on the validation blocks, like whether to correct at all (``silenced``)."""
+def _best(history: list[dict]) -> dict[str, Any]:
+    """The net's architecture and validation figures, and the epoch its kept weights come from: how long to
+    train and how large a net are chosen on the validation blocks, like whether to correct at all
+    (``silenced``; ``sizes``: each candidate architecture's crossed validation error, :func:`train.train_net`)."""
     last = history[-1]
-    out = {k: v for k, v in last.items() if k.startswith("best_val_") or k == "silenced"}
+    out = {k: v for k, v in last.items() if k.startswith("best_val_") or k in ("silenced", "sizes")}
+    out["arch"] = last["served"]
     if not last.get("silenced") and "member" not in last:
         key = next(k for k in last if k.startswith("val_"))
-        out["best_epoch"] = int(min(history, key=lambda e: e[key])["epoch"])
+        served = [e for e in history if e["arch"] == last["served"]]  # epochs count on across the sizes
+        out["best_epoch"] = int(min(served, key=lambda e: e[key])["epoch"]) - served[0]["epoch"] + 1
+        out["epochs"] = len(served)
     return out

@@ -255,6 +255,12 @@ def _capacity_section(capacity: dict[str, Any] | None, nets: dict[str, Any]) -> 
         state = "off: no better than the stage on validation" if net.get("silenced") else "on"
         if "best_epoch" in net:
             state += f", weights of epoch {net['best_epoch']} of {net.get('epochs', '?')} (best on validation)"
+        unit = "mm" if kind == "position" else "deg"
+        for size in net.get("sizes", []):  # the sizes tried, each judged by its crossed validation error
+            val = size.get(f"crossed_val_{unit}", "")
+            decision = "kept: significantly better than the simpler" if size["kept"] else "not significantly better"
+            figures = (val, "") if unit == "mm" else ("", val)
+            rows.append([f"{kind} net size", size["arch"], decision, *figures, "", ""])
         rows.append(
             [f"{kind} net", net.get("arch", ""), state, net.get("best_val_mm", ""), net.get("best_val_deg", ""), "", ""]
         )

@@ -33,7 +33,7 @@ UNIT = {"position": ("mm", 1e3), "orientation": ("deg", 180.0 / math.pi)}
 @dataclass(frozen=True)
 class Preset:
     name: str
-    arch: str
+    arch: str  # one architecture, or several, simplest first, comma-separated: chosen on validation (train_net)
     optimizer: str  # "adam" or "adagrad"
     lr: float
     batch: int
@@ -47,7 +47,7 @@ class Preset:
 
 
 PRESETS = {
-    "fast": Preset("fast", "mlp:256x3:silu", "adam", 1e-2, 1024, True, True, True, 100_000, 0, False),
+    "fast": Preset("fast", "mlp:64x2:silu,mlp:256x3:silu", "adam", 1e-2, 1024, True, True, True, 100_000, 0, False),
     "paper": Preset("paper", "D4w", "adagrad", 5e-3, 128, False, False, False, 300, 10, True),
 }
 
@@ -136,11 +136,14 @@ def _halves(n: int) -> np.ndarray:
     return _chunks(n) % 2
 
 
-def _beats_nothing(diff: np.ndarray) -> bool:
-    """Whether a net's errors beat those of correcting nothing significantly; ``diff``: per validation pair,
-    in recording order, the net's error less the size of what the stage left. The simpler model, the stage
-    alone, wins unless the nets' gain passes a one-sided t-test at :data:`GATE_CONFIDENCE`: the nets add
-    tens of thousands of weights to the stage's hundreds, so they must show their worth, not merely tie.
+def _beats(diff: np.ndarray, tests: int = 1) -> bool:
+    """Whether a model's errors beat those of a simpler one significantly; ``diff``: per validation pair, in
+    recording order, its error less the simpler one's (at first, less the size of what the stage left: the
+    nets against correcting nothing). The simpler model wins unless the gain passes a one-sided t-test at
+    :data:`GATE_CONFIDENCE`: the nets add tens of thousands of weights to the stage's hundreds, and a larger
+    net many times a smaller one's, so they must show their worth, not merely tie. A ladder of ``tests`` rungs
+    tests each at ``1 - (1 - GATE_CONFIDENCE) / tests`` (Bonferroni), so that trying more sizes does not make
+    keeping a net that helps nothing likelier than one size would.
 
     The test is over the means of :data:`GATE_CHUNKS` consecutive chunks of the validation pairs (they come
     in recording order, whole blocks of it), not over single pairs: neighbours along a recording share their
@@ -153,7 +156,8 @@ def _beats_nothing(diff: np.ndarray) -> bool:
     if len(chunks) < 2:
         return bool(np.mean(chunks) < 0.0)
     error = float(np.std(chunks, ddof=1) / np.sqrt(len(chunks)))
-    return bool(np.mean(chunks) < -stats.t.ppf(GATE_CONFIDENCE, len(chunks) - 1) * error)
+    confidence = 1.0 - (1.0 - GATE_CONFIDENCE) / tests
+    return bool(np.mean(chunks) < -stats.t.ppf(confidence, len(chunks) - 1) * error)
 
 
 class _Selection:
@@ -193,12 +197,6 @@ class _Selection:
         return val, False
 
 
-def _gain(crossed: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Per validation pair: the error after the crossed correction less that of correcting nothing (what
-    :func:`_beats_nothing` judges)."""
-    return np.linalg.norm(crossed - y, axis=1) - np.linalg.norm(y, axis=1)
-
-
 @dataclass
 class _Fitted:
     """One net's training run: the weights served and what the gate may judge them by."""
@@ -210,26 +208,97 @@ class _Fitted:
     history: list[dict]
 
 
-def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tuple[ResidualNet, list[dict]]:
-    """Train one residual net; returns the best net on validation and the per-epoch history.
+def candidates(arch: str) -> list[str]:
+    """The architectures a preset's ``arch`` offers, simplest first: one, or several separated by commas."""
+    found = [a.strip() for a in arch.split(",") if a.strip()]
+    if not found:
+        raise CalibrationError(f"architecture '{arch}': name at least one (D4w, mlp:64x2:silu, ...)")
+    return found
 
-    The net must beat correcting nothing: if the epochs it would keep do not beat the stage before it (the
-    targets' own size) on validation significantly (:func:`_beats_nothing`), judged by a cross-fit of the
-    epoch's choice (:class:`_Selection`), the net is silenced (outputs zero), so the nets do not make the
-    model worse where it can be checked. With little or unstructured data the net is silenced (real UR10,
-    250 pairs; 300 poses of a virtual cell).
-    An ensemble's members train one after the other (:func:`_train_members`) and are gated together.
+
+@dataclass
+class _Trained:
+    """One architecture trained (a single net or an ensemble), before the choice among them."""
+
+    net: ResidualNet
+    history: list[dict]
+    beat: bool  # whether it beats correcting nothing on every validation pair, as served
+    crossed: np.ndarray  # (N_val, 3): each validation pair's correction by the epochs the *other* half chose
+
+
+def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tuple[ResidualNet, list[dict]]:
+    """Train one residual net, choosing its size and whether to correct at all on validation; returns the net
+    served and the per-epoch history.
+
+    The preset's architectures (:func:`candidates`, simplest first) train one after the other, and the ladder
+    starts at correcting nothing: each rung is served only if its errors beat those of the rung served so far
+    significantly (:func:`_beats`, at a level that counts the rungs), judged by a cross-fit of the epoch's
+    choice (:class:`_Selection`). So the nets do not make the model worse where it can be checked, and a
+    larger net must show its worth over a smaller one. With little or unstructured data the net is silenced
+    (outputs zero: real UR10, 250 pairs; 300 poses of a virtual cell). An ensemble's members train one after
+    the other (:func:`_train_members`) and are judged together.
+
+    The history counts epochs and seconds on across the architectures; each entry carries its ``arch``, and the
+    last one the choice: the architecture ``served`` (``silenced`` when none; its ``best_val_*`` figures) and,
+    with several, ``sizes``: each one's crossed mean validation error and whether it was kept.
     """
-    if job.preset.members > 1:
-        return _train_members(job, report)
+    archs = candidates(job.preset.arch)
+    unit, factor = UNIT[job.kind]
+    served: _Trained | None = None
+    served_err = np.linalg.norm(job.y_val, axis=1)  # correcting nothing
+    history: list[dict] = []
+    sizes: list[dict] = []
+    first: ResidualNet | None = None
+    start = time.perf_counter()
+    for i, arch in enumerate(archs):
+        left = job.max_seconds - (time.perf_counter() - start)
+        # the simpler nets take their steps within an equal share; the last one, whatever time is left
+        one = replace(
+            job,
+            preset=replace(job.preset, arch=arch),
+            max_seconds=left if i == len(archs) - 1 else min(left, job.max_seconds / len(archs)),
+        )
+        epochs, seconds = (history[-1]["epoch"], history[-1]["seconds"]) if history else (0, 0.0)
+        relay = None if report is None else (lambda e, a=epochs, b=seconds, c=arch: report(_counted_on(e, a, b, c)))
+        trained = (_train_members if job.preset.members > 1 else _train_one)(one, relay)
+        history += [_counted_on(e, epochs, seconds, arch) for e in trained.history]
+        first = first or trained.net
+        err = np.linalg.norm(trained.crossed - job.y_val, axis=1)
+        kept = trained.beat and _beats(err - served_err, len(archs))
+        val = float(err.mean()) * factor if len(err) else None
+        sizes.append({"arch": arch, f"crossed_val_{unit}": val, "kept": kept})
+        if kept:
+            served, served_err, served_arch = trained, err, arch
+    net = first if served is None else served.net
+    history[-1] = {k: v for k, v in history[-1].items() if k not in ("silenced", "served")}
+    if served is None:
+        net.silence()
+        history[-1].update({"served": archs[0], "silenced": True})
+    else:  # the served net's validation figures, not those of a later candidate's last epoch
+        history[-1].update({k: v for k, v in served.history[-1].items() if k.startswith("best_val_")})
+        history[-1]["served"] = served_arch
+    if len(archs) > 1:
+        history[-1]["sizes"] = sizes
+    net.eval()
+    return net, history
+
+
+def _counted_on(entry: dict, epochs: int, seconds: float, arch: str | None = None, member: int | None = None) -> dict:
+    """A history entry of one run among several (architectures or members), its epochs and seconds counted on."""
+    out = {**entry, "epoch": entry["epoch"] + epochs, "seconds": round(entry["seconds"] + seconds, 2)}
+    if arch is not None:
+        out["arch"] = arch
+    if member is not None:
+        out["member"] = member
+    return out
+
+
+def _train_one(job: NetJob, report: Callable[[dict], None] | None) -> _Trained:
+    """A single net of ``job.preset.arch``: the epoch best on every validation pair, and the crossed choice."""
     fitted = _fit(job, report)
     net = build_net(job)
     net.load_state_dict(fitted.state)
-    if not fitted.beat or not _beats_nothing(_gain(fitted.crossed, job.y_val)):
-        net.silence()
-        fitted.history[-1]["silenced"] = True
-    net.eval()
-    return net, fitted.history
+    return _Trained(net, fitted.history, fitted.beat, fitted.crossed)
 
 
 def _fit(job: NetJob, report: Callable[[dict], None] | None) -> _Fitted:
@@ -320,33 +389,23 @@ def _fit(job: NetJob, report: Callable[[dict], None] | None) -> _Fitted:
 MEMBER_SEED_STRIDE = 1000  # member i trains from seed + i * this: apart from the other net's seed (+1)
 
 
-def _train_members(job: NetJob, report: Callable[[dict], None] | None) -> tuple[ResidualNet, list[dict]]:
-    """Each member as a single net from its own seed, with an equal share of the steps and the time
-    budget; the ensemble is silenced like a single net if its average does not beat correcting nothing
-    (judged as a single net's, each half of the validation pairs by the members the other half chose; a
-    member cannot correct nothing, so where a half chose no epoch of it, by the member as served).
-    History entries carry ``member``; their epochs and seconds count on across members."""
+def _train_members(job: NetJob, report: Callable[[dict], None] | None) -> _Trained:
+    """Each member as a single net from its own seed, with an equal share of the steps and the time budget;
+    the ensemble, their average, is judged as a single net: each half of the validation pairs by the members
+    the other half chose (a member cannot correct nothing, so where a half chose no epoch of it, by the member
+    as served). History entries carry ``member``; their epochs and seconds count on across members."""
     k = job.preset.members
     single = replace(job, preset=replace(job.preset, members=1), max_seconds=job.max_seconds / k)
     history: list[dict] = []
-
-    def counted_on(entry: dict, epochs: int, seconds: float, member: int) -> dict:
-        return {
-            **entry,
-            "member": member,
-            "epoch": entry["epoch"] + epochs,
-            "seconds": round(entry["seconds"] + seconds, 2),
-        }
-
     net = build_net(job)
     q_val = torch.tensor(job.q_val)
     crossed = np.zeros_like(job.y_val)
     for i, target in enumerate(net.body.members):
         epochs, seconds = (history[-1]["epoch"], history[-1]["seconds"]) if history else (0, 0.0)
-        relay = None if report is None else (lambda e, a=epochs, b=seconds, m=i: report(counted_on(e, a, b, m)))
+        relay = None if report is None else (lambda e, a=epochs, b=seconds, m=i: report(_counted_on(e, a, b, member=m)))
         member_job = replace(single, seed=job.seed + i * MEMBER_SEED_STRIDE)
         fitted = _fit(member_job, relay)
-        history += [counted_on(e, epochs, seconds, i) for e in fitted.history]
+        history += [_counted_on(e, epochs, seconds, member=i) for e in fitted.history]
         member = build_net(member_job)
         member.load_state_dict(fitted.state)
         target.load_state_dict(member.body.state_dict())
@@ -357,13 +416,8 @@ def _train_members(job: NetJob, report: Callable[[dict], None] | None) -> tuple[
     nothing = float(np.linalg.norm(job.y_val, axis=1).mean()) if len(job.y_val) else math.inf
     err = np.linalg.norm(_predict(net, q_val) - job.y_val, axis=1)
     val = float(err.mean()) if len(err) else math.inf
-    last = {k: v for k, v in history[-1].items() if k != "silenced"}
-    history[-1] = {**last, f"val_{unit}": val * factor, f"best_val_{unit}": min(val, nothing) * factor}
-    if val >= nothing or not _beats_nothing(_gain(crossed, job.y_val)):
-        net.silence()
-        history[-1]["silenced"] = True
-    net.eval()
-    return net, history
+    history[-1] = {**history[-1], f"val_{unit}": val * factor, f"best_val_{unit}": min(val, nothing) * factor}
+    return _Trained(net, history, val < nothing, crossed)
 
 
 def _worker(job: NetJob, progress: mp.Queue) -> tuple[dict, list[dict]]:
@@ -397,7 +451,8 @@ def train_pair(
                         pass
                     for k in [k for k, r in pending.items() if r.ready()]:
                         state, histories[k] = pending.pop(k).get()
-                        net = build_net(jobs[k])
+                        served = replace(jobs[k].preset, arch=histories[k][-1]["served"])  # the size chosen
+                        net = build_net(replace(jobs[k], preset=served))
                         net.load_state_dict({name: torch.from_numpy(v) for name, v in state.items()})
                         nets[k] = net.eval()
                 while not q.empty() and progress:

@@ -32,7 +32,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_robot_args(p)
     p.add_argument("--out", required=True, type=Path, help="model directory to create")
     p.add_argument("--preset", default="fast", choices=sorted(train.PRESETS), help="training recipe (default fast)")
-    p.add_argument("--arch-position", help="architecture of the position net (D1, D4, D4w, D4W, Rw, Rd, mlp:WxD)")
+    p.add_argument(
+        "--arch-position",
+        help="architecture of the position net (D1, D4, D4w, D4W, Rw, Rd, mlp:WxD), or several, "
+        "simplest first, comma-separated: a larger one serves only if significantly better on validation "
+        "(default: the preset's, fast: mlp:64x2:silu,mlp:256x3:silu)",
+    )
     p.add_argument("--arch-orientation", help="architecture of the orientation net")
     p.add_argument(
         "--max-minutes", type=float, default=5.0, help="wall-clock training budget (nets train side by side)"
