@@ -38,7 +38,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "simplest first, comma-separated: a larger one serves only if significantly better on validation "
         "(default: the preset's, fast: mlp:64x2:silu,mlp:256x3:silu)",
     )
-    p.add_argument("--arch-orientation", help="architecture of the orientation net")
+    p.add_argument("--arch-orientation", help="architecture(s) of the orientation net, as --arch-position")
     p.add_argument(
         "--max-minutes", type=float, default=5.0, help="wall-clock training budget (nets train side by side)"
     )
