@@ -87,13 +87,19 @@ HEAD = [
 PAPER_ARCH = {"position": "D4w", "orientation": "Rw"}
 
 
+def served(manifest: dict) -> str:
+    """The nets' sizes as chosen on validation (or silenced), for a row's label."""
+    nets = manifest.get("nets", {})
+    return ", ".join(f"{k} {'off' if n.get('silenced') else n['arch']}" for k, n in nets.items())
+
+
 def table1(minutes: float) -> None:
     rows = []
     for robot in ("rx160", "ur10"):
         tr, va, te = dataset(robot, N_TRAIN, 1), dataset(robot, N_VAL, 2), dataset(robot, N_TEST, 3)
-        _, report, seconds, _ = run_fit(robot, tr, va, te, train.PRESETS["fast"], minutes)
+        _, report, seconds, manifest = run_fit(robot, tr, va, te, train.PRESETS["fast"], minutes)
         rows.append(row(f"{robot}: dataset error (URDF model)", report["analytic"]))
-        rows.append(row(f"{robot}: hybrid, ours (`fast`, {train.PRESETS['fast'].arch})", report["hybrid"], seconds))
+        rows.append(row(f"{robot}: hybrid, ours (`fast`: {served(manifest)})", report["hybrid"], seconds))
     body = (
         f"Virtual cell, noise-free labels; {N_TRAIN:,} training, {N_VAL:,} validation and {N_TEST:,} separate random "
         f"test samples; {minutes:g} min wall-clock budget per model, both nets side by side on 2 cores. The nets "
@@ -110,9 +116,11 @@ def paper_recipe(minutes: float) -> None:
     for label, preset, arch in (
         ("paper preset, D4w + Rw (Adagrad 0.005, batch 128, ReLU, early stopping)", train.PRESETS["paper"], PAPER_ARCH),
         ("paper preset, D4 + D4", train.PRESETS["paper"], {"position": "D4", "orientation": "D4"}),
-        (f"ours (`fast`, {train.PRESETS['fast'].arch})", train.PRESETS["fast"], None),
+        ("ours", train.PRESETS["fast"], None),
     ):
-        _, report, seconds, _ = run_fit(robot, tr, va, te, preset, minutes, arch)
+        _, report, seconds, manifest = run_fit(robot, tr, va, te, preset, minutes, arch)
+        if label == "ours":
+            label = f"ours (`fast`: {served(manifest)})"
         rows.append(row(label, report["hybrid"], seconds))
     rows.insert(0, row("dataset error (URDF model)", report["analytic"]))
     body = (
@@ -181,7 +189,7 @@ def inference(_: float) -> None:
     torch.set_num_threads(1)
     robot = "ur10"
     tr, va, te = dataset(robot, 5_000, 1), dataset(robot, 500, 2), dataset(robot, 500, 3)
-    model, *_ = run_fit(robot, tr, va, te, train.PRESETS["fast"], 0.2)
+    model, _, _, manifest = run_fit(robot, tr, va, te, train.PRESETS["fast"], 0.2)
     q = np.random.default_rng(0).uniform(-1, 1, (100_000, 6))
     for qi in q[:200]:
         model.fk_single(qi)
@@ -198,7 +206,7 @@ def inference(_: float) -> None:
         analytic.fk_single(qi)
     single_analytic = (time.perf_counter() - start) / 5000
     body = (
-        f"UR10, `fast` nets ({train.PRESETS['fast'].arch}), in-process, 1 thread. One configuration: numpy FK and "
+        f"UR10, `fast` nets ({served(manifest)}), in-process, 1 thread. One configuration: numpy FK and "
         "a numpy evaluation of the saved nets' weights (TorchScript spends ~50 µs per call on dispatch at batch "
         "size 1); batches: TorchScript.\n\n"
         + table(

@@ -441,9 +441,9 @@ def _best(history: list[dict]) -> dict[str, Any]:
     last = history[-1]
     out = {k: v for k, v in last.items() if k.startswith("best_val_") or k in ("silenced", "sizes")}
     out["arch"] = last["served"]
+    served = [e for e in history if e["arch"] == last["served"]]  # epochs count on across the sizes
+    out["epochs"] = len(served)
     if not last.get("silenced") and "member" not in last:
         key = next(k for k in last if k.startswith("val_"))
-        served = [e for e in history if e["arch"] == last["served"]]  # epochs count on across the sizes
         out["best_epoch"] = int(min(served, key=lambda e: e[key])["epoch"]) - served[0]["epoch"] + 1
-        out["epochs"] = len(served)
     return out

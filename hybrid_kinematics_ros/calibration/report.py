@@ -257,8 +257,16 @@ def _capacity_section(capacity: dict[str, Any] | None, nets: dict[str, Any]) -> 
             state += f", weights of epoch {net['best_epoch']} of {net.get('epochs', '?')} (best on validation)"
         unit = "mm" if kind == "position" else "deg"
         for size in net.get("sizes", []):  # the sizes tried, each judged by its crossed validation error
-            val = size.get(f"crossed_val_{unit}", "")
-            decision = "kept: significantly better than the simpler" if size["kept"] else "not significantly better"
+            val = size.get(f"crossed_val_{unit}")
+            val = "" if val is None else val
+            if size.get("trained") is False:
+                decision = "not trained: the smaller sizes took the budget"
+            elif not size["kept"]:
+                decision = "not significantly better than the rung below"
+            elif size["arch"] == net.get("arch") and not net.get("silenced"):
+                decision = "served: significantly better than the rung below"
+            else:
+                decision = "better than the rung below; a larger size beat it"
             figures = (val, "") if unit == "mm" else ("", val)
             rows.append([f"{kind} net size", size["arch"], decision, *figures, "", ""])
         rows.append(
@@ -275,7 +283,9 @@ def _capacity_section(capacity: dict[str, Any] | None, nets: dict[str, Any]) -> 
     ]
     return [
         "<h2>Capacity chosen from the data</h2>",
-        "<p>" + (capacity or {}).get("method", "") + ". The score weighs orientation at 1 m per rad.</p>",
+        "<p>" + (capacity or {}).get("method", "") + ". The score weighs orientation at 1 m per rad. A net's sizes "
+        "train simplest first, each judged on its crossed validation error against the rung below it: the "
+        "size served before it, or, at first, correcting nothing.</p>",
         _table(head, rows),
     ]
 

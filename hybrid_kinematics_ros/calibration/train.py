@@ -111,6 +111,7 @@ def build_net(job: NetJob) -> ResidualNet:
 
 GATE_CHUNKS = 10  # the validation pairs' chunks the nets' gate takes its noise from (one a block, by default)
 GATE_CONFIDENCE = 0.95  # the nets are kept when their gain over the stage is significant at this level
+SIZE_RESERVE = 0.05  # of the budget: a larger size trains only if the simpler ones left it at least this
 
 
 def _predict(net: ResidualNet, q: torch.Tensor) -> np.ndarray:
@@ -140,8 +141,8 @@ def _beats(diff: np.ndarray, tests: int = 1) -> bool:
     """Whether a model's errors beat those of a simpler one significantly; ``diff``: per validation pair, in
     recording order, its error less the simpler one's (at first, less the size of what the stage left: the
     nets against correcting nothing). The simpler model wins unless the gain passes a one-sided t-test at
-    :data:`GATE_CONFIDENCE`: the nets add tens of thousands of weights to the stage's hundreds, and a larger
-    net many times a smaller one's, so they must show their worth, not merely tie. A ladder of ``tests`` rungs
+    :data:`GATE_CONFIDENCE`: the nets add thousands of weights to the stage's hundreds, and a larger net
+    many times a smaller one's, so they must show their worth, not merely tie. A ladder of ``tests`` rungs
     tests each at ``1 - (1 - GATE_CONFIDENCE) / tests`` (Bonferroni), so that trying more sizes does not make
     keeping a net that helps nothing likelier than one size would.
 
@@ -243,15 +244,22 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
     with several, ``sizes``: each one's crossed mean validation error and whether it was kept.
     """
     archs = candidates(job.preset.arch)
+    for arch in archs[1:]:  # a misspelt larger size fails now, not after the smaller one has trained
+        build_net(replace(job, preset=replace(job.preset, arch=arch)))
     unit, factor = UNIT[job.kind]
     served: _Trained | None = None
-    served_err = np.linalg.norm(job.y_val, axis=1)  # correcting nothing
+    served_arch = archs[0]  # silenced, the simplest carries the zeros
+    nothing = np.linalg.norm(job.y_val, axis=1)
+    served_err = nothing
     history: list[dict] = []
     sizes: list[dict] = []
     first: ResidualNet | None = None
     start = time.perf_counter()
     for i, arch in enumerate(archs):
         left = job.max_seconds - (time.perf_counter() - start)
+        if i and left < SIZE_RESERVE * job.max_seconds:  # the simpler sizes took the budget: serve what they gave
+            sizes.append({"arch": arch, f"crossed_val_{unit}": None, "kept": False, "trained": False})
+            continue
         # the simpler nets take their steps within an equal share; the last one, whatever time is left
         one = replace(
             job,
@@ -271,12 +279,13 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
             served, served_err, served_arch = trained, err, arch
     net = first if served is None else served.net
     history[-1] = {k: v for k, v in history[-1].items() if k not in ("silenced", "served")}
-    if served is None:
+    history[-1]["served"] = served_arch
+    if served is None:  # what is served is correcting nothing: its figures, not those of a size trained
         net.silence()
-        history[-1].update({"served": archs[0], "silenced": True})
-    else:  # the served net's validation figures, not those of a later candidate's last epoch
+        best = float(nothing.mean()) * factor if len(nothing) else None
+        history[-1].update({f"best_val_{unit}": best, "silenced": True})
+    else:  # the served net's validation figures, not those of a later size's last epoch
         history[-1].update({k: v for k, v in served.history[-1].items() if k.startswith("best_val_")})
-        history[-1]["served"] = served_arch
     if len(archs) > 1:
         history[-1]["sizes"] = sizes
     net.eval()

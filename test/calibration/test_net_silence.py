@@ -177,3 +177,25 @@ def test_the_served_size_is_rebuilt_from_a_worker(tmp_path):
         width = int(arch.split(":")[1].split("x")[0])
         first = next(m for m in nets[kind].body.modules() if isinstance(m, torch.nn.Linear))
         assert first.out_features == width
+
+
+def test_a_larger_size_the_budget_has_no_room_for_is_not_trained(monkeypatch):
+    """When the simpler size took the budget, the larger one is recorded as not trained (no error), and
+    the simpler one serves if it beat correcting nothing. The clock is the training's own: each size
+    "takes" the whole budget."""
+    job = replace(_job(1.0), preset=replace(_job(1.0).preset, arch=f"{SMALL},{LARGE}"))
+    clock = iter(np.arange(0.0, 100.0) * job.max_seconds)
+    monkeypatch.setattr(train.time, "perf_counter", lambda: float(next(clock)))
+    trained_archs = []
+
+    def trained(one: train.NetJob, _report: object) -> train._Trained:
+        trained_archs.append(one.preset.arch)
+        history = [{"kind": "position", "epoch": 1, "seconds": 0.1, "val_mm": 1.0, "best_val_mm": 1.0}]
+        return train._Trained(train.build_net(one), history, True, 0.5 * job.y_val)
+
+    monkeypatch.setattr(train, "_train_one", trained)
+    net, history = train.train_net(job)
+    assert trained_archs == [SMALL]
+    assert history[-1]["served"] == SMALL and "silenced" not in history[-1]
+    assert net(torch.tensor(job.q_val)).detach().numpy().any()
+    assert history[-1]["sizes"][1] == {"arch": LARGE, "crossed_val_mm": None, "kept": False, "trained": False}

@@ -13,7 +13,7 @@ import pytest
 from PIL import Image
 
 from hybrid_kinematics_ros.calibration.fit import load_pairs
-from hybrid_kinematics_ros.calibration.report import _summary_section, iso9283, write_report
+from hybrid_kinematics_ros.calibration.report import _capacity_section, _summary_section, iso9283, write_report
 from hybrid_kinematics_ros.calibration.summary import capacity_lines, verdict
 from hybrid_kinematics_ros.io.pairs import Pairs, write_pairs
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
@@ -192,6 +192,37 @@ def test_summary_without_tolerance_and_with_chosen_capacity():
     text = "".join(_summary_section(summary))
     assert "No tolerance given: pass <code>--tolerance-mm</code>" in text
     assert "2 tracker stations (tracker_a, tracker_b)" in text and "repeats no pose" in text
+
+
+def test_the_capacity_table_says_what_each_net_size_did():
+    """Each size tried has a row with its crossed validation error and what the ladder made of it."""
+    small, large = "mlp:64x2:silu", "mlp:256x3:silu"
+    nets = {
+        "position": {
+            "arch": large,
+            "best_val_mm": 0.02,
+            "sizes": [
+                {"arch": small, "crossed_val_mm": 0.031, "kept": True},
+                {"arch": large, "crossed_val_mm": 0.021, "kept": True},
+            ],
+        },
+        "orientation": {
+            "arch": small,
+            "silenced": True,
+            "best_val_deg": 0.004,
+            "sizes": [
+                {"arch": small, "crossed_val_deg": 0.0041, "kept": False},
+                {"arch": large, "crossed_val_deg": None, "kept": False, "trained": False},
+            ],
+        },
+    }
+    text = "".join(_capacity_section(None, nets))
+    rows = [r for r in text.split("<tr>") if "net size" in r]
+    assert len(rows) == 4
+    assert "better than the rung below; a larger size beat it" in rows[0] and "0.031" in rows[0]
+    assert "served: significantly better" in rows[1] and "0.021" in rows[1]
+    assert "not significantly better" in rows[2] and "0.0041" in rows[2]
+    assert "not trained" in rows[3] and "None" not in rows[3]
 
 
 def test_iso9283_groups_repeated_poses_read_by_real_encoders(ur10):
