@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bench.report import table, write_section
+from bench.report import served, table, write_section
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
 from hybrid_kinematics_ros.calibration.fit import fit
@@ -85,12 +85,6 @@ HEAD = [
     "wall time (s)",
 ]
 PAPER_ARCH = {"position": "D4w", "orientation": "Rw"}
-
-
-def served(manifest: dict) -> str:
-    """The nets' sizes as chosen on validation (or silenced), for a row's label."""
-    nets = manifest.get("nets", {})
-    return ", ".join(f"{k} {'off' if n.get('silenced') else n['arch']}" for k, n in nets.items())
 
 
 def table1(minutes: float) -> None:

@@ -15,7 +15,7 @@ import argparse
 import numpy as np
 
 from bench.bench_real import SERIES, fit_recipe, load_series, model_errors, noise_floor
-from bench.report import table, write_section
+from bench.report import served, table, write_section
 from hybrid_kinematics_ros.calibration import capacity as capacity_module
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.evaluate import pose_errors_of
@@ -69,6 +69,7 @@ HEAD = [
     "former constants: stage / hybrid pos. (mm)",
     "former: hybrid ori. (deg)",
     "capacity chosen",
+    "nets served",
     "train s (chosen / former)",
 ]
 
@@ -97,6 +98,7 @@ def row(name, poses, floor, chosen, former) -> list:
         f"{before['parametric stage']['position_mm_mean']:.4f} / {before['hybrid']['position_mm_mean']:.4f}",
         "—" if "orientation_deg_mean" not in floor else f"{before['hybrid']['orientation_deg_mean']:.4f}",
         capacity_module.summary(manifest["capacity"]).replace(",", ";"),
+        served(manifest).replace(",", ";").replace("mlp:", "").replace(":silu", ""),
         f"{seconds:.0f} / {before_seconds:.0f}",
     ]
 
@@ -159,8 +161,10 @@ def main() -> None:
         "joints for training and test (`simulation/portfolio.py` says what each effect is). Real cells: "
         "the held-out fifth of each series in contiguous blocks, as `bench_real`. Whether the nets take the "
         "joints' approach directions is chosen from the data too (the former recipe was given them in the real "
-        f"and the backlash cells). Nets: `fast`, one per residual, {args.steps:,} steps "
-        "each. The **capacity** of the stage is chosen from each cell's training pairs (`train`'s default); "
+        f"and the backlash cells). Nets: `fast`, {args.steps:,} steps a net; each residual's size, whether "
+        "to average an ensemble of it (x4) and whether to correct at all are chosen on validation (*nets "
+        "served*, for the chosen capacity). The **capacity** of the stage is chosen from each cell's "
+        "training pairs (`train`'s default); "
         "the *former constants* columns train the same cell with the fixed capacity used before (every elastic "
         "term, 40 harmonics, prior 30, a 0.01 rad joint error map; the elastic terms now include the cubic and "
         "signed compliances, so the column isolates the capacity's choice). *Inside the trained range*: the "

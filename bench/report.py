@@ -84,3 +84,13 @@ def table(headers: list[str], rows: list[list[object]]) -> str:
     lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
     lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in rows]
     return "\n".join(lines)
+
+
+def served(manifest: dict) -> str:
+    """The nets' sizes as chosen on validation (or silenced), for a row's label."""
+    nets = manifest.get("nets", {})
+
+    def size(n: dict) -> str:
+        return "off" if n.get("silenced") else n["arch"] + (f" x{n['members']}" if n.get("members", 1) > 1 else "")
+
+    return ", ".join(f"{k} {size(n)}" for k, n in nets.items())

@@ -437,13 +437,16 @@ def thinned(q: np.ndarray, spacing: float = COVERAGE_SPACING) -> np.ndarray:
 def _best(history: list[dict]) -> dict[str, Any]:
     """The net's architecture and validation figures, and the epoch its kept weights come from: how long to
     train and how large a net are chosen on the validation blocks, like whether to correct at all
-    (``silenced``; ``sizes``: each candidate architecture's crossed validation error, :func:`train.train_net`)."""
+    (``silenced``; ``members``: 1, or an ensemble's; ``sizes``: each rung's crossed validation error,
+    :func:`train.train_net`)."""
     last = history[-1]
-    out = {k: v for k, v in last.items() if k.startswith("best_val_") or k in ("silenced", "sizes")}
+    out = {k: v for k, v in last.items() if k.startswith("best_val_") or k in ("silenced", "sizes", "members")}
     out["arch"] = last["served"]
     served = [e for e in history if e["arch"] == last["served"]]  # epochs count on across the sizes
+    if out.get("members", 1) == 1:  # the single net, not the members an ensemble rung added to it
+        served = [e for e in served if "member" not in e]
     out["epochs"] = len(served)
-    if not last.get("silenced") and "member" not in last:
+    if not last.get("silenced") and out.get("members", 1) == 1:
         key = next(k for k in last if k.startswith("val_"))
         out["best_epoch"] = int(min(served, key=lambda e: e[key])["epoch"]) - served[0]["epoch"] + 1
     return out

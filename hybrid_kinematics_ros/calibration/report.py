@@ -256,22 +256,23 @@ def _capacity_section(capacity: dict[str, Any] | None, nets: dict[str, Any]) -> 
         if "best_epoch" in net:
             state += f", weights of epoch {net['best_epoch']} of {net.get('epochs', '?')} (best on validation)"
         unit = "mm" if kind == "position" else "deg"
-        for size in net.get("sizes", []):  # the sizes tried, each judged by its crossed validation error
+        rungs = net.get("sizes", [])
+        label = f"{net.get('arch')} x{net.get('members', 1)}"  # an ensemble rung's, or fixed members: the size's
+        label = label if any(size["arch"] == label for size in rungs) else net.get("arch", "")
+        for size in rungs:  # the rungs tried, each judged by its crossed validation error
             val = size.get(f"crossed_val_{unit}")
             val = "" if val is None else val
             if size.get("trained") is False:
-                decision = "not trained: the smaller sizes took the budget"
+                decision = "not trained: " + size.get("why", "the smaller sizes took the budget")
             elif not size["kept"]:
                 decision = "not significantly better than the rung below"
-            elif size["arch"] == net.get("arch") and not net.get("silenced"):
+            elif size["arch"] == label and not net.get("silenced"):
                 decision = "served: significantly better than the rung below"
             else:
-                decision = "better than the rung below; a larger size beat it"
+                decision = "better than the rung below; a later rung beat it"
             figures = (val, "") if unit == "mm" else ("", val)
             rows.append([f"{kind} net size", size["arch"], decision, *figures, "", ""])
-        rows.append(
-            [f"{kind} net", net.get("arch", ""), state, net.get("best_val_mm", ""), net.get("best_val_deg", ""), "", ""]
-        )
+        rows.append([f"{kind} net", label, state, net.get("best_val_mm", ""), net.get("best_val_deg", ""), "", ""])
     head = [
         "setting",
         "candidate",
@@ -284,8 +285,9 @@ def _capacity_section(capacity: dict[str, Any] | None, nets: dict[str, Any]) -> 
     return [
         "<h2>Capacity chosen from the data</h2>",
         "<p>" + (capacity or {}).get("method", "") + ". The score weighs orientation at 1 m per rad. A net's sizes "
-        "train simplest first, each judged on its crossed validation error against the rung below it: the "
-        "size served before it, or, at first, correcting nothing.</p>",
+        "train simplest first, then an ensemble of the size served (<i>xK</i>: K nets averaged), each judged on its "
+        "crossed validation error against the rung below it: the rung served before it, or, at first, correcting "
+        "nothing.</p>",
         _table(head, rows),
     ]
 

@@ -14,6 +14,7 @@ import queue
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 import torch
@@ -44,10 +45,14 @@ class Preset:
     patience: int  # epochs without validation improvement before stopping; 0: never stop early
     full_range: bool  # normalise over the joint limits (else over the range seen in the data)
     members: int = 1  # nets averaged per residual, each from its own seed, one after the other
+    # with members = 1: the ensemble the ladder tries of the size served, after the sizes (1: none; train_net)
+    ensemble: int = 1
 
 
 PRESETS = {
-    "fast": Preset("fast", "mlp:64x2:silu,mlp:256x3:silu", "adam", 1e-2, 1024, True, True, True, 100_000, 0, False),
+    "fast": Preset(
+        "fast", "mlp:64x2:silu,mlp:256x3:silu", "adam", 1e-2, 1024, True, True, True, 100_000, 0, False, ensemble=4
+    ),
     "paper": Preset("paper", "D4w", "adagrad", 5e-3, 128, False, False, False, 300, 10, True),
 }
 
@@ -225,68 +230,97 @@ class _Trained:
     history: list[dict]
     beat: bool  # whether it beats correcting nothing on every validation pair, as served
     crossed: np.ndarray  # (N_val, 3): each validation pair's correction by the epochs the *other* half chose
+    chosen: np.ndarray  # (N_val,): whether that half chose an epoch; where not, ``crossed`` is zero (nothing)
 
 
 def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tuple[ResidualNet, list[dict]]:
-    """Train one residual net, choosing its size and whether to correct at all on validation; returns the net
-    served and the per-epoch history.
+    """Train one residual net, choosing its size, whether to average an ensemble and whether to correct at all
+    on validation; returns the net served and the per-epoch history.
 
     The preset's architectures (:func:`candidates`, simplest first) train one after the other, and the ladder
     starts at correcting nothing: each rung is served only if its errors beat those of the rung served so far
     significantly (:func:`_beats`, at a level that counts the rungs), judged by a cross-fit of the epoch's
     choice (:class:`_Selection`). So the nets do not make the model worse where it can be checked, and a
     larger net must show its worth over a smaller one. With little or unstructured data the net is silenced
-    (outputs zero: real UR10, 250 pairs; 300 poses of a virtual cell). An ensemble's members train one after
-    the other (:func:`_train_members`) and are judged together.
+    (outputs zero: real UR10, 250 pairs; 300 poses of a virtual cell). The last rung, with the preset's
+    ``ensemble`` > 1, is an ensemble of the size served: that net and ``ensemble - 1`` more from their own
+    seeds, each with a rung's share of the budget (:func:`_train_members`); averaging takes out what a
+    net owes to its seed, which a few thousand real pairs leave large. With ``members`` > 1 every rung is an
+    ensemble of that many instead, and none is added.
 
-    The history counts epochs and seconds on across the architectures; each entry carries its ``arch``, and the
-    last one the choice: the architecture ``served`` (``silenced`` when none; its ``best_val_*`` figures) and,
-    with several, ``sizes``: each one's crossed mean validation error and whether it was kept.
+    The history counts epochs and seconds on across the rungs; each entry carries its ``arch`` (and an added
+    member's entries their ``member``), and the last one the choice: the architecture ``served`` (``silenced``
+    when none; its ``best_val_*`` figures), the ``members`` it averages and, with several rungs, ``sizes``:
+    each rung's crossed mean validation error and whether it was kept.
     """
     archs = candidates(job.preset.arch)
     for arch in archs[1:]:  # a misspelt larger size fails now, not after the smaller one has trained
         build_net(replace(job, preset=replace(job.preset, arch=arch)))
+    ensemble = job.preset.ensemble if job.preset.members == 1 else 1
+    shares = len(archs) + ensemble - 1  # the added members take a rung's share each
+    tests = len(archs) + (ensemble > 1)
     unit, factor = UNIT[job.kind]
     served: _Trained | None = None
-    served_arch = archs[0]  # silenced, the simplest carries the zeros
+    served_arch, served_members = archs[0], job.preset.members  # silenced, the simplest carries the zeros
     nothing = np.linalg.norm(job.y_val, axis=1)
     served_err = nothing
     history: list[dict] = []
     sizes: list[dict] = []
     first: ResidualNet | None = None
     start = time.perf_counter()
+
+    def rung(label: str, arch: str, run: Callable[[float, Callable | None], _Trained], seconds: float):
+        """Train one rung of ``arch`` in ``seconds``, record it as ``label``, and say whether the ladder keeps it
+        (``(trained, kept)``)."""
+        nonlocal served_err
+        epochs, elapsed = (history[-1]["epoch"], history[-1]["seconds"]) if history else (0, 0.0)
+        relay = None if report is None else (lambda e: report(_counted_on(e, epochs, elapsed, arch)))
+        trained = run(seconds, relay)
+        history.extend(_counted_on(e, epochs, elapsed, arch) for e in trained.history)
+        err = np.linalg.norm(trained.crossed - job.y_val, axis=1)
+        kept = trained.beat and _beats(err - served_err, tests)
+        val = float(err.mean()) * factor if len(err) else None
+        sizes.append({"arch": label, f"crossed_val_{unit}": val, "kept": kept})
+        if kept:
+            served_err = err
+        return trained, kept
+
     for i, arch in enumerate(archs):
         left = job.max_seconds - (time.perf_counter() - start)
         if i and left < SIZE_RESERVE * job.max_seconds:  # the simpler sizes took the budget: serve what they gave
             sizes.append({"arch": arch, f"crossed_val_{unit}": None, "kept": False, "trained": False})
             continue
-        # the simpler nets take their steps within an equal share; the last one, whatever time is left
-        one = replace(
-            job,
-            preset=replace(job.preset, arch=arch),
-            max_seconds=left if i == len(archs) - 1 else min(left, job.max_seconds / len(archs)),
-        )
-        epochs, seconds = (history[-1]["epoch"], history[-1]["seconds"]) if history else (0, 0.0)
-        relay = None if report is None else (lambda e, a=epochs, b=seconds, c=arch: report(_counted_on(e, a, b, c)))
-        trained = (_train_members if job.preset.members > 1 else _train_one)(one, relay)
-        history += [_counted_on(e, epochs, seconds, arch) for e in trained.history]
+        # each rung takes its steps within an equal share; the last one, whatever time is left
+        seconds = left if i == shares - 1 else min(left, job.max_seconds / shares)
+        one = replace(job, preset=replace(job.preset, arch=arch))
+        fit_one = _train_members if job.preset.members > 1 else _train_one
+        trained, kept = rung(arch, arch, lambda t, r, one=one, f=fit_one: f(replace(one, max_seconds=t), r), seconds)
         first = first or trained.net
-        err = np.linalg.norm(trained.crossed - job.y_val, axis=1)
-        kept = trained.beat and _beats(err - served_err, len(archs))
-        val = float(err.mean()) * factor if len(err) else None
-        sizes.append({"arch": arch, f"crossed_val_{unit}": val, "kept": kept})
         if kept:
-            served, served_err, served_arch = trained, err, arch
+            served, served_arch = trained, arch
+    if ensemble > 1:
+        label = f"{served_arch} x{ensemble}"
+        left = job.max_seconds - (time.perf_counter() - start)
+        if served is None or left < SIZE_RESERVE * job.max_seconds:  # nothing to average, or no time to
+            why = "no size served" if served is None else "the sizes took the budget"
+            sizes.append({"arch": label, f"crossed_val_{unit}": None, "kept": False, "trained": False, "why": why})
+        else:
+            many = replace(job, preset=replace(job.preset, arch=served_arch, members=ensemble))
+            single = served
+            run = lambda t, r: _train_members(replace(many, max_seconds=t), r, single)  # noqa: E731
+            trained, kept = rung(label, served_arch, run, left)
+            if kept:
+                served, served_members = trained, ensemble
     net = first if served is None else served.net
     history[-1] = {k: v for k, v in history[-1].items() if k not in ("silenced", "served")}
-    history[-1]["served"] = served_arch
+    history[-1].update({"served": served_arch, "members": served_members})
     if served is None:  # what is served is correcting nothing: its figures, not those of a size trained
         net.silence()
         best = float(nothing.mean()) * factor if len(nothing) else None
         history[-1].update({f"best_val_{unit}": best, "silenced": True})
-    else:  # the served net's validation figures, not those of a later size's last epoch
+    else:  # the served net's validation figures, not those of a later rung's last epoch
         history[-1].update({k: v for k, v in served.history[-1].items() if k.startswith("best_val_")})
-    if len(archs) > 1:
+    if len(sizes) > 1:
         history[-1]["sizes"] = sizes
     net.eval()
     return net, history
@@ -302,12 +336,16 @@ def _counted_on(entry: dict, epochs: int, seconds: float, arch: str | None = Non
     return out
 
 
+def _relay(report: Callable[[dict], None], epochs: int, seconds: float, member: int, entry: dict) -> None:
+    report(_counted_on(entry, epochs, seconds, member=member))
+
+
 def _train_one(job: NetJob, report: Callable[[dict], None] | None) -> _Trained:
     """A single net of ``job.preset.arch``: the epoch best on every validation pair, and the crossed choice."""
     fitted = _fit(job, report)
     net = build_net(job)
     net.load_state_dict(fitted.state)
-    return _Trained(net, fitted.history, fitted.beat, fitted.crossed)
+    return _Trained(net, fitted.history, fitted.beat, fitted.crossed, fitted.chosen)
 
 
 def _fit(job: NetJob, report: Callable[[dict], None] | None) -> _Fitted:
@@ -398,35 +436,42 @@ def _fit(job: NetJob, report: Callable[[dict], None] | None) -> _Fitted:
 MEMBER_SEED_STRIDE = 1000  # member i trains from seed + i * this: apart from the other net's seed (+1)
 
 
-def _train_members(job: NetJob, report: Callable[[dict], None] | None) -> _Trained:
+def _train_members(job: NetJob, report: Callable[[dict], None] | None, first: _Trained | None = None) -> _Trained:
     """Each member as a single net from its own seed, with an equal share of the steps and the time budget;
     the ensemble, their average, is judged as a single net: each half of the validation pairs by the members
     the other half chose (a member cannot correct nothing, so where a half chose no epoch of it, by the member
-    as served). History entries carry ``member``; their epochs and seconds count on across members."""
+    as served). ``first``: a single net of the same architecture already trained, from ``job.seed``, which is
+    member 0 (the ladder's ensemble rung); the others share the budget. History entries carry ``member``;
+    their epochs and seconds count on across members."""
     k = job.preset.members
-    single = replace(job, preset=replace(job.preset, members=1), max_seconds=job.max_seconds / k)
+    added = k - (first is not None)
+    single = replace(job, preset=replace(job.preset, members=1), max_seconds=job.max_seconds / added)
     history: list[dict] = []
     net = build_net(job)
     q_val = torch.tensor(job.q_val)
     crossed = np.zeros_like(job.y_val)
     for i, target in enumerate(net.body.members):
-        epochs, seconds = (history[-1]["epoch"], history[-1]["seconds"]) if history else (0, 0.0)
-        relay = None if report is None else (lambda e, a=epochs, b=seconds, m=i: report(_counted_on(e, a, b, member=m)))
-        member_job = replace(single, seed=job.seed + i * MEMBER_SEED_STRIDE)
-        fitted = _fit(member_job, relay)
-        history += [_counted_on(e, epochs, seconds, member=i) for e in fitted.history]
-        member = build_net(member_job)
-        member.load_state_dict(fitted.state)
+        if i == 0 and first is not None:
+            member, own, chosen = first.net, first.crossed.copy(), first.chosen
+        else:
+            epochs, seconds = (history[-1]["epoch"], history[-1]["seconds"]) if history else (0, 0.0)
+            relay = None if report is None else partial(_relay, report, epochs, seconds, i)
+            member_job = replace(single, seed=job.seed + i * MEMBER_SEED_STRIDE)
+            fitted = _fit(member_job, relay)
+            history += [_counted_on(e, epochs, seconds, member=i) for e in fitted.history]
+            member = build_net(member_job)
+            member.load_state_dict(fitted.state)
+            own, chosen = fitted.crossed, fitted.chosen
         target.load_state_dict(member.body.state_dict())
-        if not fitted.chosen.all():  # a member cannot correct nothing: where no epoch was chosen, as served
-            fitted.crossed[~fitted.chosen] = _predict(member, q_val)[~fitted.chosen]
-        crossed += fitted.crossed / k  # the members share the output's scale: the ensemble is their average
+        if not chosen.all():  # a member cannot correct nothing: where no epoch was chosen, as served
+            own[~chosen] = _predict(member, q_val)[~chosen]
+        crossed += own / k  # the members share the output's scale: the ensemble is their average
     unit, factor = UNIT[job.kind]
     nothing = float(np.linalg.norm(job.y_val, axis=1).mean()) if len(job.y_val) else math.inf
     err = np.linalg.norm(_predict(net, q_val) - job.y_val, axis=1)
     val = float(err.mean()) if len(err) else math.inf
     history[-1] = {**history[-1], f"val_{unit}": val * factor, f"best_val_{unit}": min(val, nothing) * factor}
-    return _Trained(net, history, val < nothing, crossed)
+    return _Trained(net, history, val < nothing, crossed, np.ones(len(crossed), dtype=bool))
 
 
 def _worker(job: NetJob, progress: mp.Queue) -> tuple[dict, list[dict]]:
@@ -460,10 +505,7 @@ def train_pair(
                         pass
                     for k in [k for k, r in pending.items() if r.ready()]:
                         state, histories[k] = pending.pop(k).get()
-                        served = replace(jobs[k].preset, arch=histories[k][-1]["served"])  # the size chosen
-                        net = build_net(replace(jobs[k], preset=served))
-                        net.load_state_dict({name: torch.from_numpy(v) for name, v in state.items()})
-                        nets[k] = net.eval()
+                        nets[k] = rebuilt(jobs[k], histories[k], state)
                 while not q.empty() and progress:
                     progress(q.get())
     else:
@@ -472,10 +514,24 @@ def train_pair(
     return nets, histories
 
 
+def rebuilt(job: NetJob, history: list[dict], state: dict[str, np.ndarray]) -> ResidualNet:
+    """The net a worker trained for ``job``, from its weights: of the size it chose and with the members it
+    averages (``history[-1]``), not the preset's."""
+    last = history[-1]
+    net = build_net(replace(job, preset=replace(job.preset, arch=last["served"], members=last["members"])))
+    net.load_state_dict({name: torch.from_numpy(v) for name, v in state.items()})
+    return net.eval()
+
+
 def preset(name: str, **overrides: object) -> Preset:
+    """A preset with ``overrides`` (None: the preset's). ``members`` given fixes the ensemble: the ladder then
+    tries none of its own."""
     if name not in PRESETS:
         raise CalibrationError(f"unknown preset '{name}'; choose one of {', '.join(PRESETS)}")
-    chosen = replace(PRESETS[name], **{k: v for k, v in overrides.items() if v is not None})
+    given = {k: v for k, v in overrides.items() if v is not None}
+    if "members" in given:
+        given.setdefault("ensemble", 1)
+    chosen = replace(PRESETS[name], **given)
     if chosen.members < 1:
         raise CalibrationError(f"members = {chosen.members}: an ensemble needs at least 1 net")
     return chosen

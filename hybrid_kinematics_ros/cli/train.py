@@ -51,8 +51,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--members",
         type=int,
-        help="nets averaged per residual, each from its own seed, one after the other in the same budget "
-        "(default 1; 4 on a few thousand real pairs, see the README)",
+        help="nets averaged per residual, each from its own seed, one after the other in the same budget; "
+        "given, it fixes the ensemble (1: a single net). Default: chosen on validation, the last rung of the "
+        "nets' ladder being an ensemble of 4 of the size served",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from hybrid_kinematics_ros.calibration import train
+from hybrid_kinematics_ros.calibration import nets, train
 
 
 def _job(sign: float) -> train.NetJob:
@@ -19,7 +19,7 @@ def _job(sign: float) -> train.NetJob:
     def residual(q: np.ndarray) -> np.ndarray:  # m: a smooth error of joint 2, 0.1 mm
         return 1e-4 * np.column_stack([np.sin(2 * q[:, 1]), np.cos(q[:, 1]), np.sin(q[:, 1] + q[:, 2])])
 
-    preset = replace(train.PRESETS["fast"], arch="mlp:32x2:silu", batch=64, max_epochs=60)
+    preset = replace(train.PRESETS["fast"], arch="mlp:32x2:silu", batch=64, max_epochs=60, ensemble=1)
     lower, upper = np.full(6, -2.0), np.full(6, 2.0)
     # sign -1: validation says the opposite of training, so whatever the net learns makes it worse there
     return train.NetJob(
@@ -151,7 +151,7 @@ def test_the_net_size_is_a_ladder_from_nothing(monkeypatch, small, large, served
         share = small if one.preset.arch == SMALL else large
         net = train.build_net(one)
         history = [{"kind": "position", "epoch": 1, "seconds": 0.1, "val_mm": 1.0, "best_val_mm": 1.0}]
-        return train._Trained(net, history, True, job.y_val * (1.0 - share) + noise)
+        return train._Trained(net, history, True, job.y_val * (1.0 - share) + noise, np.ones(len(job.y_val), bool))
 
     monkeypatch.setattr(train, "_train_one", trained)
     net, history = train.train_net(job)
@@ -191,7 +191,7 @@ def test_a_larger_size_the_budget_has_no_room_for_is_not_trained(monkeypatch):
     def trained(one: train.NetJob, _report: object) -> train._Trained:
         trained_archs.append(one.preset.arch)
         history = [{"kind": "position", "epoch": 1, "seconds": 0.1, "val_mm": 1.0, "best_val_mm": 1.0}]
-        return train._Trained(train.build_net(one), history, True, 0.5 * job.y_val)
+        return train._Trained(train.build_net(one), history, True, 0.5 * job.y_val, np.ones(len(job.y_val), bool))
 
     monkeypatch.setattr(train, "_train_one", trained)
     net, history = train.train_net(job)
@@ -199,3 +199,86 @@ def test_a_larger_size_the_budget_has_no_room_for_is_not_trained(monkeypatch):
     assert history[-1]["served"] == SMALL and "silenced" not in history[-1]
     assert net(torch.tensor(job.q_val)).detach().numpy().any()
     assert history[-1]["sizes"][1] == {"arch": LARGE, "crossed_val_mm": None, "kept": False, "trained": False}
+
+
+@pytest.mark.parametrize(
+    "single, many, members",
+    [
+        (0.5, 0.5, 1),  # the ensemble ties: the single net serves
+        (0.5, 0.1, 3),  # the ensemble fixes what the single net leaves: it serves
+        (2.0, 0.1, None),  # no size beats nothing: no ensemble is tried, the net is silenced
+    ],
+)
+def test_an_ensemble_of_the_size_served_is_the_last_rung(monkeypatch, single, many, members):
+    """After the sizes, the preset's ``ensemble`` rung averages the size served with more members, and serves
+    only if it beats that size significantly; where no size was served there is nothing to average."""
+    job = _job(1.0)
+    job = replace(job, preset=replace(job.preset, ensemble=3))
+    noise = np.random.default_rng(3).normal(0.0, 0.02, job.y_val.shape) * 1e-4
+    ones = np.ones(len(job.y_val), bool)
+    calls = []
+
+    def one(j: train.NetJob, _report: object) -> train._Trained:
+        calls.append(("one", j.preset.members))
+        history = [{"kind": "position", "epoch": 1, "seconds": 0.1, "val_mm": 1.0, "best_val_mm": 1.0}]
+        return train._Trained(train.build_net(j), history, True, job.y_val * (1.0 - single) + noise, ones)
+
+    def averaged(j: train.NetJob, _report: object, first: train._Trained | None = None) -> train._Trained:
+        calls.append(("members", j.preset.members, first))
+        history = [{"kind": "position", "epoch": 1, "seconds": 0.1, "val_mm": 1.0, "best_val_mm": 0.5, "member": 2}]
+        return train._Trained(train.build_net(j), history, True, job.y_val * (1.0 - many) + noise, ones)
+
+    monkeypatch.setattr(train, "_train_one", one)
+    monkeypatch.setattr(train, "_train_members", averaged)
+    net, history = train.train_net(job)
+    arch = job.preset.arch
+    sizes = history[-1]["sizes"]
+    assert [s["arch"] for s in sizes] == [arch, f"{arch} x3"]
+    if members is None:
+        assert history[-1]["silenced"] and calls == [("one", 1)]
+        assert sizes[1]["trained"] is False and sizes[1]["why"] == "no size served"
+        return
+    assert calls[1][:2] == ("members", 3) and calls[1][2] is not None  # the served net is its first member
+    assert history[-1]["members"] == members and "silenced" not in history[-1]
+    assert isinstance(net.body, nets.Ensemble) == (members > 1)
+    assert history[-1]["best_val_mm"] == (0.5 if members > 1 else 1.0)  # the figures of the rung served
+
+
+def test_the_ensemble_rung_keeps_the_served_net_as_its_first_member():
+    """The ensemble rung trains only the added members, from their own seeds; the net already served is
+    member 0, unchanged, and the ensemble serves the members' average."""
+    job = replace(_job(1.0), preset=replace(_job(1.0).preset, max_epochs=8))
+    single = train._train_one(job, None)
+    trained = train._train_members(replace(job, preset=replace(job.preset, members=3)), None, single)
+    bodies = list(trained.net.body.members)
+    for a, b in zip(bodies[0].state_dict().values(), single.net.body.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    assert not torch.equal(bodies[1][0].weight, bodies[0][0].weight)
+    assert sorted({e["member"] for e in trained.history}) == [1, 2]
+    features = trained.net.features(torch.tensor(job.q_val))
+    with torch.no_grad():
+        mean = torch.stack([b(features) for b in bodies]).mean(0)
+        assert torch.allclose(trained.net.body(features), mean, atol=1e-6)
+
+
+def test_a_workers_ensemble_is_rebuilt_with_its_members():
+    """A worker sends back plain weights; the net is rebuilt with the size and the members its ladder chose,
+    not the preset's single net."""
+    job = replace(_job(1.0), preset=replace(_job(1.0).preset, max_epochs=4))
+    many = replace(job, preset=replace(job.preset, members=2))
+    trained = train._train_members(many, None)
+    state = {k: v.numpy() for k, v in trained.net.state_dict().items()}
+    history = [{**trained.history[-1], "served": job.preset.arch, "members": 2}]
+    net = train.rebuilt(job, history, state)
+    q = torch.tensor(job.q_val)
+    with torch.no_grad():
+        assert torch.equal(net(q), trained.net.eval()(q))
+    with pytest.raises(RuntimeError):  # as the preset's single net, the weights do not fit
+        train.rebuilt(job, [{**history[0], "members": 1}], state)
+
+
+def test_given_members_fix_the_ensemble():
+    """``--members`` fixes the ensemble, 1 included: the ladder then adds none of its own."""
+    assert train.preset("fast").ensemble > 1
+    assert train.preset("fast", members=1).ensemble == 1
+    assert train.preset("fast", members=4).ensemble == 1

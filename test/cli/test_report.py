@@ -197,32 +197,41 @@ def test_summary_without_tolerance_and_with_chosen_capacity():
 def test_the_capacity_table_says_what_each_net_size_did():
     """Each size tried has a row with its crossed validation error and what the ladder made of it."""
     small, large = "mlp:64x2:silu", "mlp:256x3:silu"
+    why = "no size served"
     nets = {
         "position": {
             "arch": large,
+            "members": 4,
             "best_val_mm": 0.02,
             "sizes": [
                 {"arch": small, "crossed_val_mm": 0.031, "kept": True},
                 {"arch": large, "crossed_val_mm": 0.021, "kept": True},
+                {"arch": f"{large} x4", "crossed_val_mm": 0.019, "kept": True},
             ],
         },
         "orientation": {
             "arch": small,
+            "members": 1,
             "silenced": True,
             "best_val_deg": 0.004,
             "sizes": [
                 {"arch": small, "crossed_val_deg": 0.0041, "kept": False},
                 {"arch": large, "crossed_val_deg": None, "kept": False, "trained": False},
+                {"arch": f"{small} x4", "crossed_val_deg": None, "kept": False, "trained": False, "why": why},
             ],
         },
     }
     text = "".join(_capacity_section(None, nets))
     rows = [r for r in text.split("<tr>") if "net size" in r]
-    assert len(rows) == 4
-    assert "better than the rung below; a larger size beat it" in rows[0] and "0.031" in rows[0]
-    assert "served: significantly better" in rows[1] and "0.021" in rows[1]
-    assert "not significantly better" in rows[2] and "0.0041" in rows[2]
-    assert "not trained" in rows[3] and "None" not in rows[3]
+    assert len(rows) == 6
+    assert "better than the rung below; a later rung beat it" in rows[0] and "0.031" in rows[0]
+    assert "a later rung beat it" in rows[1] and "0.021" in rows[1]
+    assert "served: significantly better" in rows[2] and "0.019" in rows[2] and "x4" in rows[2]
+    assert "not significantly better" in rows[3] and "0.0041" in rows[3]
+    assert "not trained: the smaller sizes took the budget" in rows[4] and "None" not in rows[4]
+    assert "not trained: no size served" in rows[5]
+    served = [r for r in text.split("<tr>") if "position net<" in r]
+    assert len(served) == 1 and f"{large} x4" in served[0]
 
 
 def test_iso9283_groups_repeated_poses_read_by_real_encoders(ur10):
