@@ -112,7 +112,9 @@ def example_robot_data() -> Path:
 
 SAMPLES = 4000
 # A fixed schedule, not a time budget: the model every test sees is the same on a loaded machine (800 epochs
-# take about 15 s on 2 shared cores; the budget only stops a machine that is far slower).
+# take about 15 s on 2 shared cores; the budget only stops a machine that is far slower). The models below are
+# one net of a size given (no ladder of sizes, no ensemble rung): the tests that use them measure the IK, the
+# nodes and the bounds on a fixed model; the ladder has its own tests and the portfolio guard trains `fast`.
 EPOCHS = 800
 BUDGET_MINUTES = 5.0
 
@@ -133,7 +135,7 @@ def virtual_pairs(ur10):
 def trained(ur10, virtual_pairs, tmp_path_factory):
     out = tmp_path_factory.mktemp("models") / "small"
     tr, va, te = split(virtual_pairs, seed=0)
-    preset = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=EPOCHS)
+    preset = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=EPOCHS, ensemble=1)
     model, manifest = fit(ur10.chain, tr, va, te, out, preset, BUDGET_MINUTES, seed=0)
     return out, model, manifest, te
 
@@ -146,7 +148,7 @@ def shoulder_model(ur10, tmp_path_factory):
     cell = VirtualCell.from_config(ur10, noise=False)
     tr, va, te = split(cell.pairs(shoulder_configurations(2000, (-2.0, -1.0), seed=1), seed=1), seed=0)
     beyond = cell.pairs(shoulder_configurations(400, (-0.8, -0.2), seed=2), seed=2)
-    preset = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=400)
+    preset = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=400, ensemble=1)
     payload = (ur10.payload_mass, ur10.payload_com)
     out = tmp_path_factory.mktemp("shoulder")
     model, _ = fit(ur10.chain, tr, va, te, out, preset, 5.0, parametric=True, payload=payload)
@@ -155,7 +157,7 @@ def shoulder_model(ur10, tmp_path_factory):
 
 # A cell whose robot grows with its temperature: models trained with and without that channel.
 EXPANSION_PER_K = 2e-4  # a strong thermal growth of the whole arm about its base, so the test is quick
-THERMAL_PRESET = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=300)
+THERMAL_PRESET = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=300, ensemble=1)
 # What the capacity selection chooses for these pairs with or without the channel (2026-11-26), fixed here:
 # the temperature input is under test, not the capacity (test_portfolio tests that); 40 s a model less.
 THERMAL_STAGE = {

@@ -97,7 +97,7 @@ def test_the_data_choose_the_directions_as_inputs(ur10, tmp_path):
     from hybrid_kinematics_ros.calibration.fit import fit, split
     from hybrid_kinematics_ros.simulation.portfolio import CellSpec, build_cell
 
-    preset = replace(train.PRESETS["fast"], arch="mlp:32x2:silu", max_epochs=5)
+    preset = replace(train.PRESETS["fast"], arch="mlp:32x2:silu", max_epochs=5, ensemble=1)
     chosen = {}
     for name, half in (("play", (3e-4, 2e-4, 2e-4)), ("none", ())):
         cell = build_cell(CellSpec(name, poses=1200, test_poses=100, half_backlash_rad=half))

@@ -28,7 +28,7 @@ TRACKER = {
 NOISE_MM = 0.015  # the cell's tracker noise per axis
 NOISE_DEG = 0.0016  # its orientation noise, 0.001° per axis, as an angle
 # A schedule by epochs, not by wall-clock time: a loaded machine trains the same model, only slower.
-PRESET = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=200)
+PRESET = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=200, ensemble=1)
 
 
 def _cell(ur10, noise: bool) -> VirtualCell:

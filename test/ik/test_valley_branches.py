@@ -32,7 +32,7 @@ def rx160_model(tmp_path_factory):
         np.random.default_rng(1).uniform(cfg.chain.lower, cfg.chain.upper, (3000, 6)), seed=1
     )
     tr, va, te = split(pairs, seed=0)
-    preset = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=300)
+    preset = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=300, ensemble=1)
     model, _ = fit(cfg.chain, tr, va, te, tmp_path_factory.mktemp("rx160"), preset, 2.0, seed=0)
     return model
 
