@@ -257,8 +257,9 @@ def _capacity_section(capacity: dict[str, Any] | None, nets: dict[str, Any]) -> 
             state += f", weights of epoch {net['best_epoch']} of {net.get('epochs', '?')} (best on validation)"
         unit = "mm" if kind == "position" else "deg"
         rungs = net.get("sizes", [])
-        label = f"{net.get('arch')} x{net.get('members', 1)}"  # an ensemble rung's, or fixed members: the size's
-        label = label if any(size["arch"] == label for size in rungs) else net.get("arch", "")
+        members = net.get("members", 1)
+        shown = net.get("arch", "") + (f" x{members}" if members > 1 else "")  # the net served
+        label = shown if any(size["arch"] == shown for size in rungs) else net.get("arch", "")  # its rung
         for size in rungs:  # the rungs tried, each judged by its crossed validation error
             val = size.get(f"crossed_val_{unit}")
             val = "" if val is None else val
@@ -272,7 +273,7 @@ def _capacity_section(capacity: dict[str, Any] | None, nets: dict[str, Any]) -> 
                 decision = "better than the rung below; a later rung beat it"
             figures = (val, "") if unit == "mm" else ("", val)
             rows.append([f"{kind} net size", size["arch"], decision, *figures, "", ""])
-        rows.append([f"{kind} net", label, state, net.get("best_val_mm", ""), net.get("best_val_deg", ""), "", ""])
+        rows.append([f"{kind} net", shown, state, net.get("best_val_mm", ""), net.get("best_val_deg", ""), "", ""])
     head = [
         "setting",
         "candidate",

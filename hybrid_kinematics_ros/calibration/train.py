@@ -307,6 +307,9 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
         else:
             many = replace(job, preset=replace(job.preset, arch=served_arch, members=ensemble))
             single = served
+            # judged against the single net as its member 0 counts in the ensemble: as served, where the other
+            # half chose no epoch of it (zero there would favour the ensemble by the served epoch's own pairs)
+            served_err = np.linalg.norm(_filled(single, job.q_val) - job.y_val, axis=1)
             run = lambda t, r: _train_members(replace(many, max_seconds=t), r, single)  # noqa: E731
             trained, kept = rung(label, served_arch, run, left)
             if kept:
@@ -333,6 +336,15 @@ def _counted_on(entry: dict, epochs: int, seconds: float, arch: str | None = Non
         out["arch"] = arch
     if member is not None:
         out["member"] = member
+    return out
+
+
+def _filled(trained: _Trained, q_val: np.ndarray) -> np.ndarray:
+    """``trained``'s crossed corrections of the validation pairs, with the net as served where the other half
+    chose no epoch of it: as a member of an ensemble it cannot correct nothing there."""
+    out = trained.crossed.copy()
+    if not trained.chosen.all():
+        out[~trained.chosen] = _predict(trained.net, torch.tensor(q_val))[~trained.chosen]
     return out
 
 
@@ -452,7 +464,7 @@ def _train_members(job: NetJob, report: Callable[[dict], None] | None, first: _T
     crossed = np.zeros_like(job.y_val)
     for i, target in enumerate(net.body.members):
         if i == 0 and first is not None:
-            member, own, chosen = first.net, first.crossed.copy(), first.chosen
+            member, own = first.net, _filled(first, job.q_val)
         else:
             epochs, seconds = (history[-1]["epoch"], history[-1]["seconds"]) if history else (0, 0.0)
             relay = None if report is None else partial(_relay, report, epochs, seconds, i)
@@ -461,10 +473,8 @@ def _train_members(job: NetJob, report: Callable[[dict], None] | None, first: _T
             history += [_counted_on(e, epochs, seconds, member=i) for e in fitted.history]
             member = build_net(member_job)
             member.load_state_dict(fitted.state)
-            own, chosen = fitted.crossed, fitted.chosen
+            own = _filled(_Trained(member, fitted.history, fitted.beat, fitted.crossed, fitted.chosen), job.q_val)
         target.load_state_dict(member.body.state_dict())
-        if not chosen.all():  # a member cannot correct nothing: where no epoch was chosen, as served
-            own[~chosen] = _predict(member, q_val)[~chosen]
         crossed += own / k  # the members share the output's scale: the ensemble is their average
     unit, factor = UNIT[job.kind]
     nothing = float(np.linalg.norm(job.y_val, axis=1).mean()) if len(job.y_val) else math.inf
@@ -534,4 +544,6 @@ def preset(name: str, **overrides: object) -> Preset:
     chosen = replace(PRESETS[name], **given)
     if chosen.members < 1:
         raise CalibrationError(f"members = {chosen.members}: an ensemble needs at least 1 net")
+    if chosen.ensemble < 1:
+        raise CalibrationError(f"ensemble = {chosen.ensemble}: the ensemble rung needs at least 1 net (1: none)")
     return chosen

@@ -53,7 +53,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         type=int,
         help="nets averaged per residual, each from its own seed, one after the other in the same budget; "
         "given, it fixes the ensemble (1: a single net). Default: chosen on validation, the last rung of the "
-        "nets' ladder being an ensemble of 4 of the size served",
+        "nets' ladder being an ensemble of 4 of the size served (preset fast; paper: none)",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from hybrid_kinematics_ros.calibration import nets, train
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
 
 
 def _job(sign: float) -> train.NetJob:
@@ -210,38 +211,76 @@ def test_a_larger_size_the_budget_has_no_room_for_is_not_trained(monkeypatch):
     ],
 )
 def test_an_ensemble_of_the_size_served_is_the_last_rung(monkeypatch, single, many, members):
-    """After the sizes, the preset's ``ensemble`` rung averages the size served with more members, and serves
-    only if it beats that size significantly; where no size was served there is nothing to average."""
+    """After the sizes, the preset's ``ensemble`` rung averages the size served (here the larger, the smaller
+    no better than nothing) with more members, and serves only if it beats that size significantly; where no
+    size was served there is nothing to average."""
     job = _job(1.0)
-    job = replace(job, preset=replace(job.preset, ensemble=3))
+    job = replace(job, preset=replace(job.preset, arch=f"{SMALL},{LARGE}", ensemble=3))
     noise = np.random.default_rng(3).normal(0.0, 0.02, job.y_val.shape) * 1e-4
     ones = np.ones(len(job.y_val), bool)
-    calls = []
+    calls, singles = [], {}
 
     def one(j: train.NetJob, _report: object) -> train._Trained:
-        calls.append(("one", j.preset.members))
+        calls.append(("one", j.preset.arch))
+        share = 2.0 if j.preset.arch == SMALL else single
         history = [{"kind": "position", "epoch": 1, "seconds": 0.1, "val_mm": 1.0, "best_val_mm": 1.0}]
-        return train._Trained(train.build_net(j), history, True, job.y_val * (1.0 - single) + noise, ones)
+        crossed = job.y_val * (1 - share) + noise
+        singles[j.preset.arch] = train._Trained(train.build_net(j), history, True, crossed, ones)
+        return singles[j.preset.arch]
 
     def averaged(j: train.NetJob, _report: object, first: train._Trained | None = None) -> train._Trained:
-        calls.append(("members", j.preset.members, first))
+        calls.append(("members", j.preset.arch, j.preset.members, first))
         history = [{"kind": "position", "epoch": 1, "seconds": 0.1, "val_mm": 1.0, "best_val_mm": 0.5, "member": 2}]
         return train._Trained(train.build_net(j), history, True, job.y_val * (1.0 - many) + noise, ones)
 
     monkeypatch.setattr(train, "_train_one", one)
     monkeypatch.setattr(train, "_train_members", averaged)
     net, history = train.train_net(job)
-    arch = job.preset.arch
     sizes = history[-1]["sizes"]
-    assert [s["arch"] for s in sizes] == [arch, f"{arch} x3"]
+    assert [s["arch"] for s in sizes] == [SMALL, LARGE, f"{LARGE if members else SMALL} x3"]
     if members is None:
-        assert history[-1]["silenced"] and calls == [("one", 1)]
-        assert sizes[1]["trained"] is False and sizes[1]["why"] == "no size served"
+        assert history[-1]["silenced"] and len(calls) == 2
+        assert sizes[2]["trained"] is False and sizes[2]["why"] == "no size served"
         return
-    assert calls[1][:2] == ("members", 3) and calls[1][2] is not None  # the served net is its first member
-    assert history[-1]["members"] == members and "silenced" not in history[-1]
+    assert calls[2][:3] == ("members", LARGE, 3) and calls[2][3] is singles[LARGE]  # the served net is member 0
+    assert history[-1]["members"] == members and history[-1]["served"] == LARGE and "silenced" not in history[-1]
     assert isinstance(net.body, nets.Ensemble) == (members > 1)
     assert history[-1]["best_val_mm"] == (0.5 if members > 1 else 1.0)  # the figures of the rung served
+
+
+class _Fixed(torch.nn.Module):
+    """A net that answers the validation pairs with fixed corrections."""
+
+    def __init__(self, answers: np.ndarray) -> None:
+        super().__init__()
+        self.answers = torch.tensor(answers)
+
+    def forward(self, q: torch.Tensor) -> torch.Tensor:
+        return self.answers
+
+
+def test_the_ensemble_is_judged_against_the_single_net_as_it_counts_in_the_ensemble(monkeypatch):
+    """Where the other half chose no epoch of the served net, its crossed correction is nothing, but as the
+    ensemble's member 0 it counts as served. An ensemble that adds nothing to it must not win by that
+    difference: the rung's baseline is the single net as it counts in the ensemble."""
+    job = replace(_job(1.0), preset=replace(_job(1.0).preset, ensemble=3))
+    served = 0.5 * job.y_val  # the served epoch's corrections: half of what the stage left
+    chosen = train._chunks(len(job.y_val)) % 2 == 0  # the other half chose no epoch on alternate chunks
+    crossed = np.where(chosen[:, None], job.y_val, 0.0)
+    ones = np.ones(len(job.y_val), bool)
+    history = [{"kind": "position", "epoch": 1, "seconds": 0.1, "val_mm": 1.0, "best_val_mm": 1.0}]
+    single = train._Trained(_Fixed(served), history, True, crossed, chosen)
+
+    def averaged(j: train.NetJob, _report: object, first: train._Trained | None = None) -> train._Trained:
+        assert first is single
+        same = train._filled(first, j.q_val)  # three members that each answer as member 0 counts
+        return train._Trained(train.build_net(j), [{**history[0], "member": 2}], True, same, ones)
+
+    monkeypatch.setattr(train, "_train_one", lambda j, r: single)
+    monkeypatch.setattr(train, "_train_members", averaged)
+    _, out = train.train_net(job)
+    assert "silenced" not in out[-1]  # the single net beats nothing by the chunks the other half chose
+    assert out[-1]["sizes"][1]["kept"] is False and out[-1]["members"] == 1
 
 
 def test_the_ensemble_rung_keeps_the_served_net_as_its_first_member():
@@ -282,3 +321,5 @@ def test_given_members_fix_the_ensemble():
     assert train.preset("fast").ensemble > 1
     assert train.preset("fast", members=1).ensemble == 1
     assert train.preset("fast", members=4).ensemble == 1
+    with pytest.raises(CalibrationError, match="ensemble = 0"):
+        train.preset("fast", ensemble=0)

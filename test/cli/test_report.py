@@ -232,6 +232,15 @@ def test_the_capacity_table_says_what_each_net_size_did():
     assert "not trained: no size served" in rows[5]
     served = [r for r in text.split("<tr>") if "position net<" in r]
     assert len(served) == 1 and f"{large} x4" in served[0]
+    # --members 2 fixed: every rung is an ensemble of that size, named by its size; the net served says x2
+    fixed = {
+        "arch": small,
+        "members": 2,
+        "best_val_mm": 0.03,
+        "sizes": [{"arch": small, "crossed_val_mm": 0.03, "kept": True}],
+    }
+    text = "".join(_capacity_section(None, {"position": fixed}))
+    assert "served: significantly better" in text and f"{small} x2" in text
 
 
 def test_iso9283_groups_repeated_poses_read_by_real_encoders(ur10):
