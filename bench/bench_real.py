@@ -103,7 +103,8 @@ def noise_floor(pairs: Pairs, chain, tolerance_rad: float = 1e-3) -> tuple[float
 def fit_recipe(cfg, train_sets, preset, conditions, minutes, steps, seed=0, **fit_options):
     """Fit one recipe on ``train_sets`` (a tenth of each validates); returns the model, its manifest, the
     training pairs and the seconds. ``steps``: optimiser steps per net, the budget that load does not
-    change (the paper's recipe stops early on validation, or at ``minutes``)."""
+    change (the paper's recipe stops early on validation, or at ``minutes``). ``minutes``: the cap per net
+    trained, so a recipe that trains more nets (the ladder's sizes, an ensemble's members) gets more."""
     tr, va = zip(*[split(p, seed, (0.1, 0.0))[:2] for p in train_sets], strict=True)
     per_epoch = max(1, sum(len(p) for p in tr) // preset.batch)
     epochs = preset.max_epochs if preset.patience else max(1, steps // per_epoch)
@@ -116,7 +117,7 @@ def fit_recipe(cfg, train_sets, preset, conditions, minutes, steps, seed=0, **fi
             list(va),
             Path(tmp) / "m",
             replace(preset, max_epochs=epochs),
-            minutes * preset.members,
+            minutes * preset.nets,
             seed=seed,
             parametric=True,
             payload=(cfg.payload_mass, cfg.payload_com),
@@ -189,7 +190,12 @@ def table_of(results: dict[str, dict[str, dict]]) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("parts", nargs="*", default=["A", "C"])
-    parser.add_argument("--minutes", type=float, default=10.0, help="wall-clock cap per net (of an ensemble)")
+    parser.add_argument(
+        "--minutes",
+        type=float,
+        default=10.0,
+        help="wall-clock cap per net trained (each size of the ladder, each member of an ensemble)",
+    )
     parser.add_argument("--recipes", default="ours,ours + temperature,paper", help="comma-separated hybrid rows")
     parser.add_argument("--main", default="ours", help="the recipe of the CB, all and curve parts")
     parser.add_argument("--steps", type=int, default=20_000, help="optimiser steps per net (our recipe's budget)")

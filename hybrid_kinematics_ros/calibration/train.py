@@ -48,6 +48,17 @@ class Preset:
     # with members = 1: the ensemble the ladder tries of the size served, after the sizes (1: none; train_net)
     ensemble: int = 1
 
+    @property
+    def added(self) -> int:
+        """The members the ensemble rung adds to the size served: none when ``members`` fixes the ensemble."""
+        return self.ensemble - 1 if self.members == 1 else 0
+
+    @property
+    def nets(self) -> int:
+        """The most nets :func:`train_net` trains per residual: every size (each of ``members`` nets) and the
+        ensemble rung's added members. A budget per net times this is one for the whole ladder."""
+        return len(candidates(self.arch)) * self.members + self.added
+
 
 PRESETS = {
     "fast": Preset(
@@ -256,8 +267,8 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
     archs = candidates(job.preset.arch)
     for arch in archs[1:]:  # a misspelt larger size fails now, not after the smaller one has trained
         build_net(replace(job, preset=replace(job.preset, arch=arch)))
-    ensemble = job.preset.ensemble if job.preset.members == 1 else 1
-    shares = len(archs) + ensemble - 1  # the added members take a rung's share each
+    ensemble = job.preset.added + 1
+    shares = len(archs) + job.preset.added  # the added members take a rung's share each
     tests = len(archs) + (ensemble > 1)
     unit, factor = UNIT[job.kind]
     served: _Trained | None = None

@@ -323,3 +323,26 @@ def test_given_members_fix_the_ensemble():
     assert train.preset("fast", members=4).ensemble == 1
     with pytest.raises(CalibrationError, match="ensemble = 0"):
         train.preset("fast", ensemble=0)
+
+
+@pytest.mark.parametrize("members, ensemble, nets", [(1, 3, 4), (2, 3, 4), (1, 1, 2)])
+def test_a_budget_per_net_times_the_presets_nets_is_the_ladders(monkeypatch, members, ensemble, nets):
+    """``Preset.nets`` counts what the ladder trains: the first rung's share of the budget, per net it
+    trains, is the whole budget over that count (so ``bench_real``'s cap per net means what it says), and a
+    fixed ensemble adds no rung of its own."""
+    job = _job(1.0)
+    job = replace(job, preset=replace(job.preset, arch=f"{SMALL},{LARGE}", members=members, ensemble=ensemble))
+    assert job.preset.nets == nets
+    ones = np.ones(len(job.y_val), bool)
+    per_net: list[float] = []
+
+    def trained(j: train.NetJob, _report: object, first: train._Trained | None = None) -> train._Trained:
+        per_net.append(j.max_seconds / j.preset.members)
+        history = [{"kind": "position", "epoch": 1, "seconds": 0.1, "val_mm": 1.0, "best_val_mm": 1.0}]
+        return train._Trained(train.build_net(j), history, True, 0.5 * job.y_val, ones)
+
+    monkeypatch.setattr(train, "_train_one", trained)
+    monkeypatch.setattr(train, "_train_members", trained)
+    _, history = train.train_net(job)
+    assert per_net[0] == pytest.approx(job.max_seconds / nets)
+    assert len(history[-1]["sizes"]) == 2 + (members == 1 and ensemble > 1)
