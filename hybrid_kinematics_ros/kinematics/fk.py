@@ -88,7 +88,7 @@ def fk_single(chain: Chain, q: np.ndarray) -> np.ndarray:
     """
     tail = chain.single_operands[2]
     q = np.asarray(q, dtype=float)
-    factors = _joint_factors(chain, q)  # (n, 4, 4) or (k, n, 4, 4)
+    factors = joint_factors(chain, q)  # (n, 4, 4) or (k, n, 4, 4)
     if q.ndim == 1:
         factors = np.concatenate((factors, tail))
     else:  # the factors' axis first, each factor a batch over the configurations
@@ -98,9 +98,9 @@ def fk_single(chain: Chain, q: np.ndarray) -> np.ndarray:
     return factors[0]
 
 
-def _joint_factors(chain: Chain, q: np.ndarray) -> np.ndarray:
+def joint_factors(chain: Chain, q: np.ndarray) -> np.ndarray:
     """``(…, n, 4, 4)``: each joint's transform ``G0 + a G1 + b G2`` at ``q (…, n)``, in one batched product
-    (:func:`fk_single`, :func:`fk_and_jacobian_single`)."""
+    (:func:`fk_single`, :func:`fk_and_jacobian_single`, the elasto-geometric chain's one-pose path)."""
     flat, ones, _, revolute = chain.single_operands
     a, b = (np.sin(q), 1.0 - np.cos(q)) if revolute else chain.coefficients(q)
     if q.ndim == 1:  # one configuration: np.array of the rows costs less than np.stack
@@ -151,7 +151,7 @@ def fk_and_jacobian_single(chain: Chain, q: np.ndarray) -> tuple[np.ndarray, np.
 
     The joint factors as in :func:`fk_single`; the frames, their prefix products, in log₂ n batched steps
     (step k multiplies each frame from k on by the one k before it) instead of a loop of n products."""
-    frames = _joint_factors(chain, np.asarray(q, dtype=float))
+    frames = joint_factors(chain, np.asarray(q, dtype=float))
     k = 1
     while k < len(frames):
         frames = np.concatenate((frames[:k], frames[:-k] @ frames[k:]))

@@ -510,7 +510,7 @@ class HybridModel:
         if not self.condition_names:
             return q
         if q.ndim == 1:
-            return np.r_[q, self.condition_values if conditions is None else conditions]
+            return np.concatenate((q, self.condition_values if conditions is None else conditions))
         c = np.broadcast_to(
             self.condition_values if conditions is None else conditions, (len(q), len(self.condition_names))
         )

@@ -49,7 +49,13 @@ def _single_paths_agree(model: ElasticChain, q: np.ndarray) -> np.ndarray:
     return J
 
 
-def test_single_pose_paths_equal_the_batch(elastic):
+@pytest.mark.parametrize("bending", [True, False])
+def test_single_pose_paths_equal_the_batch(elastic, bending):
+    """With bending, and without (compliance alone, as most identified stages are: the single path then
+    skips the bends)."""
+    assert elastic.bending.any()
+    if not bending:
+        elastic = replace(elastic, bending=np.zeros_like(elastic.bending))
     q = joints(elastic.chain, 20, seed=1)
     T, J = elastic.fk_and_jacobian(q)
     np.testing.assert_allclose(elastic.fk(q), T, atol=1e-15)
@@ -125,6 +131,9 @@ def test_joint_map_interpolates_like_numpy_and_holds_its_ends():
         np.testing.assert_allclose(slope[inside, k], numeric[inside], rtol=1e-5, atol=1e-12)
         assert not slope[~inside, k].any()
     assert (q[:, 0] < -1.0).any() and (q[:, 0] > -0.61).any()  # the draw does leave the map
+    for row in range(len(q)):  # one configuration takes a path of Python floats: the same bits
+        one = joint_map(q[row])
+        assert np.array_equal(one[0], value[row]) and np.array_equal(one[1], slope[row])
 
 
 def test_joint_map_turns_the_joints(elastic):
