@@ -103,7 +103,9 @@ class ErrorBound:
         if quantile is None:
             raise ModelError("the model's bounds carry no bound of its parametric stage alone; retrain the model")
         inside = quantile if self.scale is None else quantile * self.scale.at(f)
-        return inside + np.linalg.norm(np.atleast_2d(x) * self.rates, axis=1)
+        x = np.atleast_2d(x)
+        # inside the trained range (a service's usual call) the growth is zero: skip its norm
+        return inside + (np.linalg.norm(x * self.rates, axis=1) if x.any() else np.zeros(len(x)))
 
     def manifest(self, unit: str) -> dict[str, Any]:
         out = {f"quantile_{unit}": self.quantile, f"growth_{unit}_per_rad": self.rates.tolist()}
