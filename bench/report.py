@@ -12,6 +12,8 @@ import time
 from datetime import UTC, datetime
 from pathlib import Path
 
+from hybrid_kinematics_ros.calibration.report import net_label
+
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = ROOT / "BENCHMARKS.md"
 HEADER = "# Benchmarks\n\nEvery section is written by the script it names; rerun it to refresh the numbers.\n"
@@ -91,6 +93,6 @@ def served(manifest: dict) -> str:
     nets = manifest.get("nets", {})
 
     def size(n: dict) -> str:
-        return "off" if n.get("silenced") else n["arch"] + (f" x{n['members']}" if n.get("members", 1) > 1 else "")
+        return "off" if n.get("silenced") else net_label(n)
 
     return ", ".join(f"{k} {size(n)}" for k, n in nets.items())

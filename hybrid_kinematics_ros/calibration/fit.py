@@ -437,14 +437,15 @@ def thinned(q: np.ndarray, spacing: float = COVERAGE_SPACING) -> np.ndarray:
 def _best(history: list[dict]) -> dict[str, Any]:
     """The net's architecture and validation figures, and the epoch its kept weights come from: how long to
     train and how large a net are chosen on the validation blocks, like whether to correct at all
-    (``silenced``; ``members``: 1, or an ensemble's; ``sizes``: each rung's crossed validation error,
-    :func:`train.train_net`)."""
+    (``silenced``; ``members``: 1, or an ensemble's; ``cycles``: the runs of one net trained on from the last;
+    ``sizes``: each rung's crossed validation error, :func:`train.train_net`)."""
     last = history[-1]
-    out = {k: v for k, v in last.items() if k.startswith("best_val_") or k in ("silenced", "sizes", "members")}
+    kept = ("silenced", "sizes", "members", "cycles")
+    out = {k: v for k, v in last.items() if k.startswith("best_val_") or k in kept}
     out["arch"] = last["served"]
     served = [e for e in history if e["arch"] == last["served"]]  # epochs count on across the sizes
     if out.get("members", 1) == 1:  # the single net, not the members an ensemble rung added to it
-        served = [e for e in served if "member" not in e]
+        served = [e for e in served if "member" not in e and e.get("cycle", 1) <= last.get("cycles", 1)]
     out["epochs"] = len(served)
     if not last.get("silenced") and out.get("members", 1) == 1:
         key = next(k for k in last if k.startswith("val_"))

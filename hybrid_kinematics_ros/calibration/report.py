@@ -230,6 +230,13 @@ def _coverage_section(coverage: dict[str, Any] | None) -> list[str]:
     ]
 
 
+def net_label(net: dict) -> str:
+    """The net served as its ladder's rung names it (a manifest's ``nets`` entry): its size, an ensemble's
+    members, or the cycles of one longer run (:func:`train.train_net`)."""
+    members, cycles = net.get("members", 1), net.get("cycles", 1)
+    return net.get("arch", "") + (f" x{members}" if members > 1 else "") + (f", {cycles} cycles" if cycles > 1 else "")
+
+
 def _capacity_section(capacity: dict[str, Any] | None, nets: dict[str, Any]) -> list[str]:
     """One table of every capacity choice: each candidate's held-out figures on the training pairs' blocks."""
     if not capacity and not nets:
@@ -257,8 +264,7 @@ def _capacity_section(capacity: dict[str, Any] | None, nets: dict[str, Any]) -> 
             state += f", weights of epoch {net['best_epoch']} of {net.get('epochs', '?')} (best on validation)"
         unit = "mm" if kind == "position" else "deg"
         rungs = net.get("sizes", [])
-        members = net.get("members", 1)
-        shown = net.get("arch", "") + (f" x{members}" if members > 1 else "")  # the net served
+        shown = net_label(net)
         label = shown if any(size["arch"] == shown for size in rungs) else net.get("arch", "")  # its rung
         for size in rungs:  # the rungs tried, each judged by its crossed validation error
             val = size.get(f"crossed_val_{unit}")

@@ -223,6 +223,7 @@ class _Fitted:
     crossed: np.ndarray  # (N_val, 3): each validation pair's correction by the epoch the *other* half chose
     chosen: np.ndarray  # (N_val,): whether that half chose an epoch; where not, ``crossed`` is zero (nothing)
     history: list[dict]
+    clocked: bool = False  # whether the clock, not the steps, ended the run
 
 
 def candidates(arch: str) -> list[str]:
@@ -242,6 +243,7 @@ class _Trained:
     beat: bool  # whether it beats correcting nothing on every validation pair, as served
     crossed: np.ndarray  # (N_val, 3): each validation pair's correction by the epochs the *other* half chose
     chosen: np.ndarray  # (N_val,): whether that half chose an epoch; where not, ``crossed`` is zero (nothing)
+    clocked: bool = False  # whether the clock ended its run (a longer one was possible: :func:`train_net`)
 
 
 def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tuple[ResidualNet, list[dict]]:
@@ -273,6 +275,7 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
     unit, factor = UNIT[job.kind]
     served: _Trained | None = None
     served_arch, served_members = archs[0], job.preset.members  # silenced, the simplest carries the zeros
+    served_cycles = 1  # the training runs of the net served, each on from the last (one longer run)
     nothing = np.linalg.norm(job.y_val, axis=1)
     served_err = nothing
     history: list[dict] = []
@@ -280,14 +283,19 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
     first: ResidualNet | None = None
     start = time.perf_counter()
 
-    def rung(label: str, arch: str, run: Callable[[float, Callable | None], _Trained], seconds: float):
+    def rung(label: str, arch: str, run: Callable[[float, Callable | None], _Trained], seconds: float, cycle: int = 1):
         """Train one rung of ``arch`` in ``seconds``, record it as ``label``, and say whether the ladder keeps it
-        (``(trained, kept)``)."""
+        (``(trained, kept)``). ``cycle`` > 1: the rung trains the net served on, its entries say which cycle."""
         nonlocal served_err
         epochs, elapsed = (history[-1]["epoch"], history[-1]["seconds"]) if history else (0, 0.0)
-        relay = None if report is None else (lambda e: report(_counted_on(e, epochs, elapsed, arch)))
+
+        def counted(e: dict) -> dict:
+            out = _counted_on(e, epochs, elapsed, arch)
+            return out if cycle == 1 else {**out, "cycle": cycle}
+
+        relay = None if report is None else (lambda e: report(counted(e)))
         trained = run(seconds, relay)
-        history.extend(_counted_on(e, epochs, elapsed, arch) for e in trained.history)
+        history.extend(counted(e) for e in trained.history)
         err = np.linalg.norm(trained.crossed - job.y_val, axis=1)
         kept = trained.beat and _beats(err - served_err, tests)
         val = float(err.mean()) * factor if len(err) else None
@@ -316,18 +324,44 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
             why = "no size served" if served is None else "the sizes took the budget"
             sizes.append({"arch": label, f"crossed_val_{unit}": None, "kept": False, "trained": False, "why": why})
         else:
-            many = replace(job, preset=replace(job.preset, arch=served_arch, members=ensemble))
-            single = served
-            # judged against the single net as its member 0 counts in the ensemble: as served, where the other
-            # half chose no epoch of it (zero there would favour the ensemble by the served epoch's own pairs)
-            served_err = np.linalg.norm(_filled(single, job.q_val) - job.y_val, axis=1)
-            run = lambda t, r: _train_members(replace(many, max_seconds=t), r, single)  # noqa: E731
-            trained, kept = rung(label, served_arch, run, left)
-            if kept:
-                served, served_members = trained, ensemble
+            single, continued = served, None
+            if single.clocked and ensemble > 2:
+                # The clock ended the served net's run, so the time left may serve one longer run better than
+                # members: the first added member is that net trained on (a warm restart, from member 1's
+                # seed). If it alone beats the net significantly, time is what the net lacks: one more cycle
+                # takes all the time left, and no member is added. Else it is member 1 (a snapshot).
+                on = replace(job, preset=replace(job.preset, arch=served_arch), seed=job.seed + MEMBER_SEED_STRIDE)
+                for cycle in (2, 3):  # the first with a rung's share; the second, if the first won, all the rest
+                    left = job.max_seconds - (time.perf_counter() - start)
+                    if left < SIZE_RESERVE * job.max_seconds:
+                        break
+                    seconds = min(left, job.max_seconds / shares) if cycle == 2 else left
+                    tests += 1  # each cycle is one more rung judged
+                    last = served
+                    run = lambda t, r, last=last: _train_one(replace(on, max_seconds=t), r, last.net)  # noqa: E731
+                    continued, kept = rung(f"{served_arch}, {cycle} cycles", served_arch, run, seconds, cycle)
+                    if not kept:
+                        break
+                    served, served_cycles = continued, cycle
+                left = job.max_seconds - (time.perf_counter() - start)
+            if served is not single or left < SIZE_RESERVE * job.max_seconds:
+                why = "one longer run beat the net" if served is not single else "the longer run took the budget"
+                sizes.append({"arch": label, f"crossed_val_{unit}": None, "kept": False, "trained": False, "why": why})
+            else:
+                many = replace(job, preset=replace(job.preset, arch=served_arch, members=ensemble))
+                # judged against the single net as its member 0 counts in the ensemble: as served, where the
+                # other half chose no epoch of it (zero there would favour the ensemble by the served epoch's own
+                # pairs)
+                served_err = np.linalg.norm(_filled(single, job.q_val) - job.y_val, axis=1)
+                run = lambda t, r: _train_members(replace(many, max_seconds=t), r, single, continued)  # noqa: E731
+                trained, kept = rung(label, served_arch, run, left)
+                if kept:
+                    served, served_members = trained, ensemble
     net = first if served is None else served.net
     history[-1] = {k: v for k, v in history[-1].items() if k not in ("silenced", "served")}
     history[-1].update({"served": served_arch, "members": served_members})
+    if served_cycles > 1:
+        history[-1]["cycles"] = served_cycles
     if served is None:  # what is served is correcting nothing: its figures, not those of a size trained
         net.silence()
         best = float(nothing.mean()) * factor if len(nothing) else None
@@ -363,20 +397,24 @@ def _relay(report: Callable[[dict], None], epochs: int, seconds: float, member: 
     report(_counted_on(entry, epochs, seconds, member=member))
 
 
-def _train_one(job: NetJob, report: Callable[[dict], None] | None) -> _Trained:
-    """A single net of ``job.preset.arch``: the epoch best on every validation pair, and the crossed choice."""
-    fitted = _fit(job, report)
+def _train_one(job: NetJob, report: Callable[[dict], None] | None, start: ResidualNet | None = None) -> _Trained:
+    """A single net of ``job.preset.arch``: the epoch best on every validation pair, and the crossed choice.
+    ``start``: a net of that size to train on from (:func:`_fit`)."""
+    fitted = _fit(job, report, None if start is None else start.state_dict())
     net = build_net(job)
     net.load_state_dict(fitted.state)
-    return _Trained(net, fitted.history, fitted.beat, fitted.crossed, fitted.chosen)
+    return _Trained(net, fitted.history, fitted.beat, fitted.crossed, fitted.chosen, fitted.clocked)
 
 
-def _fit(job: NetJob, report: Callable[[dict], None] | None) -> _Fitted:
+def _fit(job: NetJob, report: Callable[[dict], None] | None, start: dict | None = None) -> _Fitted:
     """The training loop of one net (one body), keeping the best epoch on every validation pair and on each
-    half of them (:func:`_halves`)."""
+    half of them (:func:`_halves`). ``start``: weights to train on from (a warm restart: the learning rate
+    and its schedule start afresh), else the seed's."""
     torch.manual_seed(job.seed)
     p = job.preset
     net = build_net(job)
+    if start is not None:
+        net.load_state_dict(start)
     axis = job.axis if p.turn else None
     mean, scale = net.target_mean.numpy(), net.target_scale.numpy()
     y_std = (to_joint1_frame(job.y_train, job.q_train[:, 0], axis) - mean) / scale
@@ -399,10 +437,10 @@ def _fit(job: NetJob, report: Callable[[dict], None] | None) -> _Fitted:
     done_steps = 0
     time_limited: bool | None = None
     unit, factor = UNIT[job.kind]
+    out_of_time = False
     for epoch in range(1, p.max_epochs + 1):
         perm = torch.randperm(n, generator=gen)
         total, steps = 0.0, 0
-        out_of_time = False
         for s in range(0, n - batch + 1, batch):
             elapsed = time.perf_counter() - start
             if elapsed >= job.max_seconds:
@@ -452,30 +490,37 @@ def _fit(job: NetJob, report: Callable[[dict], None] | None) -> _Fitted:
         raise CalibrationError(f"{job.kind} net: no training step fitted in the time budget; give more time")
     if state is None:
         last = {k: v.clone() for k, v in net.state_dict().items()}
-        return _Fitted(last, False, selection.crossed, selection.chosen, history)
-    return _Fitted(state, True, selection.crossed, selection.chosen, history)
+        return _Fitted(last, False, selection.crossed, selection.chosen, history, out_of_time)
+    return _Fitted(state, True, selection.crossed, selection.chosen, history, out_of_time)
 
 
 MEMBER_SEED_STRIDE = 1000  # member i trains from seed + i * this: apart from the other net's seed (+1)
 
 
-def _train_members(job: NetJob, report: Callable[[dict], None] | None, first: _Trained | None = None) -> _Trained:
+def _train_members(
+    job: NetJob,
+    report: Callable[[dict], None] | None,
+    first: _Trained | None = None,
+    continued: _Trained | None = None,
+) -> _Trained:
     """Each member as a single net from its own seed, with an equal share of the steps and the time budget;
     the ensemble, their average, is judged as a single net: each half of the validation pairs by the members
     the other half chose (a member cannot correct nothing, so where a half chose no epoch of it, by the member
     as served). ``first``: a single net of the same architecture already trained, from ``job.seed``, which is
-    member 0 (the ladder's ensemble rung); the others share the budget. History entries carry ``member``;
-    their epochs and seconds count on across members."""
+    member 0 (the ladder's ensemble rung); ``continued``, with ``first``: that net trained on, member 1 (a
+    snapshot of one longer run); the others share the budget. History entries carry ``member``; their epochs
+    and seconds count on across members."""
     k = job.preset.members
-    added = k - (first is not None)
+    given = [t for t in (first, continued) if t is not None]
+    added = k - len(given)
     single = replace(job, preset=replace(job.preset, members=1), max_seconds=job.max_seconds / added)
     history: list[dict] = []
     net = build_net(job)
     q_val = torch.tensor(job.q_val)
     crossed = np.zeros_like(job.y_val)
     for i, target in enumerate(net.body.members):
-        if i == 0 and first is not None:
-            member, own = first.net, _filled(first, job.q_val)
+        if i < len(given):
+            member, own = given[i].net, _filled(given[i], job.q_val)
         else:
             epochs, seconds = (history[-1]["epoch"], history[-1]["seconds"]) if history else (0, 0.0)
             relay = None if report is None else partial(_relay, report, epochs, seconds, i)

@@ -4,6 +4,7 @@ stage before them worse where it can be checked."""
 from __future__ import annotations
 
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -228,7 +229,7 @@ def test_an_ensemble_of_the_size_served_is_the_last_rung(monkeypatch, single, ma
         singles[j.preset.arch] = train._Trained(train.build_net(j), history, True, crossed, ones)
         return singles[j.preset.arch]
 
-    def averaged(j: train.NetJob, _report: object, first: train._Trained | None = None) -> train._Trained:
+    def averaged(j: train.NetJob, _report: object, first=None, continued=None) -> train._Trained:
         calls.append(("members", j.preset.arch, j.preset.members, first))
         history = [{"kind": "position", "epoch": 1, "seconds": 0.1, "val_mm": 1.0, "best_val_mm": 0.5, "member": 2}]
         return train._Trained(train.build_net(j), history, True, job.y_val * (1.0 - many) + noise, ones)
@@ -271,8 +272,8 @@ def test_the_ensemble_is_judged_against_the_single_net_as_it_counts_in_the_ensem
     history = [{"kind": "position", "epoch": 1, "seconds": 0.1, "val_mm": 1.0, "best_val_mm": 1.0}]
     single = train._Trained(_Fixed(served), history, True, crossed, chosen)
 
-    def averaged(j: train.NetJob, _report: object, first: train._Trained | None = None) -> train._Trained:
-        assert first is single
+    def averaged(j: train.NetJob, _report: object, first=None, continued=None) -> train._Trained:
+        assert first is single and continued is None  # its run was not ended by the clock
         same = train._filled(first, j.q_val)  # three members that each answer as member 0 counts
         return train._Trained(train.build_net(j), [{**history[0], "member": 2}], True, same, ones)
 
@@ -336,7 +337,7 @@ def test_a_budget_per_net_times_the_presets_nets_is_the_ladders(monkeypatch, mem
     ones = np.ones(len(job.y_val), bool)
     per_net: list[float] = []
 
-    def trained(j: train.NetJob, _report: object, first: train._Trained | None = None) -> train._Trained:
+    def trained(j: train.NetJob, _report: object, first=None, continued=None) -> train._Trained:
         per_net.append(j.max_seconds / j.preset.members)
         history = [{"kind": "position", "epoch": 1, "seconds": 0.1, "val_mm": 1.0, "best_val_mm": 1.0}]
         return train._Trained(train.build_net(j), history, True, 0.5 * job.y_val, ones)
@@ -346,3 +347,66 @@ def test_a_budget_per_net_times_the_presets_nets_is_the_ladders(monkeypatch, mem
     _, history = train.train_net(job)
     assert per_net[0] == pytest.approx(job.max_seconds / nets)
     assert len(history[-1]["sizes"]) == 2 + (members == 1 and ensemble > 1)
+
+
+@pytest.mark.parametrize("longer", [True, False])
+def test_a_net_the_clock_stopped_is_trained_on_before_members_are_added(monkeypatch, longer):
+    """Where the clock, not the steps, ended the served net's run, the time left may serve one longer run
+    better than an ensemble: the first added member is that net trained on from its weights. If it beats
+    the net significantly the next cycle takes all the time left and no member is added (``longer``); else
+    it joins the ensemble as member 1 and the fresh members share what is left."""
+    job = _job(1.0)
+    job = replace(job, preset=replace(job.preset, arch=f"{SMALL},{LARGE}", ensemble=3))
+    noise = np.random.default_rng(3).normal(0.0, 0.02, job.y_val.shape) * 1e-4
+    ones = np.ones(len(job.y_val), bool)
+    calls: list[tuple] = []
+    history = [{"kind": "position", "epoch": 1, "seconds": 0.1, "val_mm": 1.0, "best_val_mm": 1.0}]
+
+    def one(j: train.NetJob, _report: object, start=None) -> train._Trained:
+        calls.append(("one", j.preset.arch, j.max_seconds, start))
+        clock[0] += j.max_seconds
+        cycle = sum(c[0] == "one" and c[1] == LARGE for c in calls)  # 1: the size's own run, 2, 3: on from it
+        share = 2.0 if j.preset.arch == SMALL else 0.5 * (0.5 if longer else 1.0) ** (cycle - 1)
+        return train._Trained(train.build_net(j), history, True, job.y_val * (1 - share) + noise, ones, True)
+
+    def averaged(j: train.NetJob, _report: object, first=None, continued=None) -> train._Trained:
+        calls.append(("members", j.preset.members, j.max_seconds, first, continued))
+        clock[0] += j.max_seconds
+        return train._Trained(train.build_net(j), [{**history[0], "member": 2}], True, job.y_val * 0.9, ones)
+
+    clock = [0.0]  # each run takes all the time it is given
+    monkeypatch.setattr(train, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
+    monkeypatch.setattr(train, "_train_one", one)
+    monkeypatch.setattr(train, "_train_members", averaged)
+    net, out = train.train_net(job)
+    shares = job.preset.nets
+    assert calls[2][1] == LARGE and calls[2][2] == pytest.approx(job.max_seconds / shares)  # a rung's share
+    assert calls[2][3] is not None  # trained on from the net served, not from a seed
+    sizes = [s["arch"] for s in out[-1]["sizes"]]
+    if longer:
+        assert [c[0] for c in calls] == ["one"] * 4  # no member: the next cycles took the time
+        assert calls[3][2] == pytest.approx(job.max_seconds * (1 - 3 / shares))  # all that was left
+        assert sizes == [SMALL, LARGE, f"{LARGE}, 2 cycles", f"{LARGE}, 3 cycles", f"{LARGE} x3"]
+        assert out[-1]["cycles"] == 3 and out[-1]["members"] == 1 and out[-1]["served"] == LARGE
+        assert out[-1]["sizes"][-1]["why"] == "one longer run beat the net"
+        assert not isinstance(net.body, nets.Ensemble)
+    else:
+        members = calls[3]
+        assert members[0] == "members" and members[1] == 3 and members[4] is not None  # the continuation: member 1
+        assert members[2] == pytest.approx(job.max_seconds * (1 - 3 / shares))
+        assert sizes == [SMALL, LARGE, f"{LARGE}, 2 cycles", f"{LARGE} x3"]
+        assert "cycles" not in out[-1] and out[-1]["members"] == 3
+
+
+def test_a_run_says_whether_the_clock_ended_it_and_trains_on_from_given_weights():
+    """``clocked``: a run the budget cut short, not one that took all its steps; a continuation starts from
+    the weights it is given (with no learning rate it keeps them)."""
+    job = _job(1.0)
+    short = train._train_one(replace(job, preset=replace(job.preset, max_epochs=2)), None)
+    assert not short.clocked
+    cut = replace(job, preset=replace(job.preset, max_epochs=10**6), max_seconds=0.2)
+    assert train._train_one(cut, None).clocked
+    still = replace(job, preset=replace(job.preset, lr=0.0, max_epochs=2), seed=5)
+    kept = train._train_one(still, None, short.net)
+    for a, b in zip(kept.net.state_dict().values(), short.net.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
