@@ -161,11 +161,12 @@ def noise(minutes: float) -> None:
     robot = "ur10"
     tr, va = dataset(robot, N_TRAIN, 1, noise=True), dataset(robot, N_VAL, 2, noise=True)
     te_truth = dataset(robot, N_TEST, 3, noise=False)
-    _, report, seconds, _ = run_fit(robot, tr, va, te_truth, train.PRESETS["fast"], minutes)
+    _, report, seconds, manifest = run_fit(robot, tr, va, te_truth, train.PRESETS["fast"], minutes)
     cfg = load_robot_config(robot)
     sigma_mm = float(cfg.tracker.get("position_noise_mm", 0.015))
     sigma_deg = float(cfg.tracker.get("orientation_noise_deg", 0.001))
-    rows = [row("URDF model", report["analytic"]), row("hybrid, trained on noisy labels", report["hybrid"], seconds)]
+    label = f"hybrid, trained on noisy labels (`fast`: {served(manifest)})"
+    rows = [row("URDF model", report["analytic"]), row(label, report["hybrid"], seconds)]
     mean_noise_mm = sigma_mm * np.sqrt(8 / np.pi)  # mean norm of a 3-D Gaussian with per-axis sigma
     mean_noise_deg = sigma_deg * np.sqrt(8 / np.pi)
     body = (
