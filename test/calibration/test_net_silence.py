@@ -12,6 +12,7 @@ import torch
 
 from hybrid_kinematics_ros.calibration import nets, train
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
+from hybrid_kinematics_ros.calibration.fit import _best
 
 
 def _job(sign: float) -> train.NetJob:
@@ -410,3 +411,20 @@ def test_a_run_says_whether_the_clock_ended_it_and_trains_on_from_given_weights(
     kept = train._train_one(still, None, short.net)
     for a, b in zip(kept.net.state_dict().values(), short.net.state_dict().values(), strict=True):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("cycles, epochs, best", [(3, 6, 5), (1, 2, 2)])
+def test_the_manifest_counts_the_epochs_of_the_cycles_served(cycles, epochs, best):
+    """A net trained on serves the epochs of its cycles, counted on from its first; where the continuation
+    lost (it joined an ensemble that lost too), only the first run's epochs are the served net's."""
+
+    def entry(epoch: int, val: float, **extra) -> dict:
+        return {"kind": "position", "epoch": epoch, "seconds": epoch, "val_mm": val, "arch": LARGE, **extra}
+
+    history = [entry(1, 0.5, arch=SMALL), entry(2, 0.4), entry(3, 0.3), entry(4, 0.35, cycle=2)]
+    history += [entry(5, 0.25, cycle=2), entry(6, 0.2, cycle=3), entry(7, 0.22, cycle=3), entry(8, 0.1, member=2)]
+    history[-1].update({"served": LARGE, "members": 1, "best_val_mm": 0.2})
+    if cycles > 1:
+        history[-1]["cycles"] = cycles
+    out = _best(history)
+    assert out["epochs"] == epochs and out["best_epoch"] == best and out.get("cycles", 1) == cycles

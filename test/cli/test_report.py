@@ -241,6 +241,23 @@ def test_the_capacity_table_says_what_each_net_size_did():
     }
     text = "".join(_capacity_section(None, {"position": fixed}))
     assert "served: significantly better" in text and f"{small} x2" in text
+    # one longer run: the net trained on for two more cycles serves, the ensemble was not tried
+    longer = {
+        "arch": large,
+        "cycles": 3,
+        "best_val_mm": 0.01,
+        "sizes": [
+            {"arch": small, "crossed_val_mm": 0.031, "kept": True},
+            {"arch": large, "crossed_val_mm": 0.021, "kept": True},
+            {"arch": f"{large}, 2 cycles", "crossed_val_mm": 0.015, "kept": True},
+            {"arch": f"{large}, 3 cycles", "crossed_val_mm": 0.011, "kept": True},
+            {"arch": f"{large} x4", "crossed_val_mm": None, "kept": False, "trained": False, "why": "one longer"},
+        ],
+    }
+    rows = [r for r in "".join(_capacity_section(None, {"position": longer})).split("<tr>") if "position net" in r]
+    assert "served: significantly better" in rows[3] and "3 cycles" in rows[3]
+    assert "a later rung beat it" in rows[2] and "not trained: one longer" in rows[4]
+    assert f"{large}, 3 cycles" in rows[-1]  # the net served
 
 
 def test_iso9283_groups_repeated_poses_read_by_real_encoders(ur10):
