@@ -363,12 +363,13 @@ def test_a_net_the_clock_stopped_is_trained_on_before_members_are_added(monkeypa
     calls: list[tuple] = []
     history = [{"kind": "position", "epoch": 1, "seconds": 0.1, "val_mm": 1.0, "best_val_mm": 1.0}]
 
-    def one(j: train.NetJob, _report: object, start=None) -> train._Trained:
-        calls.append(("one", j.preset.arch, j.max_seconds, start))
+    def one(j: train.NetJob, _report: object, start=None, resume=0.0) -> train._Trained:
+        calls.append(("one", j.preset.arch, j.max_seconds, start, resume))
         clock[0] += j.max_seconds
         cycle = sum(c[0] == "one" and c[1] == LARGE for c in calls)  # 1: the size's own run, 2, 3: on from it
         share = 2.0 if j.preset.arch == SMALL else 0.5 * (0.5 if longer else 1.0) ** (cycle - 1)
-        return train._Trained(train.build_net(j), history, True, job.y_val * (1 - share) + noise, ones, True)
+        ran = [{**history[0], "seconds": j.max_seconds}]
+        return train._Trained(train.build_net(j), ran, True, job.y_val * (1 - share) + noise, ones, True)
 
     def averaged(j: train.NetJob, _report: object, first=None, continued=None) -> train._Trained:
         calls.append(("members", j.preset.members, j.max_seconds, first, continued))
@@ -382,11 +383,12 @@ def test_a_net_the_clock_stopped_is_trained_on_before_members_are_added(monkeypa
     net, out = train.train_net(job)
     shares = job.preset.nets
     assert calls[2][1] == LARGE and calls[2][2] == pytest.approx(job.max_seconds / shares)  # a rung's share
-    assert calls[2][3] is not None  # trained on from the net served, not from a seed
+    assert calls[2][3] is not None and calls[2][4] == pytest.approx(0.5)  # on from the net served, half-way
     sizes = [s["arch"] for s in out[-1]["sizes"]]
     if longer:
         assert [c[0] for c in calls] == ["one"] * 4  # no member: the next cycles took the time
         assert calls[3][2] == pytest.approx(job.max_seconds * (1 - 3 / shares))  # all that was left
+        assert calls[3][4] == pytest.approx(2 / (2 + shares - 3))  # the rest of one schedule over all three
         assert sizes == [SMALL, LARGE, f"{LARGE}, 2 cycles", f"{LARGE}, 3 cycles", f"{LARGE} x3"]
         assert out[-1]["cycles"] == 3 and out[-1]["members"] == 1 and out[-1]["served"] == LARGE
         assert out[-1]["sizes"][-1]["why"] == "one longer run beat the net"
@@ -401,16 +403,19 @@ def test_a_net_the_clock_stopped_is_trained_on_before_members_are_added(monkeypa
 
 def test_a_run_says_whether_the_clock_ended_it_and_trains_on_from_given_weights():
     """``clocked``: a run the budget cut short, not one that took all its steps; a continuation starts from
-    the weights it is given (with no learning rate it keeps them)."""
+    the weights it is given, at the learning rate of where it resumes its schedule (at its end: none, so it
+    keeps them; at its start it moves them)."""
     job = _job(1.0)
     short = train._train_one(replace(job, preset=replace(job.preset, max_epochs=2)), None)
     assert not short.clocked
     cut = replace(job, preset=replace(job.preset, max_epochs=10**6), max_seconds=0.2)
     assert train._train_one(cut, None).clocked
-    still = replace(job, preset=replace(job.preset, lr=0.0, max_epochs=2), seed=5)
-    kept = train._train_one(still, None, short.net)
+    on = replace(job, preset=replace(job.preset, max_epochs=2), seed=5)
+    kept = train._train_one(on, None, short.net, resume=1.0)
     for a, b in zip(kept.net.state_dict().values(), short.net.state_dict().values(), strict=True):
         assert torch.equal(a, b)
+    moved = train._train_one(on, None, short.net, resume=0.0)
+    assert not torch.equal(moved.net.body[0].weight, short.net.body[0].weight)
 
 
 @pytest.mark.parametrize("cycles, epochs, best", [(3, 6, 5), (1, 2, 2)])
