@@ -53,7 +53,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         type=int,
         help="nets averaged per residual, each from its own seed, one after the other in the same budget; "
         "given, it fixes the ensemble (1: a single net). Default: chosen on validation, the last rung of the "
-        "nets' ladder being an ensemble of 4 of the size served (preset fast; paper: none)",
+        "nets' ladder being an ensemble of 4 of the size served, or, where the clock ended that net's run and "
+        "training it on beats it, one longer run (preset fast; paper: none)",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
