@@ -449,5 +449,7 @@ def _best(history: list[dict]) -> dict[str, Any]:
     out["epochs"] = len(served)
     if not last.get("silenced") and out.get("members", 1) == 1:
         key = next(k for k in last if k.startswith("val_"))
-        out["best_epoch"] = int(min(served, key=lambda e: e[key])["epoch"]) - served[0]["epoch"] + 1
+        # the weights served come from the last cycle's best epoch (the sizes' epochs may lie between cycles)
+        cycle = [e for e in served if e.get("cycle", 1) == last.get("cycles", 1)]
+        out["best_epoch"] = served.index(min(cycle, key=lambda e: e[key])) + 1
     return out

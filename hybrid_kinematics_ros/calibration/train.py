@@ -343,7 +343,13 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
                     if left < SIZE_RESERVE * job.max_seconds:
                         break
                     seconds = min(left, job.max_seconds / shares) if cycle == 2 else left
-                    tests += 1  # each cycle is one more rung judged
+                    # Each cycle is one more rung judged; the sizes were judged before a cycle was known to
+                    # be tried, so along one path the ladder's level is exceeded by at most a sixth
+                    # (Bonferroni sums: 1/3 + 1/3 + 1/4 + 1/4 of 1 - GATE_CONFIDENCE with two sizes).
+                    tests += 1
+                    # judged against the net as served: the cycle starts from weights chosen on every
+                    # validation pair, so its crossed errors share that choice, as the served net's do
+                    served_err = np.linalg.norm(_predict(served.net, torch.tensor(job.q_val)) - job.y_val, axis=1)
                     # the rest of one cosine schedule over the whole run so far and this cycle
                     resume = trained_for / (trained_for + seconds)
                     run = partial(_continue, on, served.net, resume)
@@ -422,17 +428,19 @@ def _train_one(
     return _Trained(net, fitted.history, fitted.beat, fitted.crossed, fitted.chosen, fitted.clocked)
 
 
-def _fit(job: NetJob, report: Callable[[dict], None] | None, start: dict | None = None, resume: float = 0.0) -> _Fitted:
+def _fit(
+    job: NetJob, report: Callable[[dict], None] | None, weights: dict | None = None, resume: float = 0.0
+) -> _Fitted:
     """The training loop of one net (one body), keeping the best epoch on every validation pair and on each
-    half of them (:func:`_halves`). ``start``: weights to train on from, else the seed's; ``resume``: the
+    half of them (:func:`_halves`). ``weights``: to train on from, else the seed's; ``resume``: the
     share of a longer cosine schedule already run, which this run finishes. Trained on for as long again,
     a net resumed at 0.5 scored as one run of the whole length (0.0077 mm both, table1's UR10 position net,
     90 + 90 s against 180 s), where a restart at the full rate lost half of that gain (0.0088 mm)."""
     torch.manual_seed(job.seed)
     p = job.preset
     net = build_net(job)
-    if start is not None:
-        net.load_state_dict(start)
+    if weights is not None:
+        net.load_state_dict(weights)
     axis = job.axis if p.turn else None
     mean, scale = net.target_mean.numpy(), net.target_scale.numpy()
     y_std = (to_joint1_frame(job.y_train, job.q_train[:, 0], axis) - mean) / scale

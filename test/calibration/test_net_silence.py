@@ -363,31 +363,49 @@ def test_a_net_the_clock_stopped_is_trained_on_before_members_are_added(monkeypa
     calls: list[tuple] = []
     history = [{"kind": "position", "epoch": 1, "seconds": 0.1, "val_mm": 1.0, "best_val_mm": 1.0}]
 
+    trained: list[train._Trained] = []
+    levels: list[int] = []  # the Bonferroni count of each rung judged
+
+    def answering(j: train.NetJob, corrections: np.ndarray) -> torch.nn.Module:
+        net = train.build_net(j)  # a net of the size asked for, answering the validation pairs as given
+        net.forward = lambda q: torch.tensor(corrections)
+        return net
+
     def one(j: train.NetJob, _report: object, start=None, resume=0.0) -> train._Trained:
         calls.append(("one", j.preset.arch, j.max_seconds, start, resume))
         clock[0] += j.max_seconds
         cycle = sum(c[0] == "one" and c[1] == LARGE for c in calls)  # 1: the size's own run, 2, 3: on from it
         share = 2.0 if j.preset.arch == SMALL else 0.5 * (0.5 if longer else 1.0) ** (cycle - 1)
+        corrections = job.y_val * (1 - share) + noise
         ran = [{**history[0], "seconds": j.max_seconds}]
-        return train._Trained(train.build_net(j), ran, True, job.y_val * (1 - share) + noise, ones, True)
+        trained.append(train._Trained(answering(j, corrections), ran, True, corrections, ones, True))
+        return trained[-1]
 
     def averaged(j: train.NetJob, _report: object, first=None, continued=None) -> train._Trained:
         calls.append(("members", j.preset.members, j.max_seconds, first, continued))
         clock[0] += j.max_seconds
         return train._Trained(train.build_net(j), [{**history[0], "member": 2}], True, job.y_val * 0.9, ones)
 
+    def beats(diff: np.ndarray, tests: int = 1) -> bool:
+        levels.append(tests)
+        return judge(diff, tests)
+
     clock = [0.0]  # each run takes all the time it is given
+    judge = train._beats
     monkeypatch.setattr(train, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
     monkeypatch.setattr(train, "_train_one", one)
     monkeypatch.setattr(train, "_train_members", averaged)
+    monkeypatch.setattr(train, "_beats", beats)
     net, out = train.train_net(job)
     shares = job.preset.nets
     assert calls[2][1] == LARGE and calls[2][2] == pytest.approx(job.max_seconds / shares)  # a rung's share
-    assert calls[2][3] is not None and calls[2][4] == pytest.approx(0.5)  # on from the net served, half-way
+    assert calls[2][3] is trained[1].net and calls[2][4] == pytest.approx(0.5)  # on from the net served, half-way
+    assert levels == [3, 3, 4, 5 if longer else 4]  # each cycle is one more rung judged
     sizes = [s["arch"] for s in out[-1]["sizes"]]
     if longer:
         assert [c[0] for c in calls] == ["one"] * 4  # no member: the next cycles took the time
         assert calls[3][2] == pytest.approx(job.max_seconds * (1 - 3 / shares))  # all that was left
+        assert calls[3][3] is trained[2].net  # on from the cycle before
         assert calls[3][4] == pytest.approx(2 / (2 + shares - 3))  # the rest of one schedule over all three
         assert sizes == [SMALL, LARGE, f"{LARGE}, 2 cycles", f"{LARGE}, 3 cycles", f"{LARGE} x3"]
         assert out[-1]["cycles"] == 3 and out[-1]["members"] == 1 and out[-1]["served"] == LARGE
@@ -395,7 +413,8 @@ def test_a_net_the_clock_stopped_is_trained_on_before_members_are_added(monkeypa
         assert not isinstance(net.body, nets.Ensemble)
     else:
         members = calls[3]
-        assert members[0] == "members" and members[1] == 3 and members[4] is not None  # the continuation: member 1
+        assert members[0] == "members" and members[1] == 3
+        assert members[3] is trained[1] and members[4] is trained[2]  # the net served, then its continuation
         assert members[2] == pytest.approx(job.max_seconds * (1 - 3 / shares))
         assert sizes == [SMALL, LARGE, f"{LARGE}, 2 cycles", f"{LARGE} x3"]
         assert "cycles" not in out[-1] and out[-1]["members"] == 3
@@ -433,3 +452,17 @@ def test_the_manifest_counts_the_epochs_of_the_cycles_served(cycles, epochs, bes
         history[-1]["cycles"] = cycles
     out = _best(history)
     assert out["epochs"] == epochs and out["best_epoch"] == best and out.get("cycles", 1) == cycles
+
+
+def test_the_best_epoch_of_a_smaller_size_trained_on_is_counted_in_its_own_runs():
+    """A smaller size served and trained on: the larger size's epochs lie between its cycles and are not
+    its own, and the weights served come from the last cycle (even where an earlier epoch scored lower)."""
+
+    def entry(epoch: int, val: float, arch: str, **extra) -> dict:
+        return {"kind": "position", "epoch": epoch, "seconds": epoch, "val_mm": val, "arch": arch, **extra}
+
+    history = [entry(1, 0.5, SMALL), entry(2, 0.2, SMALL), entry(3, 0.1, LARGE), entry(4, 0.1, LARGE)]
+    history += [entry(5, 0.3, SMALL, cycle=2), entry(6, 0.25, SMALL, cycle=2), entry(7, 0.27, SMALL, cycle=2)]
+    history[-1].update({"served": SMALL, "members": 1, "cycles": 2, "best_val_mm": 0.25})
+    out = _best(history)
+    assert out["epochs"] == 5 and out["best_epoch"] == 4
