@@ -223,6 +223,7 @@ def fit(
     capacity: Mapping[str, Any] | None = None,
     choose_capacity: bool = True,
     gravity: np.ndarray | None = None,
+    offered: Sequence[str] | None = None,
 ) -> tuple[HybridModel, dict[str, Any]]:
     """Reference, identify, train both nets within ``max_minutes`` (side by side), write the model directory.
 
@@ -230,7 +231,11 @@ def fit(
     tracker frame is referenced first (:func:`reference_all`); with ``parametric`` the elasto-geometric
     stage is identified next, from all stations together, and the nets learn what it leaves.
     Position-only pairs train the position net alone. ``conditions`` names condition channels of the
-    pairs (``temperature``, say) that the nets take as inputs beside the joints. ``capacity`` and
+    pairs (``temperature``, say) that the nets take as inputs beside the joints; ``offered`` names channels
+    each net takes only where its validation errors show their worth (:func:`train.train_net`), a channel no
+    net takes leaves the model's inputs. None (the default): with no channel named in ``conditions``, every
+    channel all the pairs carry but the joints' approach directions (those the stage decides); else none.
+    ``capacity`` and
     ``choose_capacity``: the stage's size, given or chosen from the training pairs (:func:`identify_stations`).
     ``gravity``: m/s² in the base frame (None: a floor mount), for the stage's joint torques.
     """
@@ -267,6 +272,14 @@ def fit(
     norm_lower, norm_upper = (chain.lower, chain.upper) if preset.full_range else (lower, upper)
     norm_lower = np.where(np.isfinite(norm_lower), norm_lower, lower)
     norm_upper = np.where(np.isfinite(norm_upper), norm_upper, upper)
+    if offered is None:
+        named = [c for c in conditions if not approach.is_channel(c)]
+        carried = set.intersection(*(set(p.conditions) for p in (train_pairs, val_pairs, test_pairs)))
+        varied = {c for c in carried if np.ptp(train_pairs.conditions[c]) > 0}  # a constant one teaches nothing
+        offered = () if named else tuple(sorted(c for c in varied if not approach.is_channel(c)))
+    offered = tuple(c for c in offered if c not in conditions)
+    forced = len(conditions)
+    conditions = (*conditions, *offered)
     x_train, x_val = (_net_inputs(p, conditions) for p in (train_pairs, val_pairs))
     if conditions:  # condition columns follow the joints, normalised over the range seen in training
         c = x_train[:, chain.dof :]
@@ -298,6 +311,8 @@ def fit(
             60.0 * max_minutes,
             seed + seed_offset,
             chain.dof,
+            offered=tuple(range(chain.dof + forced, chain.dof + len(conditions))),
+            offered_label=", ".join(offered),
         )
     start = time.perf_counter()
     nets, histories = train.train_pair(jobs, progress=progress, parallel=parallel)
@@ -305,6 +320,19 @@ def fit(
     for kind, history in histories.items():
         if history[-1].get("silenced"):
             log(f"{kind} net: no better than the stage before it on validation, so it corrects nothing")
+    if offered:
+        taken = [kind for kind, history in histories.items() if history[-1].get("takes_offered")]
+        manifest["offered_conditions"] = {"channels": list(offered), "taken_by": taken}
+        log(
+            f"condition channels offered ({', '.join(offered)}): "
+            + (f"taken by the {' and '.join(taken)} net" if taken else "no net is better with them on validation")
+        )
+        if not taken:  # out of the inputs: the node then needs no value for them
+            dropped = tuple(range(chain.dof + forced, chain.dof + len(conditions)))
+            for net in nets.values():
+                net.drop_inputs(dropped)
+            conditions = conditions[:forced]
+            norm_lower, norm_upper = norm_lower[: chain.dof + forced], norm_upper[: chain.dof + forced]
     manifest.update(
         {
             "base_link": chain.base_link,
@@ -440,10 +468,11 @@ def _best(history: list[dict]) -> dict[str, Any]:
     (``silenced``; ``members``: 1, or an ensemble's; ``cycles``: the runs of one net trained on from the last;
     ``sizes``: each rung's crossed validation error, :func:`train.train_net`)."""
     last = history[-1]
-    kept = ("silenced", "sizes", "members", "cycles")
+    kept = ("silenced", "sizes", "members", "cycles", "offered", "takes_offered")
     out = {k: v for k, v in last.items() if k.startswith("best_val_") or k in kept}
     out["arch"] = last["served"]
-    served = [e for e in history if e["arch"] == last["served"]]  # epochs count on across the sizes
+    reads = bool(last.get("takes_offered"))  # the net served, of that size, with or without the offered channels
+    served = [e for e in history if e["arch"] == last["served"] and e.get("reads_offered", False) == reads]
     if out.get("members", 1) == 1:  # the single net, not the members an ensemble rung added to it
         served = [e for e in served if "member" not in e and e.get("cycle", 1) <= last.get("cycles", 1)]
     out["epochs"] = len(served)

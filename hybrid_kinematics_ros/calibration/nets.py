@@ -8,7 +8,9 @@ the residual hardly depends on ``q1`` and is easier to learn.
 
 Condition channels (temperature, say) are extra input columns after the joints: min-max normalised like
 them, without ``sin``/``cos`` features. The input is then ``(B, n + k)``; :class:`HybridModel` appends the
-current values.
+current values. A net can be built to ignore some of them (``ignored``: their half span is infinite, so they
+enter as exactly zero), which is how the training ladder tries a net without a channel it was offered, and
+:meth:`ResidualNet.drop_inputs` then takes a channel that no net uses out of the input.
 
 An ensemble (``members`` > 1) averages the standardised outputs of several bodies of the same
 architecture, trained from different seeds: on a few thousand noisy real pairs one net's error on unseen
@@ -109,9 +111,23 @@ class Ensemble(nn.Module):
         return torch.stack(out).mean(dim=0)
 
 
+def _input_layers(body: nn.Module) -> list[nn.Linear]:
+    """The linear layers that read a body's features: an MLP's first, each member's in an ensemble, a ResNet's
+    first block's main path and projection shortcut."""
+    if isinstance(body, Ensemble):
+        return [layer for member in body.members for layer in _input_layers(member)]
+    first = body[0]
+    if isinstance(first, nn.Linear):
+        return [first]
+    if isinstance(first, _ResBlock) and isinstance(first.shortcut, nn.Sequential):
+        return [first.main[0], first.shortcut[0]]
+    raise CalibrationError(f"cannot take inputs out of a body that starts with {type(first).__name__}")
+
+
 class ResidualNet(nn.Module):
     """Joints ``(B, n)`` rad (any float dtype), then any condition columns, to a residual ``(B, 3)`` float64
-    in m or rad. ``lower``/``upper`` span every input column; ``n_joints`` says how many are joints."""
+    in m or rad. ``lower``/``upper`` span every input column; ``n_joints`` says how many are joints;
+    ``ignored``: condition columns the net does not read (they normalise to exactly zero)."""
 
     def __init__(
         self,
@@ -124,12 +140,16 @@ class ResidualNet(nn.Module):
         joint1_axis: np.ndarray | None = None,
         n_joints: int | None = None,
         members: int = 1,
+        ignored: tuple[int, ...] = (),
     ) -> None:
         super().__init__()
         n_in = len(lower)
         n = n_in if n_joints is None else n_joints
         self.n_joints = n
+        if any(not n <= c < n_in for c in ignored):
+            raise CalibrationError(f"ignored input columns {list(ignored)}: only condition columns ({n}-{n_in - 1})")
         span = np.maximum(np.asarray(upper) - np.asarray(lower), 1e-9)
+        span[list(ignored)] = np.inf  # (x - centre) / inf = 0: the column cannot change the output
         self.register_buffer("center", torch.tensor(0.5 * (np.asarray(upper) + np.asarray(lower)), dtype=torch.float64))
         self.register_buffer("half_span", torch.tensor(0.5 * span, dtype=torch.float64))
         self.register_buffer("target_mean", torch.tensor(target_mean, dtype=torch.float64))
@@ -165,6 +185,26 @@ class ResidualNet(nn.Module):
         k = self.axis.expand_as(r)
         kxr = torch.cross(k, r, dim=1)
         return r * torch.cos(q1) + kxr * torch.sin(q1) + k * (k * r).sum(1, keepdim=True) * (1.0 - torch.cos(q1))
+
+    @torch.jit.ignore
+    def drop_inputs(self, columns: tuple[int, ...]) -> None:
+        """Take condition columns the net ignores (``ignored`` at construction) out of its input, in place: the
+        input is then ``(B, n + k - len(columns))``, and every output is unchanged, since those columns entered
+        the first layers as exactly zero."""
+        columns = tuple(sorted(set(columns)))
+        if not columns:
+            return
+        span = self.half_span.numpy()
+        if any(c < self.n_joints or c >= len(span) or np.isfinite(span[c]) for c in columns):
+            raise CalibrationError(f"input columns {list(columns)}: only condition columns the net ignores can go")
+        keep = [c for c in range(len(span)) if c not in columns]
+        features = keep + list(range(len(span), len(span) + (2 * self.n_joints if self.sincos else 0)))
+        with torch.no_grad():
+            for layer in _input_layers(self.body):
+                layer.weight = nn.Parameter(layer.weight[:, features].clone())
+                layer.in_features = len(features)
+        self.center = self.center[keep].clone()
+        self.half_span = self.half_span[keep].clone()
 
     @torch.jit.ignore
     def silence(self) -> None:

@@ -234,7 +234,8 @@ def net_label(net: dict) -> str:
     """The net served as its ladder's rung names it (a manifest's ``nets`` entry): its size, an ensemble's
     members, or the cycles of one longer run (:func:`train.train_net`)."""
     members, cycles = net.get("members", 1), net.get("cycles", 1)
-    return net.get("arch", "") + (f" x{members}" if members > 1 else "") + (f", {cycles} cycles" if cycles > 1 else "")
+    name = net.get("arch", "") + (f" + {net['offered']}" if net.get("takes_offered") else "")
+    return name + (f" x{members}" if members > 1 else "") + (f", {cycles} cycles" if cycles > 1 else "")
 
 
 def _capacity_section(capacity: dict[str, Any] | None, nets: dict[str, Any]) -> list[str]:
@@ -292,7 +293,8 @@ def _capacity_section(capacity: dict[str, Any] | None, nets: dict[str, Any]) -> 
     return [
         "<h2>Capacity chosen from the data</h2>",
         "<p>" + (capacity or {}).get("method", "") + ". The score weighs orientation at 1 m per rad. A net's sizes "
-        "train simplest first, then an ensemble of the size served (<i>xK</i>: K nets averaged), each judged on its "
+        "train simplest first, then the size served reading the condition channels the pairs carry (<i>+ name</i>), "
+        "then an ensemble of the net served (<i>xK</i>: K nets averaged), each judged on its "
         "crossed validation error against the rung below it: the rung served before it, or, at first, correcting "
         "nothing.</p>",
         _table(head, rows),

@@ -104,6 +104,11 @@ class NetJob:
     max_seconds: float
     seed: int
     n_joints: int | None = None  # q_* hold condition columns after the joints when fewer than their width
+    # condition columns offered, not given: the net ignores them unless its ladder's conditions rung shows
+    # their worth (train_net); ``offered_label`` names them in the history, ``take_offered``: read them
+    offered: tuple[int, ...] = ()
+    offered_label: str = ""
+    take_offered: bool = False
 
 
 def build_net(job: NetJob) -> ResidualNet:
@@ -122,6 +127,7 @@ def build_net(job: NetJob) -> ResidualNet:
         joint1_axis=axis,
         n_joints=job.n_joints,
         members=p.members,
+        ignored=() if job.take_offered else job.offered,
     )
 
 
@@ -264,6 +270,9 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
     (the rest of one longer schedule), and if it alone beats the net significantly, one more cycle takes
     all the time left instead of members (``cycles``). On 100,000 noise-free pairs in 10 minutes, five
     nets of a fifth of the time each scored 0.0059 mm where one net with all of it scored 0.0041 mm.
+    Condition channels offered (``job.offered``: the pairs carry them, nobody named them) are a rung of their
+    own after the sizes: the size served, reading them, against that net without them; the rungs after it
+    build their nets as it decided, and the last entry says so (``offered``: their names, ``takes_offered``).
 
     The history counts epochs and seconds on across the rungs; each entry carries its ``arch`` (an added
     member's entries their ``member``, a cycle's their ``cycle``), and the last one the choice: the
@@ -275,12 +284,14 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
     for arch in archs[1:]:  # a misspelt larger size fails now, not after the smaller one has trained
         build_net(replace(job, preset=replace(job.preset, arch=arch)))
     ensemble = job.preset.added + 1
-    shares = len(archs) + job.preset.added  # the added members take a rung's share each
-    tests = len(archs) + (ensemble > 1)
+    offered = bool(job.offered)
+    shares = len(archs) + offered + job.preset.added  # the added members take a rung's share each
+    tests = len(archs) + offered + (ensemble > 1)
     unit, factor = UNIT[job.kind]
     served: _Trained | None = None
     served_arch, served_members = archs[0], job.preset.members  # silenced, the simplest carries the zeros
     served_cycles = 1  # the training runs of the net served, each on from the last (one longer run)
+    taken = False  # whether the net served reads the offered condition columns
     nothing = np.linalg.norm(job.y_val, axis=1)
     served_err = nothing
     history: list[dict] = []
@@ -296,6 +307,8 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
 
         def counted(e: dict) -> dict:
             out = _counted_on(e, epochs, elapsed, arch)
+            if job.take_offered:  # a net that reads the offered columns: its entries say so (fit._best)
+                out["reads_offered"] = True
             return out if cycle == 1 else {**out, "cycle": cycle}
 
         relay = None if report is None else (lambda e: report(counted(e)))
@@ -309,6 +322,7 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
             served_err = err
         return trained, kept
 
+    fit_one = _train_members if job.preset.members > 1 else _train_one
     for i, arch in enumerate(archs):
         left = job.max_seconds - (time.perf_counter() - start)
         if i and left < SIZE_RESERVE * job.max_seconds:  # the simpler sizes took the budget: serve what they gave
@@ -317,13 +331,29 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
         # each rung takes its steps within an equal share; the last one, whatever time is left
         seconds = left if i == shares - 1 else min(left, job.max_seconds / shares)
         one = replace(job, preset=replace(job.preset, arch=arch))
-        fit_one = _train_members if job.preset.members > 1 else _train_one
-        trained, kept = rung(arch, arch, lambda t, r, one=one, f=fit_one: f(replace(one, max_seconds=t), r), seconds)
+        trained, kept = rung(arch, arch, lambda t, r, one=one: fit_one(replace(one, max_seconds=t), r), seconds)
         first = first or trained.net
         if kept:
             served, served_arch = trained, arch
+    if offered:
+        # The condition channels offered (not given): the size served (the simplest, if none was: a channel can
+        # explain what the joints cannot) from the same seed, reading them, against the net served without.
+        label = f"{served_arch} + {job.offered_label}"
+        left = job.max_seconds - (time.perf_counter() - start)
+        if left < SIZE_RESERVE * job.max_seconds:
+            sizes.append({"arch": label, f"crossed_val_{unit}": None, "kept": False, "trained": False})
+        else:
+            seconds = left if shares == len(archs) + 1 else min(left, job.max_seconds / shares)
+            job = replace(job, take_offered=True)
+            one = replace(job, preset=replace(job.preset, arch=served_arch))
+            trained, kept = rung(label, served_arch, lambda t, r: fit_one(replace(one, max_seconds=t), r), seconds)
+            if kept:
+                served, taken = trained, True
+            else:
+                job = replace(job, take_offered=False)  # the rungs after it build nets without the columns
+    name = served_arch + (f" + {job.offered_label}" if taken else "")  # the served net's rung, as labelled
     if ensemble > 1:
-        label = f"{served_arch} x{ensemble}"
+        label = f"{name} x{ensemble}"
         left = job.max_seconds - (time.perf_counter() - start)
         if served is None or left < SIZE_RESERVE * job.max_seconds:  # nothing to average, or no time to
             why = "no size served" if served is None else "the sizes took the budget"
@@ -353,7 +383,7 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
                     # the rest of one cosine schedule over the whole run so far and this cycle
                     resume = trained_for / (trained_for + seconds)
                     run = partial(_continue, on, served.net, resume)
-                    continued, kept = rung(f"{served_arch}, {cycle} cycles", served_arch, run, seconds, cycle)
+                    continued, kept = rung(f"{name}, {cycle} cycles", served_arch, run, seconds, cycle)
                     if not kept:
                         break
                     served, served_cycles = continued, cycle
@@ -375,6 +405,8 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
     net = first if served is None else served.net
     history[-1] = {k: v for k, v in history[-1].items() if k not in ("silenced", "served")}
     history[-1].update({"served": served_arch, "members": served_members})
+    if offered:
+        history[-1].update({"offered": job.offered_label, "takes_offered": taken})
     if served_cycles > 1:
         history[-1]["cycles"] = served_cycles
     if served is None:  # what is served is correcting nothing: its figures, not those of a size trained

@@ -87,6 +87,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "the node then needs its current value (parameter conditions.NAME); repeat for several",
     )
     p.add_argument(
+        "--offer-conditions",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="without --condition: offer each net every condition channel the pairs carry; a net takes them only "
+        "where its validation errors are significantly better with them (model.json: offered_conditions)",
+    )
+    p.add_argument(
         "--approach",
         action=argparse.BooleanOptionalAction,
         help="give the nets each joint's approach direction (the way it last moved, from the order of the pairs) "
@@ -245,6 +252,7 @@ def run(args: argparse.Namespace) -> int:
             gravity=gravity_from_args(args),
             log=progress.write,
             shared_targets=[names.split(",") for names in args.shared_target or []],
+            offered=None if args.offer_conditions else (),
             conditions=[
                 *(args.condition or ()),
                 *(approach.channel_names(chain.joint_names) if args.approach and not args.parametric else ()),
