@@ -31,7 +31,7 @@ from bench.report import table, write_section
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.evaluate import error_stats, measured_targets, target_errors
 from hybrid_kinematics_ros.calibration.fit import fit, reference_all, split
-from hybrid_kinematics_ros.calibration.report import repeated_poses
+from hybrid_kinematics_ros.calibration.report import net_label, repeated_poses
 from hybrid_kinematics_ros.io.import_spec import load_spec_dict, spec_from_dict
 from hybrid_kinematics_ros.io.importer import import_table
 from hybrid_kinematics_ros.io.pairs import Pairs
@@ -50,6 +50,13 @@ SERIES = {  # name: (file, import spec, stamp start override: B and C share a sp
 }
 
 
+RECIPES = (
+    "Hybrid rows: *ours* is what `train` does by default (the stage's capacity chosen from the data; the nets' "
+    "ladder of sizes, the condition channels the pairs carry (here the temperature) offered to each net and "
+    "taken only where its validation errors are significantly better with them, then an ensemble or a longer "
+    "run); *ours + temperature* gives the nets the temperature without asking; *paper* is the paper's recipe "
+    "(D4w nets on the joints alone)."
+)
 TITLES = {
     "A": "series A",
     "C": "series C",
@@ -122,6 +129,7 @@ def fit_recipe(cfg, train_sets, preset, conditions, minutes, steps, seed=0, **fi
             parametric=True,
             payload=(cfg.payload_mass, cfg.payload_com),
             conditions=conditions,
+            offered=() if preset.name == "paper" else None,  # the paper's nets read the joints alone
             **fit_options,
         )
         seconds = time.perf_counter() - start
@@ -157,14 +165,22 @@ def model_errors(cfg, model, manifest, train_pairs, tests, hybrid_label="hybrid"
 
 def rows_for(cfg, train_sets, test_sets, recipes, minutes, steps, seed=0):
     """Fit each recipe (preset, condition channels) once; errors of every model on each test set, in the
-    tracker frame at the probe (:func:`fit_recipe`, :func:`model_errors`)."""
+    tracker frame at the probe (:func:`fit_recipe`, :func:`model_errors`). Also the seconds of each fit, and
+    the nets each served (:data:`SERVED`)."""
     out: dict[str, dict[str, dict]] = {}
     seconds = {}
     for recipe, (preset, conditions) in recipes.items():
         model, manifest, tr, seconds[recipe] = fit_recipe(cfg, train_sets, preset, conditions, minutes, steps, seed)
+        nets = manifest.get("nets", {})
+        SERVED[recipe] = ", ".join(
+            f"{kind} " + ("off" if net.get("silenced") else net_label(net)) for kind, net in nets.items()
+        )
         for name, te in test_sets.items():
             out.setdefault(name, {}).update(model_errors(cfg, model, manifest, tr, [te], f"hybrid, {recipe}"))
     return out, seconds
+
+
+SERVED: dict[str, str] = {}  # each recipe's nets as the last fit served them (report.net_label), for the text
 
 
 def table_of(results: dict[str, dict[str, dict]]) -> str:
@@ -280,11 +296,15 @@ def main() -> None:
         timing = "Training time per model (referencing, parametric stage, nets): " + ", ".join(
             f"{k} {v:.0f} s" for k, v in seconds.items()
         )
+        served = "Nets served (`+ temperature`: the net took the channel offered): " + "; ".join(
+            f"{k}: {v}" for k, v in SERVED.items() if part in ("A", "C") or k == args.main
+        )
+        SERVED.clear()
         # each part its own section, written as soon as it is done: parts can be rerun one at a time
         write_section(
             f"real_{part}",
             f"Real UR10 data, {TITLES[part]} (bench_real)",
-            f"{intro}\n\n{table_of(results)}\n\n{timing}.",
+            f"{intro} {RECIPES}\n\n{table_of(results)}\n\n{timing}.\n\n{served}.",
         )
 
 
