@@ -172,7 +172,7 @@ def rows_for(cfg, train_sets, test_sets, recipes, minutes, steps, seed=0):
     for recipe, (preset, conditions) in recipes.items():
         model, manifest, tr, seconds[recipe] = fit_recipe(cfg, train_sets, preset, conditions, minutes, steps, seed)
         nets = manifest.get("nets", {})
-        SERVED[recipe] = ", ".join(
+        SERVED[f"{recipe}, {', '.join(test_sets)}"] = ", ".join(
             f"{kind} " + ("off" if net.get("silenced") else net_label(net)) for kind, net in nets.items()
         )
         for name, te in test_sets.items():
@@ -180,7 +180,7 @@ def rows_for(cfg, train_sets, test_sets, recipes, minutes, steps, seed=0):
     return out, seconds
 
 
-SERVED: dict[str, str] = {}  # each recipe's nets as the last fit served them (report.net_label), for the text
+SERVED: dict[str, str] = {}  # each fit's nets (recipe, test sets) as it served them (report.net_label), for the text
 
 
 def table_of(results: dict[str, dict[str, dict]]) -> str:
@@ -297,7 +297,7 @@ def main() -> None:
             f"{k} {v:.0f} s" for k, v in seconds.items()
         )
         served = "Nets served (`+ temperature`: the net took the channel offered): " + "; ".join(
-            f"{k}: {v}" for k, v in SERVED.items() if part in ("A", "C") or k == args.main
+            f"{k}: {v}" for k, v in SERVED.items()
         )
         SERVED.clear()
         # each part its own section, written as soon as it is done: parts can be rerun one at a time

@@ -277,6 +277,11 @@ def fit(
         carried = set.intersection(*(set(p.conditions) for p in (train_pairs, val_pairs, test_pairs)))
         varied = {c for c in carried if np.ptp(train_pairs.conditions[c]) > 0}  # a constant one teaches nothing
         offered = () if named else tuple(sorted(c for c in varied if not approach.is_channel(c)))
+        every = set().union(*(set(p.conditions) for p in (train_pairs, val_pairs, test_pairs)))
+        unused = sorted(c for c in every - set(offered) - set(conditions) if not approach.is_channel(c))
+        if unused:
+            why = "channels were named" if named else "missing from some of the pairs, or constant in training"
+            log(f"condition channels not offered to the nets: {', '.join(unused)} ({why})")
     offered = tuple(c for c in offered if c not in conditions)
     forced = len(conditions)
     conditions = (*conditions, *offered)

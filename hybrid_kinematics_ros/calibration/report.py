@@ -266,7 +266,9 @@ def _capacity_section(capacity: dict[str, Any] | None, nets: dict[str, Any]) -> 
         unit = "mm" if kind == "position" else "deg"
         rungs = net.get("sizes", [])
         shown = net_label(net)
-        label = shown if any(size["arch"] == shown for size in rungs) else net.get("arch", "")  # its rung
+        # its rung: the label served, or (the ensemble fixed by --members) the size with any channel it took
+        taken = f" + {net['offered']}" if net.get("takes_offered") else ""
+        label = shown if any(size["arch"] == shown for size in rungs) else net.get("arch", "") + taken
         for size in rungs:  # the rungs tried, each judged by its crossed validation error
             val = size.get(f"crossed_val_{unit}")
             val = "" if val is None else val

@@ -343,7 +343,8 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
         if left < SIZE_RESERVE * job.max_seconds:
             sizes.append({"arch": label, f"crossed_val_{unit}": None, "kept": False, "trained": False})
         else:
-            seconds = left if shares == len(archs) + 1 else min(left, job.max_seconds / shares)
+            # one share even when it is the last rung: no longer a run than the net it is judged against
+            seconds = min(left, job.max_seconds / shares)
             job = replace(job, take_offered=True)
             one = replace(job, preset=replace(job.preset, arch=served_arch))
             trained, kept = rung(label, served_arch, lambda t, r: fit_one(replace(one, max_seconds=t), r), seconds)

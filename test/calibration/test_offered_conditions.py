@@ -14,6 +14,7 @@ from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
 from hybrid_kinematics_ros.calibration.fit import fit, split
 from hybrid_kinematics_ros.calibration.nets import ResidualNet
+from hybrid_kinematics_ros.calibration.report import _capacity_section
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from test.conftest import EXPANSION_PER_K, THERMAL_PRESET, THERMAL_STAGE, thermal_pairs
 
@@ -126,3 +127,21 @@ def test_fit_offers_the_channels_the_pairs_carry(ur10, tmp_path):
     assert all(net.center.shape == (6,) for net in plain.nets.values())
     without = replace(cold(test), conditions={})  # no humidity wanted
     assert evaluate(plain, without)["hybrid"]["position_mm_mean"] < 0.05
+
+
+def test_the_report_marks_the_rung_served_with_the_channel_taken():
+    """An ensemble fixed by --members trains every rung as an ensemble, so no rung carries its ``xK``: the row
+    served is the size with the channel it took, not the size without it."""
+    net = {
+        "arch": "mlp:64x2:silu",
+        "members": 4,
+        "offered": "temperature",
+        "takes_offered": True,
+        "sizes": [
+            {"arch": "mlp:64x2:silu", "crossed_val_mm": 0.05, "kept": True},
+            {"arch": "mlp:64x2:silu + temperature", "crossed_val_mm": 0.03, "kept": True},
+        ],
+    }
+    html = "".join(_capacity_section(None, {"position": net}))
+    rows = {row.split("</td><td>")[1]: row for row in html.split("<tr>") if "net size" in row}
+    assert "served" in rows["mlp:64x2:silu + temperature"] and "a later rung beat it" in rows["mlp:64x2:silu"]
