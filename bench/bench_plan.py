@@ -65,7 +65,12 @@ def cyclic_of(result) -> CyclicPrior | None:
 def describe(cyclic: CyclicPrior | None) -> str:
     if cyclic is None:
         return "none chosen"
-    return f"{cyclic.harmonics} harmonics a joint, coefficients {1e6 * cyclic.rms_rad:.0f} µrad RMS"
+    joints = np.sqrt(np.mean(np.square(cyclic.joint_order_rms_rad), axis=1))
+    return (
+        f"{cyclic.harmonics} harmonics a joint, coefficients {1e6 * cyclic.rms_rad:.0f} µrad RMS, "
+        f"{1e6 * joints.min():.0f}-{1e6 * joints.max():.0f} µrad by joint; the prediction takes each joint's "
+        "and order's own"
+    )
 
 
 def options(

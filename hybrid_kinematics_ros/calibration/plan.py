@@ -22,11 +22,12 @@ floor, in position and in orientation.
 The cyclic joint errors (gear harmonics) weigh most where poses are few: on the real UR10 a stage without them
 is 0.37 mm off, with them 0.08. Their coefficients are many (80 a joint for 40 harmonics) and held towards zero
 by the stage's ridge, so few poses learn them only in part. Given what a previous calibration of the robot (or of
-one of its type) found (:class:`CyclicPrior`: how many harmonics, the coefficients' size), the prediction counts
-what the ridge estimator leaves of them, ``A⁻¹ (Jᵀ Σ J + R T R) A⁻¹`` with ``A = JᵀJ + R``, the ridge ``R`` and
-the coefficients' prior variance ``T`` (a Bayesian linear model), for the capacity the selection will choose
-from that many poses: of the harmonic counts and ridges :mod:`calibration.capacity` offers, the one that leaves
-the least (fewer harmonics leave the others' prior whole). Without a prior, the harmonics are left out and the
+one of its type) found (:class:`CyclicPrior`: how many harmonics, the coefficients' size for each joint and
+order), the prediction counts what the ridge estimator leaves of them, ``A⁻¹ (Jᵀ Σ J + R T R) A⁻¹`` with
+``A = JᵀJ + R``, the ridge ``R`` and the coefficients' prior variance ``T`` (a Bayesian linear model), for the
+capacity the selection will choose from that many poses: of the harmonic counts and ridges
+:mod:`calibration.capacity` offers, the one that leaves the least (fewer harmonics leave the others' prior whole).
+Without a prior, the harmonics are left out and the
 prediction is a lower bound where poses are few.
 
 The order is a short tour: nearest neighbour, then 2-opt, with the largest joint move as the distance (with
@@ -113,24 +114,48 @@ class TrackerView:
 @dataclass(frozen=True)
 class CyclicPrior:
     """The cyclic joint errors of the robot, as a previous calibration found them: ``harmonics`` of each joint's
-    angle and their coefficients' root mean square ``rms_rad`` (the prior's standard deviation)."""
+    angle, their coefficients' root mean square ``rms_rad``, and ``joint_order_rms_rad`` the root mean square of
+    each joint's pair (sine, cosine) at each order ``(n, harmonics)``, the prior's standard deviation of those
+    coefficients (None: ``rms_rad`` for every one).
+
+    Per joint and order, because the robot's cyclic errors are not alike: a wrist's gears err more than a
+    shoulder's and move the tip less, and the spectrum falls with the order. One pooled size puts a wrist's
+    amplitude on the shoulder, where a joint error moves the tip most, and the high orders' smallness on the low
+    ones."""
 
     harmonics: int
     rms_rad: float
+    joint_order_rms_rad: tuple[tuple[float, ...], ...] | None = None
 
     @classmethod
     def from_manifest(cls, manifest: dict[str, Any], where: str = "model.json") -> CyclicPrior:
-        """From a trained model's ``model.json``: its stage's harmonic coefficients."""
+        """From a trained model's ``model.json``: its stage's harmonic coefficients (a pair that could not be
+        identified takes its joint's size, else the overall one)."""
         try:
             params = manifest["parametric"]["parameters"]
             cyclic = [p for p in params if p["kind"] == "harmonic" and p["identifiable"]]
             values = np.array([p["value"] for p in cyclic], dtype=float)
-            harmonics = max((int(p["component"]) // 2 + 1 for p in cyclic), default=0)
+            joints = np.array([int(p["index"]) for p in cyclic], dtype=int)
+            orders = np.array([int(p["component"]) // 2 + 1 for p in cyclic], dtype=int)
+            n = len({int(p["index"]) for p in params if p["kind"] == "zero"})  # the chain's joints
         except (KeyError, TypeError, ValueError) as exc:
             raise CalibrationError(f"{where}: no parametric stage to take the cyclic errors from ({exc!r})") from None
         if not cyclic:
             raise CalibrationError(f"{where}: its parametric stage has no cyclic joint errors (harmonics 0)")
-        return cls(harmonics, float(np.sqrt(np.mean(values**2))))
+        harmonics, overall = int(orders.max()), float(np.sqrt(np.mean(values**2)))
+        table = np.full((max(n, int(joints.max()) + 1), harmonics), overall)
+        for j in np.unique(joints):
+            mine = joints == j
+            table[j] = np.sqrt(np.mean(values[mine] ** 2))
+            for k in np.unique(orders[mine]):
+                table[j, k - 1] = np.sqrt(np.mean(values[mine & (orders == k)] ** 2))
+        return cls(harmonics, overall, tuple(tuple(float(v) for v in row) for row in table))
+
+    def rms_of(self, joint: np.ndarray, order: np.ndarray) -> np.ndarray:
+        """The prior's standard deviation (rad) of the coefficients of ``joint`` at ``order`` (1 …)."""
+        if self.joint_order_rms_rad is None:
+            return np.full(np.shape(joint), self.rms_rad)
+        return np.asarray(self.joint_order_rms_rad)[joint, order - 1]
 
 
 @dataclass(frozen=True)
@@ -245,7 +270,10 @@ def _information(chain: Chain, q: np.ndarray, options: PlanOptions) -> _Problem:
     rows = np.argsort(lin.pick)  # the linearisation's rows back in the candidates' order
     order = np.array([p.component // 2 + 1 if p.kind == "harmonic" else 0 for p in lin.params])
     columns = lin.identifiable | (order > 0)  # the ridge holds every cyclic coefficient
-    prior = np.where(order > 0, (0.0 if cyclic is None else cyclic.rms_rad) / lin.scale, 0.0) ** 2
+    size = np.zeros(len(order))
+    if cyclic is not None:
+        size[order > 0] = cyclic.rms_of(np.array([p.index for p in lin.params])[order > 0], order[order > 0])
+    prior = (size / lin.scale) ** 2
     per_axis = MEAN_OVER_RMS * np.sqrt(3.0)  # a mean error norm over the per-axis standard deviation
     sigma = np.full(lin.jacobian.shape[1], np.hypot(options.position_noise_m, 1e-3 * options.floor_mm / per_axis))
     if not position_only:  # orientation rows are rad × 1 m (ORIENTATION_LENGTH)
