@@ -27,8 +27,7 @@ order), the prediction counts what the ridge estimator leaves of them, ``A⁻¹ 
 ``A = JᵀJ + R``, the ridge ``R`` and the coefficients' prior variance ``T`` (a Bayesian linear model), for the
 capacity the selection will choose from that many poses: of the harmonic counts and ridges
 :mod:`calibration.capacity` offers, the one that leaves the least (fewer harmonics leave the others' prior whole).
-Without a prior, the harmonics are left out and the
-prediction is a lower bound where poses are few.
+Without a prior, the harmonics are left out and the prediction is a lower bound where poses are few.
 
 The order is a short tour: nearest neighbour, then 2-opt, with the largest joint move as the distance (with
 every joint at the same speed, that is the time a move takes).
@@ -154,9 +153,12 @@ class CyclicPrior:
 
     def rms_of(self, joint: np.ndarray, order: np.ndarray) -> np.ndarray:
         """The prior's standard deviation (rad) of the coefficients of ``joint`` at ``order`` (1 …)."""
-        if self.joint_order_rms_rad is None:
-            return np.full(np.shape(joint), self.rms_rad)
-        return np.asarray(self.joint_order_rms_rad)[joint, order - 1]
+        out = np.full(np.shape(joint), self.rms_rad)
+        if self.joint_order_rms_rad is not None:  # a joint the previous calibration did not have: the overall size
+            table = np.asarray(self.joint_order_rms_rad)
+            known = (joint < len(table)) & (order <= table.shape[1])
+            out[known] = table[joint[known], order[known] - 1]
+        return out
 
 
 @dataclass(frozen=True)

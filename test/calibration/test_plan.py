@@ -205,6 +205,10 @@ def test_the_cyclic_prior_keeps_each_joints_size(ur10):
         prior = planning.CyclicPrior.from_manifest({"parametric": previous.manifest()})
         sizes = np.array(prior.joint_order_rms_rad)
         assert sizes.shape == (6, 2) and np.all(sizes[:3] < 0.2 * sizes[3:].min()), sizes
+        # a joint or an order the previous calibration did not have takes the overall size
+        assert np.array_equal(
+            prior.rms_of(np.array([4, 6, 0]), np.array([2, 1, 3])), [sizes[4, 1], *[prior.rms_rad] * 2]
+        )
         floor = error_mm(previous)
         options = {"count": 40, "seed": 0, "floor_mm": floor, **stage}
         pooled = planning.CyclicPrior(prior.harmonics, prior.rms_rad)
