@@ -40,15 +40,19 @@ def table1(minutes: float) -> None:
         rows.append(row(f"{robot}: parametric stage + nets (`fast`)", report["hybrid"], seconds))
         par = manifest["parametric"]
         kept = sum(p["identifiable"] for p in par["parameters"])
+        chosen = manifest["capacity"]["chosen"]
         notes.append(
-            f"{robot}: {kept} of {len(par['parameters'])} parameters identifiable, identified in {par['seconds']} s "
+            f"{robot}: capacity chosen from the training pairs: "
+            + ", ".join(f"{k} {v}" for k, v in chosen.items() if v is not None)
+            + f"; {kept} of {len(par['parameters'])} parameters identifiable, identified in {par['seconds']} s "
             "(part of the wall time)"
         )
     body = (
         f"Virtual cell, noise-free labels; {N_TRAIN:,} training, {N_VAL:,} validation and {N_TEST:,} separate test "
-        f"samples; {minutes:g} min of net training per model. Targets: ≤ 0.002 mm and ≤ 0.0002°. The parametric "
-        "model has the form of the simulator's geometric, compliance and bending effects (not its gear errors or "
-        "its stiffening), so on this cell it is a best case for that stage; the nets learn the rest.\n\n"
+        f"samples; {minutes:g} min of net training per model. Targets: ≤ 0.002 mm and ≤ 0.0002°. The stage's "
+        "capacity is chosen from the training pairs, as `train` does by default (below, for each robot). Its terms "
+        "can take the form of the simulator's geometry, compliance, bending and gear errors (harmonics 1 and 2), and "
+        "of its stiffening to first order (the cubic term); the nets learn the rest.\n\n"
         + table(HEAD, rows)
         + "\n\n"
         + "; ".join(notes)

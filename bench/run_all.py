@@ -19,6 +19,7 @@ STEPS = [
     ["bench.bench_ik_arms"],
     ["bench.bench_ik_approach"],
     ["bench.bench_nodes"],
+    ["bench.bench_clock"],
     ["bench.bench_hybrid", "table1", "noise", "paper", "--minutes", "10"],
     ["bench.bench_hybrid", "curve", "--minutes", "8"],
     ["bench.bench_parametric", "referencing", "range", "table1", "--minutes", "10"],

@@ -12,62 +12,15 @@ from hybrid_kinematics_ros.calibration.clock import estimate_offset
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.io.raw_bag import RawRecording
 from hybrid_kinematics_ros.kinematics import se3
-from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
-from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
-from hybrid_kinematics_ros.simulation.cell import VirtualCell
-from hybrid_kinematics_ros.simulation.tracker import Tracker
-from hybrid_kinematics_ros.simulation.trajectory import random_waypoints, through
+from hybrid_kinematics_ros.simulation.recording import PLACED, START_NS, simulated_recording
 
-T0 = 1_700_000_000_000_000_000
+T0 = START_NS
 
 
-# the tracker placement of test_referencing.py: metres away from the robot, turned by 126°
-PLACED = {
-    "base_to_tracker": {"xyz": [2.4, -1.1, 0.35], "rpy": [0.01, -0.02, 2.2]},
-    "flange_to_target": {"xyz": [0.03, 0.02, 0.08], "rpy": [0.3, 0.1, -0.5]},
-}
-
-
-def recording(
-    offset_s=0.0123,
-    seconds=30.0,
-    noise=True,
-    gap=None,
-    speed=0.25,
-    seed=1,
-    frames=None,
-    drift_ppm=0.0,
-    waypoints=30,
-    tracker_hz=3000.0,
-    encoder=None,
-):
-    """Streams of the simulated cell; the tracker clock is ``t_robot + offset_s + drift · t`` (t from the start)."""
-    cfg = load_robot_config("ur10")
-    cell = VirtualCell.from_config(cfg, noise=noise)
-    if frames is not None:
-        cell = VirtualCell(cfg, cell.robot, Tracker.from_config({**cfg.tracker, **frames}, noise=noise))
-    rng = np.random.default_rng(seed)
-    traj = through(random_waypoints(cfg.chain, waypoints, rng), speed, 0.3)
-    tj = np.arange(0.0, seconds, 1 / 110)
-    tp = np.arange(-0.1, seconds + 0.1, 1 / tracker_hz)
-    if gap is not None:
-        tp = tp[(tp < gap[0]) | (tp >= gap[1])]
-    p, quat = pose_from_matrix(cell.measure(traj(tp), rng))
-    q = traj(tj)
-    if encoder is not None:  # (noise sigma, quantisation step) of the joint readings
-        q = np.round((q + rng.normal(0.0, encoder[0], q.shape)) / encoder[1]) * encoder[1]
-    rec = RawRecording(
-        T0 + np.round(tj * 1e9).astype(np.int64),
-        cfg.chain.joint_names,
-        q,
-        T0 + np.round((tp + offset_s + drift_ppm * 1e-6 * tp) * 1e9).astype(np.int64),
-        "tracker",
-        p,
-        quat,
-        False,
-        Counter(),
-    )
-    return cfg, cell, traj, rec
+def recording(**kwargs):
+    """(config, cell, trajectory, raw recording) of :func:`simulated_recording`."""
+    sim = simulated_recording(**kwargs)
+    return sim.cfg, sim.cell, sim.trajectory, sim.recording
 
 
 def test_clock_offset_is_recovered_to_a_fifth_of_a_millisecond():

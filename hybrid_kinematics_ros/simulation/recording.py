@@ -1,0 +1,84 @@
+"""A raw recording of the simulated cell, as the recorder would write it: joint states at 110 Hz and tracker
+poses at their own rate, each stream in its own clock. The tracker's clock is the robot's plus an offset and a
+drift, so the alignment's estimates (offset, skew) can be checked against a known truth."""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from hybrid_kinematics_ros.io.raw_bag import RawRecording
+from hybrid_kinematics_ros.kinematics.robot_config import RobotConfig, load_robot_config
+from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
+from hybrid_kinematics_ros.simulation.cell import VirtualCell
+from hybrid_kinematics_ros.simulation.tracker import Tracker
+from hybrid_kinematics_ros.simulation.trajectory import random_waypoints, through
+
+START_NS = 1_700_000_000_000_000_000  # the robot clock at the recording's first joint state
+JOINT_HZ = 110.0
+
+# A tracker metres away from the robot and turned by 126°, with the target off the flange: a real cell's
+# layout, where the tracker measures in its own frame (the tests' and benches' "placed" tracker).
+PLACED = {
+    "base_to_tracker": {"xyz": [2.4, -1.1, 0.35], "rpy": [0.01, -0.02, 2.2]},
+    "flange_to_target": {"xyz": [0.03, 0.02, 0.08], "rpy": [0.3, 0.1, -0.5]},
+}
+
+
+@dataclass(frozen=True)
+class SimulatedRecording:
+    cfg: RobotConfig
+    cell: VirtualCell
+    trajectory: Callable[[np.ndarray], np.ndarray]  # joints (T, n) at times (T,), s from the start
+    recording: RawRecording
+
+
+def simulated_recording(
+    offset_s: float = 0.0123,
+    seconds: float = 30.0,
+    noise: bool = True,
+    gap: tuple[float, float] | None = None,
+    speed: float = 0.25,
+    seed: int = 1,
+    frames: dict | None = None,
+    drift_ppm: float = 0.0,
+    waypoints: int = 30,
+    tracker_hz: float = 3000.0,
+    encoder: tuple[float, float] | None = None,
+    robot: str = "ur10",
+) -> SimulatedRecording:
+    """The simulated cell moving through ``waypoints`` random waypoints at ``speed`` rad/s for ``seconds``.
+
+    The tracker's stamps are ``t + offset_s + drift_ppm·1e-6·t`` (t in s of the robot clock from the start);
+    it starts 0.1 s before the joints and ends 0.1 s after. ``gap``: a beam break, from and to (s), with no
+    tracker poses. ``frames``: the tracker's placement and the target's mount (as ``PLACED``; None: the
+    config's). ``encoder``: the joint readings' (noise sigma, quantisation step) in rad."""
+    cfg = load_robot_config(robot)
+    cell = VirtualCell.from_config(cfg, noise=noise)
+    if frames is not None:
+        cell = VirtualCell(cfg, cell.robot, Tracker.from_config({**cfg.tracker, **frames}, noise=noise))
+    rng = np.random.default_rng(seed)
+    traj = through(random_waypoints(cfg.chain, waypoints, rng), speed, 0.3)
+    tj = np.arange(0.0, seconds, 1 / JOINT_HZ)
+    tp = np.arange(-0.1, seconds + 0.1, 1 / tracker_hz)
+    if gap is not None:
+        tp = tp[(tp < gap[0]) | (tp >= gap[1])]
+    p, quat = pose_from_matrix(cell.measure(traj(tp), rng))
+    q = traj(tj)
+    if encoder is not None:
+        q = np.round((q + rng.normal(0.0, encoder[0], q.shape)) / encoder[1]) * encoder[1]
+    rec = RawRecording(
+        START_NS + np.round(tj * 1e9).astype(np.int64),
+        cfg.chain.joint_names,
+        q,
+        START_NS + np.round((tp + offset_s + drift_ppm * 1e-6 * tp) * 1e9).astype(np.int64),
+        "tracker",
+        p,
+        quat,
+        False,
+        Counter(),
+    )
+    return SimulatedRecording(cfg, cell, traj, rec)
