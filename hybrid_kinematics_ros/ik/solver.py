@@ -97,6 +97,12 @@ STALLED = 0.9
 # call and a compensated target: the step is microradians, over which the URDF model's curvature errs by
 # 1e-10 m, below the polish tolerance, so both rounds converge alike and the step costs half.
 LINEAR_M = LINEAR_RAD = 1e-5
+# With the hybrid Jacobian (asked for in the round after a closed-form round that started within
+# HYBRID_NEWTON_FROM_M), Newton's step is taken from HYBRID_NEWTON_M (m and rad): over its 1e-4 rad the
+# curvature errs by ~1e-8 m, and the next step, on the same Jacobian, by far less.
+HYBRID_NEWTON_M = 1e-4
+HYBRID_NEWTON_FROM_M = 1e-2
+COARSE, PRECISE, JACOBIAN = "coarse", "precise", "jacobian"  # what a fixed point's round asks for
 VALLEY_SHARE = 0.5  # of the budget, still left, for the search along a singular valley (ik/valley.py)
 POLISH_ITERATIONS = 12  # LM steps on a least-squares answer beyond a fold (6-9 reach the URDF model's nearest point)
 SINGULAR = 1e-6  # the URDF Jacobian's smallest singular value (m or rad per rad) at a singular target's answer
@@ -608,31 +614,47 @@ class IKSolver:
             return [(q, None, False) for q in starts]
         runs = [self._fixed_point_rounds(target, q, deadline, rounds) for q in starts]
         results: list = [None] * len(runs)
-        pending = {i: next(run) for i, run in enumerate(runs)}  # each run's next (q, precise) to evaluate
+        pending = {i: next(run) for i, run in enumerate(runs)}  # each run's next (q, what) to evaluate
         while pending:
-            coarse = [i for i, (_, precise) in pending.items() if not precise]
+            coarse = [i for i, (_, what) in pending.items() if what == COARSE]
             poses = {}
             if len(coarse) > 1:
                 poses = dict(zip(coarse, self.model.fk(np.array([pending[i][0] for i in coarse])), strict=True))
             asked, pending = pending, {}
-            for i, (q, _) in asked.items():
+            for i, (q, what) in asked.items():
+                if i in poses:
+                    answer = poses[i]
+                elif what == JACOBIAN:
+                    answer = self.model.fk_and_jacobian_single(q)
+                else:
+                    answer = self.model.fk_single(q)
                 try:
-                    pending[i] = runs[i].send(poses[i] if i in poses else self.model.fk_single(q))
+                    pending[i] = runs[i].send(answer)
                 except StopIteration as done:
                     results[i] = done.value
         return results
 
     def _fixed_point_rounds(self, target: np.ndarray, q0: np.ndarray, deadline: float, rounds: int):
-        """:meth:`fixed_point`'s rounds as a coroutine: yields ``(q, precise)``, the configuration whose hybrid
-        pose it needs next (``precise``: after a Newton step, where the answer is judged against the polish
-        tolerance), is sent that pose, and returns what :meth:`fixed_point` returns."""
+        """:meth:`fixed_point`'s rounds as a coroutine: yields ``(q, what)``, the configuration whose hybrid
+        pose it needs next and how (COARSE; PRECISE after a Newton step, where the answer is judged against
+        the polish tolerance; JACOBIAN, the pose with the hybrid Jacobian), is sent that pose (and Jacobian),
+        and returns what :meth:`fixed_point` returns.
+
+        The round after a closed-form round that started within HYBRID_NEWTON_FROM_M of the target asks for
+        the hybrid Jacobian too: the closed forms cut the error ~100× a round (the nets' slope is what they
+        leave out), so that round lands within HYBRID_NEWTON_M, where Newton's steps on the hybrid Jacobian
+        (kept for the rounds after) reach the polish tolerance in one step where chord steps on the URDF
+        Jacobian took two or three, each a hybrid FK."""
         tol_m, tol_rad = self.inner_tol
         polish_m, polish_rad = self.refiner.polish_tol
         best, best_cost, best_errors, best_hybrid, q = q0, np.inf, None, None, q0
         least_squares = converged = stepped = False
         newton = True
+        jac = None  # the hybrid Jacobian, once asked for
+        ask = COARSE
         for round_ in range(rounds + 1):
-            hybrid = yield q, stepped
+            answer = yield q, ask
+            hybrid, jac = answer if ask == JACOBIAN else (answer, jac)
             e = error6(target, hybrid)
             ep, er = math.sqrt(e[:3] @ e[:3]), math.sqrt(e[3:] @ e[3:])
             cost = math.hypot(ep, er)  # m and rad, as LM weighs them
@@ -650,28 +672,32 @@ class IKSolver:
                 return best, best_errors, True
             if round_ == rounds or time.perf_counter() > deadline:
                 break
-            stepped = newton and ep < LINEAR_M and er < LINEAR_RAD
+            near = HYBRID_NEWTON_M if jac is not None else LINEAR_M
+            stepped = newton and ep < near and er < near
             if stepped:
-                q_next = self._newton_step(q, e)
+                q_next = self._newton_step(q, e, jac)
                 if q_next is not None:
-                    q = q_next
+                    q, ask = q_next, PRECISE
                     continue
                 stepped = False
             moved = compensated_target(self.model, target, q, hybrid)
             q_next = self.closed_form.nearest(moved, q)
             least_squares = q_next is None
             if least_squares:  # beyond the URDF model's reach: its nearest answer on this branch
-                near = self.closed_form.approximations(moved, q, seeding.NEAR_M, seeding.NEAR_RAD)
-                q_next = near[0] if len(near) else None
+                near_answers = self.closed_form.approximations(moved, q, seeding.NEAR_M, seeding.NEAR_RAD)
+                q_next = near_answers[0] if len(near_answers) else None
             if q_next is None:
                 break
             q = q_next
+            hopeful = newton and jac is None and not least_squares and cost < HYBRID_NEWTON_FROM_M
+            ask = JACOBIAN if hopeful else COARSE
         return best, best_errors, False
 
-    def _newton_step(self, q: np.ndarray, e: np.ndarray) -> np.ndarray | None:
-        """``q`` moved by the URDF Jacobian's Newton step for the hybrid error ``e`` (6,), within the limits; None
-        where the Jacobian is singular."""
-        jac = self.model.fk_and_jacobian_single(q, analytic=True)[1]
+    def _newton_step(self, q: np.ndarray, e: np.ndarray, jac: np.ndarray | None = None) -> np.ndarray | None:
+        """``q`` moved by Newton's step for the hybrid error ``e`` (6,) on ``jac`` (the hybrid Jacobian, where
+        the caller has it; else the URDF model's at ``q``), within the limits; None where it is singular."""
+        if jac is None:
+            jac = self.model.fk_and_jacobian_single(q, analytic=True)[1]
         try:
             step = np.linalg.solve(jac, e)
         except np.linalg.LinAlgError:

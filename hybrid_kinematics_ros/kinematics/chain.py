@@ -91,6 +91,15 @@ class Chain:
         return len(self.joint_names)
 
     @cached_property
+    def kernel_operands(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The arguments after ``q`` of :mod:`~hybrid_kinematics_ros.kinematics.fk_kernel`'s kernels, built once:
+        the generators ``(n, 3, 4, 4)``, which joints are revolute, ``post`` and the axes, contiguous."""
+        return tuple(
+            np.ascontiguousarray(a, dtype=dtype)
+            for a, dtype in ((self.generators, float), (self.revolute, bool), (self.post, float), (self.axes, float))
+        )
+
+    @cached_property
     def single_operands(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
         """Constants of :func:`fk.fk_single`, built once: the generators as ``(n, 3, 16)`` (G0, G1, G2 of
         every joint, flattened), a row of ones ``(n,)``, the ``post`` transform followed by identities

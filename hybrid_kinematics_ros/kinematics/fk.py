@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from hybrid_kinematics_ros.kinematics import fk_kernel
 from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 
@@ -78,21 +79,18 @@ def fk(chain: Chain, q: np.ndarray) -> np.ndarray:
 
 
 def fk_single(chain: Chain, q: np.ndarray) -> np.ndarray:
-    """Tip pose ``(4, 4)`` of one configuration ``(n,)``: the low-overhead path for services and IK. A few
-    configurations ``(k, n)`` give ``(k, 4, 4)`` the same way, without :func:`fk`'s set-up (40 µs).
-
-    Few numpy calls, since each one costs microseconds on a service's path, where the process wakes up
-    with cold caches: the joint factors ``G0 + a G1 + b G2`` in one batched product, then their
-    product (``post`` and identities appended to a power of two) as a tree of 3 batched matrix products
-    for 6 or 7 joints instead of a chain of 7. The association differs from :func:`fk`'s by rounding only.
+    """Tip pose ``(4, 4)`` of one configuration ``(n,)``: the low-overhead path for services and IK, compiled
+    (:mod:`~hybrid_kinematics_ros.kinematics.fk_kernel`). A few configurations ``(k, n)`` give
+    ``(k, 4, 4)`` without :func:`fk`'s set-up (40 µs): the joint factors ``G0 + a G1 + b G2`` in one batched
+    product, then their product (``post`` and identities appended to a power of two) as a tree of 3 batched
+    matrix products for 6 or 7 joints instead of a chain of 7. Both differ from :func:`fk`'s by rounding only.
     """
-    tail = chain.single_operands[2]
     q = np.asarray(q, dtype=float)
-    factors = joint_factors(chain, q)  # (n, 4, 4) or (k, n, 4, 4)
     if q.ndim == 1:
-        factors = np.concatenate((factors, tail))
-    else:  # the factors' axis first, each factor a batch over the configurations
-        factors = np.concatenate((factors, tail[None].repeat(len(q), 0)), axis=1).swapaxes(0, 1)
+        return fk_kernel.tip_pose(q, *chain.kernel_operands)
+    tail = chain.single_operands[2]
+    factors = joint_factors(chain, q)  # (k, n, 4, 4), the factors' axis first, each a batch over the configurations
+    factors = np.concatenate((factors, tail[None].repeat(len(q), 0)), axis=1).swapaxes(0, 1)
     while len(factors) > 1:
         factors = factors[0::2] @ factors[1::2]
     return factors[0]
@@ -100,7 +98,7 @@ def fk_single(chain: Chain, q: np.ndarray) -> np.ndarray:
 
 def joint_factors(chain: Chain, q: np.ndarray) -> np.ndarray:
     """``(…, n, 4, 4)``: each joint's transform ``G0 + a G1 + b G2`` at ``q (…, n)``, in one batched product
-    (:func:`fk_single`, :func:`fk_and_jacobian_single`, the elasto-geometric chain's one-pose path)."""
+    (a few configurations' :func:`fk_single`, the elasto-geometric chain's one-pose path)."""
     flat, ones, _, revolute = chain.single_operands
     a, b = (np.sin(q), 1.0 - np.cos(q)) if revolute else chain.coefficients(q)
     if q.ndim == 1:  # one configuration: np.array of the rows costs less than np.stack
@@ -147,15 +145,6 @@ def fk_and_jacobian(chain: Chain, q: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 def fk_and_jacobian_single(chain: Chain, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """One configuration: tip pose ``(4, 4)`` and geometric Jacobian ``(6, n)`` (the IK inner loop).
-
-    The joint factors as in :func:`fk_single`; the frames, their prefix products, in log₂ n batched steps
-    (step k multiplies each frame from k on by the one k before it) instead of a loop of n products."""
-    frames = joint_factors(chain, np.asarray(q, dtype=float))
-    k = 1
-    while k < len(frames):
-        frames = np.concatenate((frames[:k], frames[:-k] @ frames[k:]))
-        k *= 2
-    tip = frames[-1] @ chain.post
-    z = (frames[:, :3, :3] @ chain.axes[:, :, None])[:, :, 0]
-    return tip, geometric_jacobian(z, tip[:3, 3] - frames[:, :3, 3], chain.revolute, chain.single_operands[3])
+    """One configuration: tip pose ``(4, 4)`` and geometric Jacobian ``(6, n)`` (the IK inner loop), compiled
+    (:mod:`~hybrid_kinematics_ros.kinematics.fk_kernel`)."""
+    return fk_kernel.tip_pose_and_jacobian(np.asarray(q, dtype=float), *chain.kernel_operands)

@@ -43,7 +43,7 @@ from hybrid_kinematics_ros.kinematics.unrolled import Rows, unrolled_fk
 from hybrid_kinematics_ros.model import approach
 from hybrid_kinematics_ros.model.bounds import DISTANCE, Bounds, excess
 from hybrid_kinematics_ros.model.errors import ModelError
-from hybrid_kinematics_ros.model.nets import NumpyResidual
+from hybrid_kinematics_ros.model.nets import FastResidual
 from hybrid_kinematics_ros.model.parametric import model_from_manifest
 from hybrid_kinematics_ros.model.range_policy import RANGE_POLICIES
 from hybrid_kinematics_ros.model.referencing import Referencing
@@ -89,7 +89,7 @@ class HybridModel:
         self.nets = dict(nets or {})
         self.manifest = dict(manifest or {})
         self.path = path
-        self._fast = {kind: NumpyResidual.from_module(net) for kind, net in self.nets.items()}
+        self._fast = {kind: FastResidual.from_module(net) for kind, net in self.nets.items()}
         rng = self.manifest.get("trained_range")
         self.trained_lower = np.asarray(rng["lower"], dtype=float) if rng else chain.lower
         self.trained_upper = np.asarray(rng["upper"], dtype=float) if rng else chain.upper

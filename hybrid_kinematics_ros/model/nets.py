@@ -1,19 +1,18 @@
-"""The residual nets at run time: a numpy evaluator of a saved MLP and the joint-1 turn of its output.
+"""The residual nets at run time: a compiled evaluator of a saved MLP and the joint-1 turn of its output.
 
 A saved TorchScript net is self-contained (:mod:`hybrid_kinematics_ros.calibration.nets` builds and
-trains it) and needs nothing from here to load; at batch size 1 the numpy evaluator here is ~10× faster.
+trains it) and needs nothing from here to load; at batch size 1 the evaluator here is ~6× faster.
 """
 
 from __future__ import annotations
 
 import math
-from typing import ClassVar
 
 import numpy as np
 import torch
-from scipy.special import expit
 
 from hybrid_kinematics_ros.kinematics.se3 import skew
+from hybrid_kinematics_ros.model import mlp_kernel
 
 
 class AxisTurn:
@@ -54,121 +53,73 @@ def to_joint1_frame(r: np.ndarray, q1: np.ndarray, axis: np.ndarray | None) -> n
     return r if axis is None else AxisTurn(axis).apply(r, -q1)
 
 
-def _silu_and_slope(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    sig = expit(x)
-    y = x * sig
-    return y, sig + y * (1.0 - sig)  # d(x σ(x))/dx = σ + x σ (1 − σ)
+class FastResidual:
+    """A compiled evaluator of a saved MLP residual net (:mod:`~hybrid_kinematics_ros.model.mlp_kernel`), for
+    single configurations and small batches.
 
-
-def _tanh_and_slope(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    y = np.tanh(x)
-    return y, 1.0 - y * y
-
-
-class NumpyResidual:
-    """A numpy evaluator of a saved MLP residual net, for single configurations.
-
-    At batch size 1 TorchScript spends ~50 µs per call on operator dispatch; these few numpy products take
-    a few µs. Only plain MLPs (Linear and activation layers) qualify; :meth:`from_module` returns None for
-    others, and callers then use the TorchScript module. Tests check it against TorchScript.
+    At batch size 1 TorchScript spends ~50 µs per call on operator dispatch, numpy ~15 µs on a dozen small
+    operations; the kernel does the whole net in one call. Only plain MLPs (Linear and activation layers),
+    or ensembles of equally deep ones, qualify; :meth:`from_module` returns None for others, and callers then
+    use the TorchScript module. Tests check it against TorchScript and its autograd.
     """
 
-    # each activation: its value, and its value with its slope (for the Jacobian)
-    _ACT: ClassVar[dict] = {
-        "ReLU": (lambda x: np.maximum(x, 0.0), lambda x: (np.maximum(x, 0.0), (x > 0).astype(x.dtype))),
-        "SiLU": (lambda x: x * expit(x), _silu_and_slope),
-        "Tanh": (np.tanh, _tanh_and_slope),
-    }
-
     def __init__(self, module: torch.jit.ScriptModule, stacks: list[list]) -> None:
-        self.center = module.center.numpy()
-        self.half_span = module.half_span.numpy()
-        self.mean = module.target_mean.numpy()
-        self.scale = module.target_scale.numpy()
+        self.center = module.center.numpy().astype(np.float64)
+        self.half_span = module.half_span.numpy().astype(np.float64)
+        self.mean = module.target_mean.numpy().astype(np.float64)
+        self.scale = module.target_scale.numpy().astype(np.float64)
         self.axis = module.axis.numpy()
         self.sincos = bool(module.sincos)  # ScriptModules keep plain attributes
         self.n_joints = int(getattr(module, "n_joints", len(self.center)))
         self.turn = bool(module.turn)
-        self.stacks = stacks  # one list of layers per ensemble member (one for a single net)
+        self.members = len(stacks)  # one list of layers per ensemble member (one for a single net)
+        self._packed = mlp_kernel.pack(stacks)
         self.turner = AxisTurn(self.axis)
 
     @classmethod
-    def from_module(cls, module: torch.nn.Module) -> NumpyResidual | None:
+    def from_module(cls, module: torch.nn.Module) -> FastResidual | None:
         """From a loaded TorchScript net or an eager :class:`ResidualNet`; None if not a plain MLP or an
-        ensemble of them."""
+        ensemble of equally deep ones."""
         body = module.body
         kind = getattr(body, "original_name", None) or type(body).__name__
         members = list(body.members.children()) if kind == "Ensemble" else [body]
         stacks = [cls._layers(member) for member in members]
-        return None if any(stack is None for stack in stacks) else cls(module, stacks)
+        if any(stack is None for stack in stacks) or len({len(stack) for stack in stacks}) != 1:
+            return None
+        return cls(module, stacks)
 
-    @classmethod
-    def _layers(cls, body: torch.nn.Module) -> list | None:
+    @staticmethod
+    def _layers(body: torch.nn.Module) -> list | None:
+        """``(activation, weight (in, out), bias)`` per Linear layer, or None if the body is not an MLP."""
         layers: list = []
         for child in body.children():
             kind = getattr(child, "original_name", None) or type(child).__name__
             if kind == "Linear":
-                # float32 as in the net: the weights' memory traffic dominates the cost at batch size 1
-                weight, bias = child.weight.detach().numpy().T.copy(), child.bias.detach().numpy().copy()
-                layers.append(("linear", weight, bias))
-            elif kind in cls._ACT:
-                layers.append(("act", *cls._ACT[kind]))
+                weight, bias = child.weight.detach().numpy().T, child.bias.detach().numpy()
+                layers.append(["linear", weight, bias])
+            elif kind in mlp_kernel.ACTIVATIONS and layers and layers[-1][0] == "linear":
+                layers[-1][0] = kind
             else:
                 return None
-        return layers
+        return [tuple(layer) for layer in layers]
+
+    def _args(self) -> tuple:
+        return (self.center, self.half_span, self.n_joints, self.sincos, *self._packed, self.members, self.scale)
 
     def __call__(self, q: np.ndarray) -> np.ndarray:
-        x = (q - self.center) / self.half_span
-        if self.sincos:
-            joints = q[..., : self.n_joints]
-            x = np.concatenate([x, np.sin(joints), np.cos(joints)], axis=-1)
-        x = x.astype(np.float32)
-        out = []
-        for layers in self.stacks:
-            y = x
-            for kind, a, b in layers:
-                y = y @ a + b if kind == "linear" else a(y)
-            out.append(y)
-        r = (out[0].astype(np.float64) if len(out) == 1 else np.mean(out, axis=0, dtype=np.float64)) * self.scale
-        r += self.mean
+        """Residuals ``(B, 3)`` of inputs ``q (B, k)``, or ``(3,)`` of one ``(k,)``."""
+        q = np.asarray(q, dtype=np.float64)
+        rows = np.ascontiguousarray(q.reshape(-1, q.shape[-1]))
+        r = mlp_kernel.mlp_values(rows, *self._args(), self.mean)
+        if q.ndim == 1:
+            r = r[0]
         return self.turner.apply(r, q[..., 0]) if self.turn else r
 
     def value_and_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Residual ``(3,)`` and its derivative ``(3, n)`` for one input ``(n,)``; with condition columns the
-        derivative covers them too. Reverse mode: the three outputs' gradients go back through each layer
-        as one ``(3, width)`` product (forward mode carries a row per input feature, 18 for six joints with
-        their sines and cosines), and through the features by the chain rule without building their
-        Jacobian: 91 → 65 µs for a UR10's 256×3 net."""
-        x = (q - self.center) / self.half_span
-        if self.sincos:
-            joints = q[: self.n_joints]
-            sin, cos = np.sin(joints), np.cos(joints)
-            x = np.concatenate([x, sin, cos])
-        x = x.astype(np.float32)
-        outs, grads = [], []
-        for layers in self.stacks:
-            y, slopes = x, []
-            for kind, a, b in layers:
-                if kind == "linear":
-                    y = y @ a + b
-                else:
-                    y, slope = b(y)
-                    slopes.append(slope)
-            g = np.eye(len(y), dtype=np.float32)  # d(outputs)/d(outputs), then back through each layer
-            for kind, a, _ in reversed(layers):
-                g = g @ a.T if kind == "linear" else g * slopes.pop()
-            outs.append(y)
-            grads.append(g)
-        single = len(outs) == 1
-        out = outs[0].astype(np.float64) if single else np.mean(outs, axis=0, dtype=np.float64)
-        grad = grads[0].astype(np.float64) if single else np.mean(grads, axis=0, dtype=np.float64)
-        grad *= self.scale[:, None]
-        local = out * self.scale + self.mean
-        k = len(q)
-        dlocal = grad[:, :k] / self.half_span  # (3, n): the features' chain rule, (q − centre) / half span first
-        if self.sincos:
-            n = self.n_joints
-            dlocal[:, :n] += grad[:, k : k + n] * cos - grad[:, k + n :] * sin
+        """Residual ``(3,)`` and its derivative ``(3, k)`` for one input ``(k,)``; with condition columns the
+        derivative covers them too."""
+        q = np.ascontiguousarray(q, dtype=np.float64)
+        local, dlocal = mlp_kernel.mlp_value_and_jacobian(q, *self._args(), self.mean)
         if not self.turn:
             return local, dlocal
         rot = self.turner.matrix(q[0])

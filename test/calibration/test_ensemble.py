@@ -13,7 +13,7 @@ import torch
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.fit import fit, split
 from hybrid_kinematics_ros.calibration.nets import Ensemble
-from hybrid_kinematics_ros.model.nets import NumpyResidual
+from hybrid_kinematics_ros.model.nets import FastResidual
 
 MEMBERS = 3
 
@@ -49,10 +49,10 @@ def test_members_differ_and_are_averaged(ensemble):
     assert history["epochs"] == MEMBERS * 40
 
 
-def test_numpy_path_matches_torchscript_for_an_ensemble(ensemble):
+def test_the_compiled_path_matches_torchscript_for_an_ensemble(ensemble):
     model, _, te = ensemble
-    fast = NumpyResidual.from_module(model.nets["orientation"])
-    assert fast is not None and len(fast.stacks) == MEMBERS
+    fast = FastResidual.from_module(model.nets["orientation"])
+    assert fast is not None and fast.members == MEMBERS
     batch = model.fk(te.q[:10])
     for i in range(10):
         np.testing.assert_allclose(model.fk_single(te.q[i]), batch[i], atol=5e-9, rtol=0)

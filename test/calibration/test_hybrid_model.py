@@ -16,7 +16,7 @@ from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR
 from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.model.hybrid import HybridModel, left_jacobian_so3
-from hybrid_kinematics_ros.model.nets import AxisTurn, NumpyResidual, to_joint1_frame
+from hybrid_kinematics_ros.model.nets import AxisTurn, FastResidual, to_joint1_frame
 
 
 def test_training_cuts_the_error_by_a_large_factor(trained):
@@ -100,8 +100,8 @@ def test_paper_architectures_build_script_and_run(arch, tmp_path):
 
 @pytest.mark.parametrize("act", ["relu", "silu", "tanh"])
 @pytest.mark.parametrize("turn", [False, True])
-def test_the_numpy_nets_jacobian_is_autograds(act, turn):
-    """The numpy evaluator's reverse-mode Jacobian against torch's autograd, with the sines and cosines and
+def test_the_compiled_nets_jacobian_is_autograds(act, turn):
+    """The compiled evaluator's reverse-mode Jacobian against torch's autograd, with the sines and cosines and
     a condition column (7 inputs, 6 of them joints), with and without the joint-1 turn."""
     torch.manual_seed(0)
     lower, upper = np.array([-3.0, -2.0, -2.5, -3.0, -2.0, -3.0, 10.0]), np.array([3.0, 1.0, 2.5, 3.0, 2.0, 3.0, 40.0])
@@ -109,7 +109,7 @@ def test_the_numpy_nets_jacobian_is_autograds(act, turn):
     scale = np.array([2e-3, 1e-3, 3e-3])
     net = nets.ResidualNet(f"mlp:32x3:{act}", lower, upper, np.full(3, 1e-4), scale, True, axis, 6)
     net.eval()
-    fast = NumpyResidual.from_module(torch.jit.script(net))
+    fast = FastResidual.from_module(torch.jit.script(net))
     for q in np.random.default_rng(3).uniform(lower, upper, (5, 7)):
         value, jac = fast.value_and_jacobian(q)
         auto = torch.autograd.functional.jacobian(lambda x: net(x[None])[0], torch.tensor(q)).numpy()
