@@ -86,8 +86,8 @@ def fk_single(chain: Chain, q: np.ndarray) -> np.ndarray:
     matrix products for 6 or 7 joints instead of a chain of 7. Both differ from :func:`fk`'s by rounding only.
     """
     q = np.asarray(q, dtype=float)
-    if q.ndim == 1:
-        return fk_kernel.tip_pose(q, *chain.kernel_operands)
+    if q.ndim == 1:  # contiguous: a strided view would compile the kernel once more
+        return fk_kernel.tip_pose(np.ascontiguousarray(q), *chain.kernel_operands)
     tail = chain.single_operands[2]
     factors = joint_factors(chain, q)  # (k, n, 4, 4), the factors' axis first, each a batch over the configurations
     factors = np.concatenate((factors, tail[None].repeat(len(q), 0)), axis=1).swapaxes(0, 1)
@@ -147,4 +147,4 @@ def fk_and_jacobian(chain: Chain, q: np.ndarray) -> tuple[np.ndarray, np.ndarray
 def fk_and_jacobian_single(chain: Chain, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One configuration: tip pose ``(4, 4)`` and geometric Jacobian ``(6, n)`` (the IK inner loop), compiled
     (:mod:`~hybrid_kinematics_ros.kinematics.fk_kernel`)."""
-    return fk_kernel.tip_pose_and_jacobian(np.asarray(q, dtype=float), *chain.kernel_operands)
+    return fk_kernel.tip_pose_and_jacobian(np.ascontiguousarray(q, dtype=float), *chain.kernel_operands)

@@ -127,6 +127,10 @@ class HybridModel:
         # 2026-11-26) is not read: its numbers mean something else; such a model serves without bounds
         self.bounds = Bounds.from_manifest(section) if section and section.get("distance") == DISTANCE else None
         self.range_policy = range_policy
+        # the compiled one-configuration paths load (or, on a fresh checkout, compile) here, not in a first request
+        mid = chain.mid_limits()
+        self.fk_single(mid)
+        self.fk_and_jacobian_single(mid)
 
     @property
     def range_policy(self) -> str:
