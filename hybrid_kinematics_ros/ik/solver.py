@@ -14,19 +14,19 @@ composes the parts, with ``solve``, ``solve_many`` and ``solve_trajectory``.
    least-squares answers (the URDF model's nearest) start the hybrid stages instead, each branch first by
    the fixed point of 2., nearest the seed first.
 2. The hybrid refinement around the classical answer. With closed forms, first a fixed point on the classical
-   answer's branch: the closed forms solve the target moved by the hybrid correction at the current answer (the
-   URDF pose to the hybrid pose), until the correction stops changing; then the hybrid pose is the target (a
-   round whose moved target is beyond the URDF model's reach takes its least-squares answer; when such rounds
-   stop cutting the error, the branch's nearest point is found and the branch cannot reach the target: 3. follows
-   at once). Each closed-form round cuts the error ~100× (what it leaves out is the nets' slope), so the round
-   after the first one near the target evaluates the hybrid Jacobian with the pose, and from there Newton's
-   steps on it reach the polish tolerance in one step (without it, a round within LINEAR_M is a Newton step
-   on the URDF Jacobian, two or three of them). One solution starts with this fixed point on the branch nearest the seed alone;
-   only where it fails are the other branches computed and checked (a UR10's solution through the hybrid model in
-   0.55 ms instead of 1.0). Near a singularity of the URDF model, where its chord Jacobian loses rank and the
-   fixed point wanders along the singular valley, a root search along that valley and those of the other
-   closed-form branches follows (:mod:`~hybrid_kinematics_ros.ik.valley`), right after the seed's fixed point,
-   before the other branches' fixed points. What they leave goes to bounded LM through the hybrid FK in a box
+   answer's branch: the closed forms solve the target moved by the hybrid correction at the current answer (the URDF
+   pose to the hybrid pose), until the correction stops changing; then the hybrid pose is the target (a round whose
+   moved target is beyond the URDF model's reach takes its least-squares answer; when such rounds stop cutting the
+   error, the branch's nearest point is found and the branch cannot reach the target: 3. follows at once). Each
+   closed-form round cuts the error ~100× (what it leaves out is the nets' slope), so the round after the first one
+   near the target evaluates the hybrid Jacobian with the pose, and from there Newton's steps on it reach the polish
+   tolerance in one step (without it, a round within LINEAR_M is a Newton step on the URDF Jacobian, two or three of
+   them). One solution starts with this fixed point on the branch nearest the seed alone; only where it fails are
+   the other branches computed and checked (a UR10's solution through the hybrid model in half the time). Near a
+   singularity of the URDF model, where its chord Jacobian loses rank and the fixed point wanders along the singular
+   valley, a root search along that valley and those of the other closed-form branches follows
+   (:mod:`~hybrid_kinematics_ros.ik.valley`), right after the seed's fixed point, before the other branches' fixed
+   points. What they leave goes to bounded LM through the hybrid FK in a box
    (:mod:`~hybrid_kinematics_ros.ik.refine`).
 3. When the seed's branch has no hybrid solution near it (near a singularity the nets' tenths of a
    millimetre move the solution by tenths of a radian, or the target lies just beyond the URDF model's
