@@ -201,9 +201,9 @@ def inference(_: float) -> None:
         analytic.fk_single(qi)
     single_analytic = (time.perf_counter() - start) / 5000
     body = (
-        f"UR10, `fast` nets ({served(manifest)}), in-process, 1 thread. One configuration: numpy FK and "
-        "a numpy evaluation of the saved nets' weights (TorchScript spends ~50 µs per call on dispatch at batch "
-        "size 1); batches: TorchScript.\n\n"
+        f"UR10, `fast` nets ({served(manifest)}), in-process, 1 thread. One configuration: compiled FK and "
+        "a compiled evaluation of the saved nets' weights (numba, `model/mlp_kernel.py`; TorchScript spends "
+        "~50 µs per call on dispatch at batch size 1); batches: TorchScript.\n\n"
         + table(
             ["measure", "value"],
             [
