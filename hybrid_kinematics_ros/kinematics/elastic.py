@@ -24,9 +24,9 @@ from functools import cached_property
 
 import numpy as np
 
-from hybrid_kinematics_ros.kinematics import fk
+from hybrid_kinematics_ros.kinematics import fk, fk_kernel
 from hybrid_kinematics_ros.kinematics.chain import Chain
-from hybrid_kinematics_ros.kinematics.se3 import exp_so3, skew
+from hybrid_kinematics_ros.kinematics.se3 import exp_so3
 
 GRAVITY = np.array([0.0, 0.0, -9.81])  # m/s², in the base frame: a floor-mounted robot's
 CHUNK = 4096
@@ -255,7 +255,7 @@ class ElasticChain:
         """One pose ``(4, 4)`` for one configuration ``(n,)``."""
         if not self.is_elastic:
             return fk.fk_single(self.chain, self.corrected_joints(q))
-        return self._single(np.asarray(q, dtype=float))[1]
+        return self._single(np.asarray(q, dtype=float), jacobian=False)[0]
 
     def fk_and_jacobian_single(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One pose ``(4, 4)`` and its Jacobian ``(6, n)``, with the approximation of :meth:`fk_and_jacobian`."""
@@ -263,66 +263,45 @@ class ElasticChain:
         if not self.is_elastic:
             tip, jac = fk.fk_and_jacobian_single(self.chain, self.corrected_joints(q))
             return tip, (jac * (1.0 + self._joint_errors(q)[1]) if self.has_joint_error else jac)
-        frames, tip, bend = self._single(q)
-        # Joint k turns about its axis in its frame before bending: R_k bend_kᵀ axis_k.
-        axes = self.chain.axes if bend is None else np.einsum("kji,kj->ki", bend, self.chain.axes)
-        z = np.einsum("kij,kj->ki", frames[:, :3, :3], axes)
-        jac = fk.geometric_jacobian(z, tip[:3, 3] - frames[:, :3, 3], self.chain.revolute)
+        tip, jac = self._single(q, jacobian=True)
         if self.has_joint_error:
             jac *= 1.0 + self._joint_errors(q)[1]
         return tip, jac
 
     @cached_property
-    def _loads(self) -> tuple[np.ndarray, np.ndarray]:
-        """Masses of the segments and the payload ``(n + 1,)``, and the mass beyond each joint ``(n,)``."""
+    def _kernel_operands(self) -> tuple:
+        """:func:`fk_kernel.elastic_pose`'s constants after the chain's: the loads, gravity and the stage's
+        parameters (the optional terms as zeros), contiguous."""
+        n = self.dof
         mass = np.append(self.chain.segment_mass, self.payload_mass)
-        return mass, np.cumsum(mass[::-1])[::-1][:-1]
+        beyond = np.cumsum(mass[::-1])[::-1][:-1]
+        zeros = np.zeros(n)
+        arrays = (
+            self.chain.segment_com,
+            mass,
+            beyond,
+            self.payload_com,
+            self.gravity,
+            self.compliance,
+        )
+        terms = (
+            float(self.cubic_ratio),
+            float(self.torque_ref),
+            zeros if self.cubic_compliance is None else self.cubic_compliance,
+            zeros if self.signed_compliance is None else self.signed_compliance,
+            np.asarray(self.bending, dtype=float).reshape(n, 3),
+            bool(np.any(self.bending)),
+        )
+        contiguous = [np.ascontiguousarray(a, dtype=float) for a in arrays]
+        last = [t if isinstance(t, (float, bool)) else np.ascontiguousarray(t, dtype=float) for t in terms]
+        return (*self.chain.kernel_operands, *contiguous, *last)
 
-    @cached_property
-    def _cross_gravity(self) -> np.ndarray:
-        """``(3, 3)``: ``r @`` it is ``r × g`` for rows ``r`` (``np.cross`` costs ten times more on one pose)."""
-        return skew(self.gravity)
-
-    @cached_property
-    def _bends(self) -> bool:
-        return bool(np.any(self.bending))
-
-    def _single(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        """Frames after bending ``(n, 4, 4)``, the tip and the bends ``(n, 3, 3)`` of one configuration (None
-        without bending: a stage that fits compliance alone skips six rotations).
-
-        The batch code with a batch of one costs ~300 µs in numpy overhead. Here the moments come from one
-        cumulative sum of first moments, and the constant loads are cached.
-        """
-        chain = self.chain
-        q_eff = self.corrected_joints(q)
-        frames = self._rigid_frames(q_eff)
-        tip = frames[-1] @ chain.post
-        rot, origins = frames[:, :3, :3], frames[:, :3, 3]
-        com = np.empty((self.dof + 1, 3))
-        com[:-1] = (rot @ chain.segment_com[:, :, None])[:, :, 0] + origins
-        com[-1] = tip[:3, :3] @ self.payload_com + tip[:3, 3]
-        mass, beyond = self._loads
-        # moment about joint j of the loads beyond it, taken about the joint origin: (Σ_i≥j m_i (c_i − o_j)) × g
-        first = np.cumsum((mass[:, None] * com)[::-1], axis=0)[::-1][:-1] - beyond[:, None] * origins
-        axes = (rot @ chain.axes[:, :, None])[:, :, 0]
-        torque = np.einsum("ki,ki->k", axes, first @ self._cross_gravity)
-        if not chain.revolute.all():
-            torque = np.where(chain.revolute, torque, beyond * (axes @ self.gravity))
-        q_eff = q_eff + self.deflection(torque)
-        bend = exp_so3(torque[:, None] * self.bending) if self._bends else None
-        frames = self._rigid_frames(q_eff, bend)
-        return frames, frames[-1] @ chain.post, bend
-
-    def _rigid_frames(self, q: np.ndarray, bend: np.ndarray | None = None) -> np.ndarray:
-        local = fk.joint_factors(self.chain, q)
-        if bend is not None:
-            local[:, :3, :3] = local[:, :3, :3] @ bend
-        frames = np.empty_like(local)
-        frames[0] = t = local[0]
-        for k in range(1, len(local)):
-            frames[k] = t = t @ local[k]
-        return frames
+    def _single(self, q: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray]:
+        """The tip ``(4, 4)`` and (zeros unless ``jacobian``) the Jacobian ``(6, n)`` of one configuration, before
+        the joint errors' slopes: the compiled kernel (:func:`fk_kernel.elastic_pose`), where the batch code
+        with a batch of one cost ~300 µs in numpy overhead and numpy written for one pose 92 µs."""
+        q_eff = np.ascontiguousarray(self.corrected_joints(q), dtype=float)
+        return fk_kernel.elastic_pose(q_eff, *self._kernel_operands, jacobian)
 
     def _frames(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each joint's frame right after its motion, before bending, ``(B, n, 4, 4)``, and the tips."""

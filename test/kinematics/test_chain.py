@@ -74,6 +74,9 @@ def test_mixed_joint_types_match_pinocchio(tmp_path):
         pin.updateFramePlacements(model, data)
         np.testing.assert_allclose(t[i], data.oMf[frame].homogeneous, atol=1e-12)
         np.testing.assert_allclose(fk.fk_single(chain, q[i]), t[i], atol=1e-14, rtol=0)
+        t_single, j_single = fk.fk_and_jacobian_single(chain, q[i])  # the compiled path, prismatic joint too
+        np.testing.assert_allclose(t_single, t[i], atol=1e-14, rtol=0)
+        np.testing.assert_allclose(j_single, j[i], atol=1e-13, rtol=0)
         jp = pin.computeFrameJacobian(model, data, qp, frame, pin.LOCAL_WORLD_ALIGNED)
         vcols = [model.joints[model.getJointId(n)].idx_v for n in ("j1", "j2", "j3")]
         np.testing.assert_allclose(j[i], jp[:, vcols], atol=1e-12)

@@ -10,6 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.kinematics import fk, se3
+from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain, JointMap
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.simulation.truth import TrueRobot
@@ -62,6 +63,39 @@ def test_single_pose_paths_equal_the_batch(elastic, bending):
     for i in range(len(q)):
         np.testing.assert_allclose(elastic.fk_single(q[i]), T[i], atol=1e-14, rtol=0)
         Ts, Js = elastic.fk_and_jacobian_single(q[i])
+        np.testing.assert_allclose(Ts, T[i], atol=1e-14, rtol=0)
+        np.testing.assert_allclose(Js, J[i], atol=1e-12, rtol=0)
+
+
+def test_every_term_on_a_chain_with_a_prismatic_joint_has_one_pose_equal_to_the_batch(tmp_path):
+    """The compiled one-pose path against the batch with every term of the stage at once: load-dependent and
+    sign-dependent stiffness, the truth's stiffening, bending, a payload, a tilted gravity and a prismatic
+    joint (which carries the weight beyond it along its axis)."""
+    from test.kinematics.test_chain import MIXED
+
+    path = tmp_path / "mixed.urdf"
+    path.write_text(MIXED)
+    chain = chain_from_urdf(path, "world", "tip")
+    rng = np.random.default_rng(7)
+    model = ElasticChain(
+        chain,
+        zero_offset=rng.normal(scale=1e-3, size=3),
+        compliance=np.array([2e-3, 1e-4, 3e-3]),
+        bending=rng.normal(scale=1e-3, size=(3, 3)),
+        payload_mass=1.5,
+        payload_com=np.array([0.01, -0.02, 0.05]),
+        cubic_ratio=0.3,
+        torque_ref=5.0,
+        cubic_compliance=np.array([1e-5, 0.0, -2e-5]),
+        signed_compliance=np.array([4e-4, 1e-5, -3e-4]),
+        gravity=np.array([0.5, -1.0, -9.7]),
+    )
+    q = np.column_stack([rng.uniform(-1.5, 2, 20), rng.uniform(-0.1, 0.3, 20), rng.uniform(-6, 6, 20)])
+    T, J = model.fk_and_jacobian(q)
+    assert model.is_elastic and np.abs(model.gravity_torques(q)).max() > 1.0
+    for i in range(len(q)):
+        np.testing.assert_allclose(model.fk_single(q[i]), T[i], atol=1e-14, rtol=0)
+        Ts, Js = model.fk_and_jacobian_single(q[i])
         np.testing.assert_allclose(Ts, T[i], atol=1e-14, rtol=0)
         np.testing.assert_allclose(Js, J[i], atol=1e-12, rtol=0)
 
