@@ -48,10 +48,11 @@ from hybrid_kinematics_ros.model.parametric import model_from_manifest
 from hybrid_kinematics_ros.model.range_policy import RANGE_POLICIES
 from hybrid_kinematics_ros.model.referencing import Referencing
 
-# Batches up to this many rows run the nets' numpy evaluators instead of TorchScript (bench, one UR10 model:
-# 2 rows 0.09 against 0.26 ms, 8 rows 0.14 against 0.23 ms, 32 rows alike, 128 rows torch twice as fast): the
-# small batches of the IK's valley search and of several solutions, and a service's few configurations.
-NUMPY_ROWS = 16
+# Batches up to this many rows run the nets' compiled evaluators, a row at a time, instead of TorchScript (bench,
+# a UR10 256x3 net: 4 rows 0.06 against 0.13 ms, 16 rows 0.18 against 0.20 ms; a 64x2 net: 16 rows 0.04 against
+# 0.10 ms): the small batches of the IK's valley search and of several solutions, and a service's few
+# configurations.
+COMPILED_ROWS = 16
 
 
 def left_jacobian_so3(w: np.ndarray) -> np.ndarray:
@@ -525,7 +526,7 @@ class HybridModel:
         the condition channels per configuration, else the current values."""
         x = self._inputs(np.atleast_2d(q), conditions)
         zeros = np.zeros((len(x), 3))
-        if len(x) <= NUMPY_ROWS and all(self._fast.values()):
+        if len(x) <= COMPILED_ROWS and all(self._fast.values()):
             fast = self._fast
             return (
                 fast["position"](x) if "position" in fast else zeros,
