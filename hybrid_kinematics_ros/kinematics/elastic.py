@@ -272,29 +272,16 @@ class ElasticChain:
     def _kernel_operands(self) -> tuple:
         """:func:`fk_kernel.elastic_pose`'s constants after the chain's: the loads, gravity and the stage's
         parameters (the optional terms as zeros), contiguous."""
-        n = self.dof
         mass = np.append(self.chain.segment_mass, self.payload_mass)
-        beyond = np.cumsum(mass[::-1])[::-1][:-1]
-        zeros = np.zeros(n)
-        arrays = (
-            self.chain.segment_com,
-            mass,
-            beyond,
-            self.payload_com,
-            self.gravity,
-            self.compliance,
-        )
-        terms = (
-            float(self.cubic_ratio),
-            float(self.torque_ref),
-            zeros if self.cubic_compliance is None else self.cubic_compliance,
-            zeros if self.signed_compliance is None else self.signed_compliance,
-            np.asarray(self.bending, dtype=float).reshape(n, 3),
-            bool(np.any(self.bending)),
-        )
-        contiguous = [np.ascontiguousarray(a, dtype=float) for a in arrays]
-        last = [t if isinstance(t, (float, bool)) else np.ascontiguousarray(t, dtype=float) for t in terms]
-        return (*self.chain.kernel_operands, *contiguous, *last)
+        zeros = np.zeros(self.dof)
+
+        def c(a: np.ndarray | None) -> np.ndarray:
+            return zeros if a is None else np.ascontiguousarray(a, dtype=float)
+
+        loads = (c(self.chain.segment_com), mass, np.cumsum(mass[::-1])[::-1][:-1], c(self.payload_com))
+        stiffness = (c(self.compliance), float(self.cubic_ratio), float(self.torque_ref))
+        extra = (c(self.cubic_compliance), c(self.signed_compliance), c(self.bending), bool(np.any(self.bending)))
+        return (*self.chain.kernel_operands, *loads, c(self.gravity), *stiffness, *extra)
 
     def _single(self, q: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray]:
         """The tip ``(4, 4)`` and (zeros unless ``jacobian``) the Jacobian ``(6, n)`` of one configuration, before

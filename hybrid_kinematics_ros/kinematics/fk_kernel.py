@@ -112,7 +112,8 @@ def tip_pose_and_jacobian(q, generators, revolute, post, axes):
 
 @numba.njit(cache=True, nogil=True)
 def _rotation(w):
-    """``exp(ŵ)`` (Rodrigues) of one rotation vector ``(3,)``."""
+    """``exp(ŵ)`` (Rodrigues) of one rotation vector ``(3,)``: :func:`se3.exp_so3` inside the kernel, which
+    cannot call numpy's; test_elastic checks the kernel's pose against the batch, which uses that one."""
     t = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
     if t < 1e-8:
         a, b = 1.0 - t * t / 6.0, 0.5 - t * t / 24.0

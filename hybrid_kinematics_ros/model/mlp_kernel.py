@@ -2,7 +2,8 @@
 
 At batch size 1 numpy spends most of a 256x3 net's 22 µs dispatching a dozen small operations, and
 TorchScript 50 µs; these numba kernels do the features, the layers and the output scaling in one call
-(a 256x3 net: 8 against 22 µs, with its Jacobian 14 against 69 µs; ``bench_hybrid``). The maths is the
+(a UR10 256x3 net, interleaved in one process: 17-18 against 25-31 µs, with its Jacobian 43-53 against
+73-87 µs; most of what is left is the two 256x256 products, which BLAS does). The maths is the
 net's own (``calibration/nets.py``): features ``[(q − centre) / half span, sin q, cos q]`` for the joints,
 float32 layers, then ``y · scale + mean`` in float64. The joint-1 turn stays with the caller.
 
