@@ -185,6 +185,16 @@ class AnalyticIK:
         q = q[(np.linalg.norm(e[:, :3], axis=1) < miss_m) & (np.linalg.norm(e[:, 3:], axis=1) < miss_rad)]
         return q[np.argsort(np.linalg.norm(q - seed, axis=1), kind="stable")]
 
+    def clipped(self, target: np.ndarray, seed: np.ndarray) -> np.ndarray:
+        """IK-Geo's answers ``(k, 6)``, exact and least-squares, that have no copy within the limits, each joint's
+        copy nearest the seed clipped into them: where the URDF model reaches the target (or gets nearest) only
+        past a joint limit (a UR10 near its q2 = 0 or q3 = -2.8 limit with its wrist straight), starts for its
+        nearest point within them."""
+        q = np.vstack(self._answers(target)).reshape(-1, 6)
+        first, last = _turn_range(q, self.lower, self.upper)
+        q = q[(first > last).any(axis=1)]
+        return np.clip(q + TAU * np.round((seed - q) / TAU), self.lower, self.upper)
+
     def nearest(self, target: np.ndarray, seed: np.ndarray) -> np.ndarray | None:
         """The exact branch within the limits nearest the seed, unchecked (the caller checks it on the model it
         solves for), or None."""

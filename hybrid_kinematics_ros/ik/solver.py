@@ -26,8 +26,13 @@ composes the parts, with ``solve``, ``solve_many`` and ``solve_trajectory``.
    singularity of the URDF model, where its chord Jacobian loses rank and the fixed point wanders along the singular
    valley, a root search along that valley and those of the other closed-form branches follows
    (:mod:`~hybrid_kinematics_ros.ik.valley`), right after the seed's fixed point, before the other branches' fixed
-   points. What they leave goes to bounded LM through the hybrid FK in a box
-   (:mod:`~hybrid_kinematics_ros.ik.refine`).
+   points (after them, and only if none solves, where the seed's fixed point stalled beyond its branch's reach),
+   and then along the valleys of the branches' copies shifted by 2π (the nets see raw joint values). A target
+   beyond the URDF model's reach (no exact branch) gets the same search from the least-squares answers, and
+   where the URDF model reaches it only past a joint limit, from its answers clipped into the limits and
+   polished there; no exact branch within the limits means no restart of the URDF model's LM finds one, so
+   that stage gets a tenth of the budget instead of half. What they leave goes to bounded LM through the
+   hybrid FK in a box (:mod:`~hybrid_kinematics_ros.ik.refine`).
 3. When the seed's branch has no hybrid solution near it (near a singularity the nets' tenths of a
    millimetre move the solution by tenths of a radian, or the target lies just beyond the URDF model's
    reach), the other analytic branches follow: the closed forms' other branches, nearest the seed first,
@@ -82,6 +87,7 @@ from hybrid_kinematics_ros.model.hybrid import HybridModel
 # 65 seeds and the refinements of solve_many added up to seconds; the seed search gets the first half.
 CLASSICAL_SHARE = 0.5
 SEARCH_SHARE = 0.5
+NO_BRANCH_SHARE = 0.1  # the classical stage's where the closed forms give no branch within the limits (solve)
 # Trajectories (cb76980): URDF-model LM steps per pose from the previous answer (a few suffice), and the joint
 # jump beyond which the path's extrapolation has gone to another branch.
 PATH_ITERATIONS = 30
@@ -107,6 +113,10 @@ HYBRID_NEWTON_FROM_M = 1e-2
 COARSE, PRECISE, JACOBIAN = "coarse", "precise", "jacobian"  # what a fixed point's round asks for
 VALLEY_SHARE = 0.5  # of the budget, still left, for the search along a singular valley (ik/valley.py)
 POLISH_ITERATIONS = 12  # LM steps on a least-squares answer beyond a fold (6-9 reach the URDF model's nearest point)
+# A probe's fixed point that ends this near the target (mm) has stalled at a fold of the URDF model, where its
+# rounds only halve the error: LM on the hybrid model finishes in a few steps (a UR10 with the wrist centre
+# 1e-4 rad from axis 1: 3.5e-4 mm after the probe's rounds, solved by LM in 3 ms)
+NEAR_MISS_MM = 1e-2
 SINGULAR = 1e-6  # the URDF Jacobian's smallest singular value (m or rad per rad) at a singular target's answer
 OTHER_BRANCH = "on another branch than the seed's, which found no solution within the budget"  # said with it
 
@@ -316,9 +326,16 @@ class IKSolver:
                 if nearest_miss is None or result.position_error_mm < nearest_miss.position_error_mm:
                     nearest_miss = result
             q0 = nearest_miss.q  # the refinements go on from the branch that came nearest
+            found = self._valley(target, q0, start, deadline, stats, near=near)
+            if found is not None:
+                return self._singular(found)
         else:
+            # closed forms that give no branch within the limits are complete: no restart of the URDF model's LM
+            # finds one, and its nearest point within them comes from the first few (a UR10 wrist straight next
+            # to its q3 limit: 86 restarts took the half budget the valley search needed)
+            share = CLASSICAL_SHARE if self.closed_form is None or len(closed) else NO_BRANCH_SHARE
             q0, _, _, attempts = self.classical(
-                target, seed, start + CLASSICAL_SHARE * o.timeout_s, branches=closed, continuum=False
+                target, seed, start + share * o.timeout_s, branches=closed, continuum=False
             )
             stats["attempts"] += attempts
         reserve = None
@@ -329,14 +346,22 @@ class IKSolver:
                 return self._singular(first)
             # the rest of the seed's branch goes on from the fixed point's answer, which it does not repeat
             closed_q, q0 = q0, first.q
-            refine = functools.partial(self._refine_branch, fixed=first)
-            if not first.stats.get("beyond_branch_reach"):
+            # the valley search next, then the other branches' fixed points. Where the seed's fixed point stalled
+            # beyond its branch's reach, those first, and the valleys only if they found nothing (a UR10 with
+            # the wrist centre near axis 1: the valleys took the budget, and the other branch a fixed point
+            # solves in 1 ms had none left; an RX160's there: no other branch reaches, the solution lies on a
+            # valley)
+            beyond = first.stats.get("beyond_branch_reach")
+            if beyond:
+                reserve = self._reserve(target, first, closed_q, closed, analytic, start, deadline, stats, origin)
+            if reserve is None:
                 valley = functools.partial(self._valley_only, nearest=closed_q)
                 found = self._from_branch(target, q0, analytic, start, deadline, stats, origin, valley)
                 if found.success:
                     return self._singular(found)
-                refine = functools.partial(self._refine_branch, fixed=first, valley=False)
-            reserve = self._reserve(target, first, closed_q, closed, analytic, start, deadline, stats, origin)
+            refine = functools.partial(self._refine_branch, fixed=first, valley=False)
+            if not beyond:
+                reserve = self._reserve(target, first, closed_q, closed, analytic, start, deadline, stats, origin)
         best = self._from_branch(target, q0, analytic, start, deadline, stats, origin, refine)
         if best.success:
             return self._singular(best)
@@ -419,6 +444,9 @@ class IKSolver:
                 continue
             tried.append(q)
             result = self._from_branch(target, q, analytic, start, deadline, stats, origin, probe)
+            if not result.success and result.position_error_mm < NEAR_MISS_MM:  # at a fold: LM finishes
+                q_lm, *_ = self.refiner.unbounded(target, result.q, deadline)
+                result = self.result(q_lm, target, analytic, start, dict(result.stats, hybrid_lm=1))
             if result.success:
                 return result
             if result.stats.get("beyond_branch_reach"):
@@ -487,9 +515,11 @@ class IKSolver:
         if len(near):
             return near
         # beyond a fold of the URDF model (a wrist straight, q5 = 0), IK-Geo's least-squares wrist misses: a
-        # few LM steps on the URDF model from each answer find its nearest point
+        # few LM steps on the URDF model from each answer find its nearest point; so do they from the answers
+        # past a joint limit, clipped into it (the nearest point within the limits)
         polished = []
-        for q in self.closed_form.approximations(target, seed, np.inf, np.inf):
+        past_limits = self.closed_form.clipped(target, seed)
+        for q in [*self.closed_form.approximations(target, seed, np.inf, np.inf), *past_limits]:
             q, ep, er, _ = lm_solve(
                 self.analytic_fk_jac, target, q, self.limits, *self.inner_tol, POLISH_ITERATIONS, float("inf")
             )
@@ -788,6 +818,7 @@ class IKSolver:
         deadline: float,
         stats: dict,
         nearest: np.ndarray | None = None,
+        near: np.ndarray | None = None,
     ) -> IKResult | None:
         """The hybrid solution along the URDF model's singular valleys through ``q0`` and the closed forms'
         branches, nearest ``nearest`` (else ``q0``) first (:mod:`~hybrid_kinematics_ros.ik.valley`); None when
@@ -795,8 +826,15 @@ class IKSolver:
         if not self.options.valley or deadline - time.perf_counter() < VALLEY_SHARE * self.options.timeout_s:
             return None  # tracing the valleys and settling their points take a few batched hybrid FKs: too late
         # the valleys of every closed-form branch, one by one: at a shoulder singularity the solution can lie on
-        # another branch's valley (the shoulder flipped), and the seed's wanders across the wrist's
-        near = np.vstack([*([] if nearest is None else [nearest]), q0, *self.branches(target, q0)])
+        # another branch's valley (the shoulder flipped), and the seed's wanders across the wrist's; then those
+        # of the branches' copies shifted by 2π, nearest q0 first: the nets see raw joint values, and a valley
+        # can hold no root on one turn of a wrist joint and one on the next (an RX160 with the wrist centre on
+        # axis 1: q6 = 2.1 has none, q6 = 2.1 - 2π the solution)
+        others = self.branches(target, q0) if near is None else near
+        rows = [*([] if nearest is None else [nearest]), q0, *others]
+        copies = [q for q in turns(np.array(rows), self.lower, self.upper) if seeding.is_new_branch(q, rows)]
+        copies.sort(key=lambda q: float(np.linalg.norm(q - q0)))
+        near = np.vstack(rows + copies)
         starts = valley_starts(self.model, target, near, self.limits, deadline, self.inner_tol[0])
         if starts is None:
             return None

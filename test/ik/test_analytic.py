@@ -151,6 +151,27 @@ def test_fold_keeps_each_joint_within_its_limits_nearest_the_seed():
     )
 
 
+def test_a_branch_past_a_joint_limit_is_clipped_into_the_limits():
+    """The UR10's q3 made 0.1 rad past its -2.8 rad limit: that branch is not among the in-limit ones, and
+    ``clipped`` gives it with q3 at the limit and the other joints as they were; in-limit branches stay out."""
+    chain = load_robot_config("ur10").chain
+    ik = AnalyticIK.of(chain)
+    rng = np.random.default_rng(4)
+    for _ in range(5):
+        q = rng.uniform(chain.lower, chain.upper)
+        q[4] = rng.choice([-1, 1]) * rng.uniform(0.3, 1.5)  # a regular wrist
+        q[2] = chain.lower[2] - 0.1
+        target = fk.fk_single(chain, q)
+        assert not any(np.abs(wrapped(b - q)).max() < 1e-6 for b in ik.branches(target, q))
+        expected = np.clip(q, chain.lower, chain.upper)
+        clipped = ik.clipped(target, q)
+        assert np.all((clipped >= chain.lower) & (clipped <= chain.upper))
+        assert min(np.abs(wrapped(c - expected)).max() for c in clipped) < 1e-6
+        # the others: no copy of them lies within the limits
+        for c in clipped:
+            assert not any(np.abs(wrapped(b - c)).max() < 1e-9 for b in ik.branches(target, q))
+
+
 @pytest.mark.parametrize("q5", [0.0, 1e-4])
 def test_urdf_targets_at_and_near_the_wrist_singularity(q5):
     """Near it the closed forms answer at once. Exactly at it the wrist's branch has no closed-form answer
