@@ -18,10 +18,9 @@ composes the parts, with ``solve``, ``solve_many`` and ``solve_trajectory``.
    pose to the hybrid pose), until the correction stops changing; then the hybrid pose is the target (a round whose
    moved target is beyond the URDF model's reach takes its least-squares answer; when such rounds stop cutting the
    error, the branch's nearest point is found and the branch cannot reach the target: 3. follows at once). Each
-   closed-form round cuts the error ~100× (what it leaves out is the nets' slope), so the round after the first one
-   near the target evaluates the hybrid Jacobian with the pose, and from there Newton's steps on it reach the polish
-   tolerance in one step (without it, a round within LINEAR_M is a Newton step on the URDF Jacobian, two or three of
-   them). One solution starts with this fixed point on the branch nearest the seed alone; only where it fails are
+   closed-form round cuts the error ~100× (what it leaves out is the nets' slope), and a round within LINEAR_M is
+   Newton's chord step on the URDF Jacobian, which cuts it as much for half the cost: four hybrid FKs a solution,
+   about. One solution starts with this fixed point on the branch nearest the seed alone; only where it fails are
    the other branches computed and checked (a UR10's solution through the hybrid model in half the time). Near a
    singularity of the URDF model, where its chord Jacobian loses rank and the fixed point wanders along the singular
    valley, a root search along that valley and those of the other closed-form branches follows
@@ -105,12 +104,9 @@ STALLED = 0.9
 # call and a compensated target: the step is microradians, over which the URDF model's curvature errs by
 # 1e-10 m, below the polish tolerance, so both rounds converge alike and the step costs half.
 LINEAR_M = LINEAR_RAD = 1e-5
-# With the hybrid Jacobian (asked for in the round after a closed-form round that started within
-# HYBRID_NEWTON_FROM_M), Newton's step is taken from HYBRID_NEWTON_M (m and rad): over its 1e-4 rad the
-# curvature errs by ~1e-8 m, and the next step, on the same Jacobian, by far less.
-HYBRID_NEWTON_M = 1e-4
-HYBRID_NEWTON_FROM_M = 1e-2
-COARSE, PRECISE, JACOBIAN = "coarse", "precise", "jacobian"  # what a fixed point's round asks for
+# (Newton's steps on the hybrid Jacobian instead, from 1e-4 m, took one round fewer, but the Jacobian of two nets
+# costs more than the round: a UR10's solve 301 against 265 µs with 64x2 nets, even with 256x3 ones, interleaved.)
+COARSE, PRECISE = "coarse", "precise"  # what a fixed point's round asks for
 VALLEY_SHARE = 0.5  # of the budget, still left, for the search along a singular valley (ik/valley.py)
 POLISH_ITERATIONS = 12  # LM steps on a least-squares answer beyond a fold (6-9 reach the URDF model's nearest point)
 # A probe's fixed point that ends this near the target (mm) has stalled at a fold of the URDF model, where its
@@ -653,13 +649,8 @@ class IKSolver:
             if len(coarse) > 1:
                 poses = dict(zip(coarse, self.model.fk(np.array([pending[i][0] for i in coarse])), strict=True))
             asked, pending = pending, {}
-            for i, (q, what) in asked.items():
-                if i in poses:
-                    answer = poses[i]
-                elif what == JACOBIAN:
-                    answer = self.model.fk_and_jacobian_single(q)
-                else:
-                    answer = self.model.fk_single(q)
+            for i, (q, _) in asked.items():
+                answer = poses[i] if i in poses else self.model.fk_single(q)
                 try:
                     pending[i] = runs[i].send(answer)
                 except StopIteration as done:
@@ -669,24 +660,17 @@ class IKSolver:
     def _fixed_point_rounds(self, target: np.ndarray, q0: np.ndarray, deadline: float, rounds: int):
         """:meth:`fixed_point`'s rounds as a coroutine: yields ``(q, what)``, the configuration whose hybrid
         pose it needs next and how (COARSE; PRECISE after a Newton step, where the answer is judged against
-        the polish tolerance; JACOBIAN, the pose with the hybrid Jacobian), is sent that pose (and Jacobian),
-        and returns what :meth:`fixed_point` returns.
-
-        The round after a closed-form round that started within HYBRID_NEWTON_FROM_M of the target asks for
-        the hybrid Jacobian too: the closed forms cut the error ~100× a round (the nets' slope is what they
-        leave out), so that round lands within HYBRID_NEWTON_M, where Newton's steps on the hybrid Jacobian
-        (kept for the rounds after) reach the polish tolerance in one step where chord steps on the URDF
-        Jacobian took two or three, each a hybrid FK."""
+        the polish tolerance), is sent that pose, and returns what :meth:`fixed_point` returns. The closed forms
+        cut the error ~100× a round (the nets' slope is what they leave out); within LINEAR_M the rounds are
+        Newton's chord steps on the URDF Jacobian, which cut it as much."""
         tol_m, tol_rad = self.inner_tol
         polish_m, polish_rad = self.refiner.polish_tol
         best, best_cost, best_errors, best_hybrid, q = q0, np.inf, None, None, q0
         least_squares = converged = stepped = False
         newton = True
-        jac = None  # the hybrid Jacobian, once asked for
         ask = COARSE
         for round_ in range(rounds + 1):
-            answer = yield q, ask
-            hybrid, jac = answer if ask == JACOBIAN else (answer, jac)
+            hybrid = yield q, ask
             e = error6(target, hybrid)
             ep, er = math.sqrt(e[:3] @ e[:3]), math.sqrt(e[3:] @ e[3:])
             cost = math.hypot(ep, er)  # m and rad, as LM weighs them
@@ -704,10 +688,9 @@ class IKSolver:
                 return best, best_errors, True
             if round_ == rounds or time.perf_counter() > deadline:
                 break
-            near = HYBRID_NEWTON_M if jac is not None else LINEAR_M
-            stepped = newton and ep < near and er < near
+            stepped = newton and ep < LINEAR_M and er < LINEAR_RAD
             if stepped:
-                q_next = self._newton_step(q, e, jac)
+                q_next = self._newton_step(q, e)
                 if q_next is not None:
                     q, ask = q_next, PRECISE
                     continue
@@ -720,16 +703,13 @@ class IKSolver:
                 q_next = near_answers[0] if len(near_answers) else None
             if q_next is None:
                 break
-            q = q_next
-            hopeful = newton and jac is None and not least_squares and cost < HYBRID_NEWTON_FROM_M
-            ask = JACOBIAN if hopeful else COARSE
+            q, ask = q_next, COARSE
         return best, best_errors, False
 
-    def _newton_step(self, q: np.ndarray, e: np.ndarray, jac: np.ndarray | None = None) -> np.ndarray | None:
-        """``q`` moved by Newton's step for the hybrid error ``e`` (6,) on ``jac`` (the hybrid Jacobian, where
-        the caller has it; else the URDF model's at ``q``), within the limits; None where it is singular."""
-        if jac is None:
-            jac = self.model.fk_and_jacobian_single(q, analytic=True)[1]
+    def _newton_step(self, q: np.ndarray, e: np.ndarray) -> np.ndarray | None:
+        """``q`` moved by Newton's chord step for the hybrid error ``e`` (6,) on the URDF model's Jacobian at
+        ``q``, within the limits; None where it is singular."""
+        jac = self.model.fk_and_jacobian_single(q, analytic=True)[1]
         try:
             step = np.linalg.solve(jac, e)
         except np.linalg.LinAlgError:
