@@ -126,8 +126,15 @@ class ElasticChain:
         q = np.asarray(q, dtype=float)
         out = q + self.zero_offset
         if self.has_joint_error:
+            if q.ndim == 1 and self.joint_map is None:  # one pose, the IK's inner loop: compiled
+                return out + fk_kernel.cyclic_errors(q, self._cyclic_coefficients)
             out = out + self._joint_errors(q, slopes=False)[0]
         return out
+
+    @cached_property
+    def _cyclic_coefficients(self) -> np.ndarray:
+        """``joint_error`` as :func:`fk_kernel.cyclic_errors` takes it: contiguous float64 ``(n, K, 2)``."""
+        return np.ascontiguousarray(self.joint_error, dtype=float)
 
     @cached_property
     def has_joint_error(self) -> bool:
