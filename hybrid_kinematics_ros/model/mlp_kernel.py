@@ -9,8 +9,9 @@ products 7 µs (a UR10's hybrid FK with the Jacobian of two 256x3 nets: 205 µs 
 net's own (``calibration/nets.py``): features ``[(q − centre) / half span, sin q, cos q]`` for the joints,
 float32 layers, then ``y · scale + mean`` in float64. The joint-1 turn stays with the caller.
 
-A net is packed once (:func:`pack`) into numba typed lists, one weight matrix ``(in, out)`` and bias per
-layer, every ensemble member's layers one after another. Activation codes: see ``ACTIVATIONS``.
+A net is packed once (:func:`pack`) into one float32 array holding each layer's weight matrix ``(in, out)``
+and bias, every ensemble member's layers one after another, and a table of where each lies: numba unboxes
+typed lists of arrays at every call, 1.5 µs of a 64x2 net's 4. Activation codes: see ``ACTIVATIONS``.
 Compiled on first use and cached on disk next to this file (or in numba's user cache where that is not
 writable): a fresh checkout compiles in a few seconds, once.
 """
@@ -21,7 +22,7 @@ import math
 
 import numba
 import numpy as np
-from numba.typed import List
+from numba.typed import List  # inside the kernels only
 
 ACTIVATIONS = {"linear": 0, "SiLU": 1, "Tanh": 2, "ReLU": 3}
 # Float reassociation lets the reductions vectorise; no "ninf"/"nnan": SiLU's exp overflows to inf on purpose.
@@ -71,11 +72,24 @@ def _layer(y, w, b, code, slope):
     return out
 
 
+@numba.njit(cache=True, nogil=True)
+def _weight(flat, layout, layer):
+    """Layer ``layer``'s weight matrix ``(in, out)``, a view into ``flat``."""
+    at, rows, cols = layout[layer, 0], layout[layer, 1], layout[layer, 2]
+    return flat[at : at + rows * cols].reshape((rows, cols))
+
+
+@numba.njit(cache=True, nogil=True)
+def _bias(flat, layout, layer):
+    at = layout[layer, 3]
+    return flat[at : at + layout[layer, 2]]
+
+
 @numba.njit(cache=True, nogil=True, fastmath=_FLAGS)
-def mlp_values(q, center, half_span, n_joints, sincos, weights, biases, codes, members, scale, mean):
+def mlp_values(q, center, half_span, n_joints, sincos, flat, layout, codes, members, scale, mean):
     """The residuals ``(B, 3)`` float64 at inputs ``q (B, k)`` (joints, then condition columns): the mean of
-    ``members`` MLPs whose layers lie one member after another in ``weights``/``biases``/``codes``."""
-    per = len(weights) // members
+    ``members`` MLPs whose layers lie one member after another in ``flat``/``layout``/``codes`` (:func:`pack`)."""
+    per = layout.shape[0] // members
     none = np.empty(0, dtype=np.float32)
     out = np.empty((q.shape[0], 3))
     for row in range(q.shape[0]):
@@ -84,7 +98,7 @@ def mlp_values(q, center, half_span, n_joints, sincos, weights, biases, codes, m
         for m in range(members):
             y = x
             for layer in range(m * per, (m + 1) * per):
-                y = _layer(y, weights[layer], biases[layer], codes[layer], none)
+                y = _layer(y, _weight(flat, layout, layer), _bias(flat, layout, layer), codes[layer], none)
             for j in range(3):
                 total[j] += y[j]
         for j in range(3):
@@ -93,27 +107,27 @@ def mlp_values(q, center, half_span, n_joints, sincos, weights, biases, codes, m
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FLAGS)
-def mlp_value_and_jacobian(q, center, half_span, n_joints, sincos, weights, biases, codes, members, scale, mean):
+def mlp_value_and_jacobian(q, center, half_span, n_joints, sincos, flat, layout, codes, members, scale, mean):
     """One input's :func:`mlp_values` ``(3,)`` and its derivative ``(3, k)`` in the inputs, by reverse mode:
     the three outputs' gradients go back through each layer together (a ``(3, width)`` product), then
     through the features by the chain rule."""
     x = _features(q, center, half_span, n_joints, sincos)
-    per = len(weights) // members
+    per = layout.shape[0] // members
     total = np.zeros(3)
     grad = np.zeros((3, x.shape[0]))
     for m in range(members):
         y = x
         slopes = List()
         for layer in range(m * per, (m + 1) * per):
-            slope = np.empty(biases[layer].shape[0], dtype=np.float32)
-            y = _layer(y, weights[layer], biases[layer], codes[layer], slope)
+            slope = np.empty(layout[layer, 2], dtype=np.float32)
+            y = _layer(y, _weight(flat, layout, layer), _bias(flat, layout, layer), codes[layer], slope)
             slopes.append(slope)
         g = np.zeros((3, 3), dtype=np.float32)  # d(outputs)/d(this layer's outputs)
         for j in range(3):
             g[j, j] = np.float32(1.0)
             total[j] += y[j]
         for layer in range((m + 1) * per - 1, m * per - 1, -1):
-            w, slope = weights[layer], slopes[layer - m * per]
+            w, slope = _weight(flat, layout, layer), slopes[layer - m * per]
             back = np.empty((3, w.shape[0]), dtype=np.float32)
             for r in range(3):
                 for j in range(g.shape[1]):
@@ -138,13 +152,18 @@ def mlp_value_and_jacobian(q, center, half_span, n_joints, sincos, weights, bias
     return out, jac
 
 
-def pack(stacks: list[list[tuple[str, np.ndarray, np.ndarray]]]) -> tuple[List, List, np.ndarray]:
+def pack(stacks: list[list[tuple[str, np.ndarray, np.ndarray]]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each member's ``(activation, weight (in, out), bias)`` layers, an activation after each Linear (or
-    ``"linear"``), as the kernels take them: every member must have the same number of layers."""
-    weights, biases, codes = List(), List(), []
+    ``"linear"``), as the kernels take them: one float32 array of every weight and bias, a table ``(L, 4)`` of
+    each layer's weight offset, rows, columns and bias offset, and the activation codes. Every member must
+    have the same number of layers."""
+    parts, layout, codes, at = [], [], [], 0
     for stack in stacks:
         for act, w, b in stack:
-            weights.append(np.ascontiguousarray(w, dtype=np.float32))
-            biases.append(np.ascontiguousarray(b, dtype=np.float32))
+            w = np.asarray(w, dtype=np.float32)
+            layout.append((at, w.shape[0], w.shape[1], at + w.size))
+            parts += [w.ravel(), np.asarray(b, dtype=np.float32).ravel()]
+            at += w.size + b.size
             codes.append(ACTIVATIONS[act])
-    return weights, biases, np.array(codes, dtype=np.int64)
+    flat = np.ascontiguousarray(np.concatenate(parts), dtype=np.float32)
+    return flat, np.array(layout, dtype=np.int64), np.array(codes, dtype=np.int64)

@@ -109,10 +109,10 @@ class FastResidual:
     def __call__(self, q: np.ndarray) -> np.ndarray:
         """Residuals ``(B, 3)`` of inputs ``q (B, k)``, or ``(3,)`` of one ``(k,)``."""
         q = np.asarray(q, dtype=np.float64)
-        rows = np.ascontiguousarray(q.reshape(-1, q.shape[-1]))
-        r = mlp_kernel.mlp_values(rows, *self._args(), self.mean)
-        if q.ndim == 1:
-            r = r[0]
+        if q.ndim == 1:  # one configuration (the IK's inner loop): no reshaping
+            r = mlp_kernel.mlp_values(np.ascontiguousarray(q)[None], *self._args(), self.mean)[0]
+            return self.turner.apply(r, float(q[0])) if self.turn else r
+        r = mlp_kernel.mlp_values(np.ascontiguousarray(q.reshape(-1, q.shape[-1])), *self._args(), self.mean)
         return self.turner.apply(r, q[..., 0]) if self.turn else r
 
     def value_and_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
