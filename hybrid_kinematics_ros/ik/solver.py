@@ -801,8 +801,10 @@ class IKSolver:
         near: np.ndarray | None = None,
     ) -> IKResult | None:
         """The hybrid solution along the URDF model's singular valleys through ``q0`` and the closed forms'
-        branches, nearest ``nearest`` (else ``q0``) first (:mod:`~hybrid_kinematics_ros.ik.valley`); None when
-        none is near a singularity or no root of the valleys reaches the target."""
+        branches (or ``near``, where the caller has the rows to search: a target beyond the URDF model's reach
+        has no branch, and its least-squares answers take their place), then their copies shifted by 2π,
+        nearest ``nearest`` (else ``q0``) first (:mod:`~hybrid_kinematics_ros.ik.valley`); None when none is
+        near a singularity or no root of the valleys reaches the target."""
         if not self.options.valley or deadline - time.perf_counter() < VALLEY_SHARE * self.options.timeout_s:
             return None  # tracing the valleys and settling their points take a few batched hybrid FKs: too late
         # the valleys of every closed-form branch, one by one: at a shoulder singularity the solution can lie on
