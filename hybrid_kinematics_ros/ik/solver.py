@@ -25,8 +25,8 @@ composes the parts, with ``solve``, ``solve_many`` and ``solve_trajectory``.
    singularity of the URDF model, where its chord Jacobian loses rank and the fixed point wanders along the singular
    valley, a root search along that valley and those of the other closed-form branches follows
    (:mod:`~hybrid_kinematics_ros.ik.valley`), right after the seed's fixed point, before the other branches' fixed
-   points (after them, and only if none solves, where the seed's fixed point stalled beyond its branch's reach),
-   and then along the valleys of the branches' copies shifted by 2π (the nets see raw joint values). A target
+   points (after them, and only if none solves, where the seed's fixed point stalled beyond its branch's reach;
+   skipping it there, the search before, left an RX160 target at its shoulder singularity unsolved in 2 s). A target
    beyond the URDF model's reach (no exact branch) gets the same search from the least-squares answers, and
    where the URDF model reaches it only past a joint limit, from its answers clipped into the limits and
    polished there; no exact branch within the limits means no restart of the URDF model's LM finds one, so
@@ -802,21 +802,15 @@ class IKSolver:
     ) -> IKResult | None:
         """The hybrid solution along the URDF model's singular valleys through ``q0`` and the closed forms'
         branches (or ``near``, where the caller has the rows to search: a target beyond the URDF model's reach
-        has no branch, and its least-squares answers take their place), then their copies shifted by 2π,
-        nearest ``nearest`` (else ``q0``) first (:mod:`~hybrid_kinematics_ros.ik.valley`); None when none is
-        near a singularity or no root of the valleys reaches the target."""
+        has no branch, and its least-squares answers take their place), nearest ``nearest`` (else ``q0``) first
+        (:mod:`~hybrid_kinematics_ros.ik.valley`); None when none is near a singularity or no root of the
+        valleys reaches the target."""
         if not self.options.valley or deadline - time.perf_counter() < VALLEY_SHARE * self.options.timeout_s:
             return None  # tracing the valleys and settling their points take a few batched hybrid FKs: too late
         # the valleys of every closed-form branch, one by one: at a shoulder singularity the solution can lie on
-        # another branch's valley (the shoulder flipped), and the seed's wanders across the wrist's; then those
-        # of the branches' copies shifted by 2π, nearest q0 first: the nets see raw joint values, and a valley
-        # can hold no root on one turn of a wrist joint and one on the next (an RX160 with the wrist centre on
-        # axis 1: q6 = 2.1 has none, q6 = 2.1 - 2π the solution)
+        # another branch's valley (the shoulder flipped), and the seed's wanders across the wrist's
         others = self.branches(target, q0) if near is None else near
-        rows = [*([] if nearest is None else [nearest]), q0, *others]
-        copies = [q for q in turns(np.array(rows), self.lower, self.upper) if seeding.is_new_branch(q, rows)]
-        copies.sort(key=lambda q: float(np.linalg.norm(q - q0)))
-        near = np.vstack(rows + copies)
+        near = np.vstack([*([] if nearest is None else [nearest]), q0, *others])
         starts = valley_starts(self.model, target, near, self.limits, deadline, self.inner_tol[0])
         if starts is None:
             return None

@@ -228,15 +228,7 @@ def valley_starts(
     if len(limits[2]) != 6:
         return None
     rows = np.atleast_2d(q_near)
-    # the URDF Jacobian repeats every 2π of a revolute joint: one SVD for all copies of a branch (a UR arm's
-    # ±2π joints give 64 copies of each)
-    known: dict[bytes, tuple[np.ndarray, float]] = {}
-    weak = []
-    for q in rows:
-        key = np.round(np.where(limits[2], np.mod(q, 2 * np.pi), q), 9).tobytes()
-        if key not in known:
-            known[key] = weak_direction(model, q)
-        weak.append(known[key])
+    weak = [weak_direction(model, q) for q in rows]
     singular = [(q, v) for q, (v, sigma) in zip(rows, weak, strict=True) if sigma <= NEAR_SINGULAR]
     if not singular:
         return None
