@@ -25,6 +25,7 @@ The bound is a property of the model directory (``model.json``'s ``bounds`` sect
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -56,6 +57,14 @@ def features(q: np.ndarray, revolute: np.ndarray) -> np.ndarray:
     return np.column_stack([np.ones(len(q)), first, second])
 
 
+def features_one(q: list[float], revolute: list[bool]) -> list[float]:
+    """:func:`features` of one configuration, in Python floats: on a service's hot path numpy's overhead on
+    ``(1, n)`` arrays was most of a bound's cost."""
+    first = [math.sin(v) if r else v for v, r in zip(q, revolute, strict=True)]
+    second = [math.cos(v) if r else v * v for v, r in zip(q, revolute, strict=True)]
+    return [1.0, *first, *second]
+
+
 @dataclass(frozen=True)
 class Scale:
     """How hard a configuration is: ``exp(features(q) · weights)``, clipped to ``[lower, upper]`` (the range it
@@ -71,6 +80,11 @@ class Scale:
     def at(self, f: np.ndarray) -> np.ndarray:
         """The scale at configurations whose :func:`features` are ``f (B, 1 + 2n)``."""
         return np.clip(np.exp(f @ self.weights), self.lower, self.upper)
+
+    def at_one(self, f: list[float]) -> float:
+        """:meth:`at` of one configuration's :func:`features_one`."""
+        value = math.exp(sum(a * w for a, w in zip(f, self.weights.tolist(), strict=True)))
+        return min(max(value, self.lower), self.upper)
 
     def manifest(self) -> dict[str, Any]:
         return {"features": "sin_cos", "weights": self.weights.tolist(), "clip": [self.lower, self.upper]}
@@ -106,6 +120,11 @@ class ErrorBound:
         x = np.atleast_2d(x)
         # inside the trained range (a service's usual call) the growth is zero: skip its norm
         return inside + (np.linalg.norm(x * self.rates, axis=1) if x.any() else np.zeros(len(x)))
+
+    def inside_one(self, f: list[float]) -> float:
+        """:meth:`at` of one configuration inside the trained range (no excess: no growth), from its
+        :func:`features_one`."""
+        return self.quantile if self.scale is None else self.quantile * self.scale.at_one(f)
 
     def manifest(self, unit: str) -> dict[str, Any]:
         out = {f"quantile_{unit}": self.quantile, f"growth_{unit}_per_rad": self.rates.tolist()}
@@ -165,6 +184,13 @@ class Bounds:
         f = features(q, revolute)  # once for both kinds: half the bound's cost on the node's hot path
         orientation = None if self.orientation is None else self.orientation.at(f, x, stage)
         return self.position.at(f, x, stage), orientation
+
+    def inside_one(self, q: list[float], revolute: list[bool]) -> tuple[float, float | None]:
+        """:meth:`of` of one configuration inside the trained range, in Python floats (a service's usual
+        call: 6 against 65 µs for a UR10 through :meth:`of`)."""
+        f = features_one(q, revolute)
+        orientation = None if self.orientation is None else self.orientation.inside_one(f)
+        return self.position.inside_one(f), orientation
 
 
 COLUMNS = ("position_bound_mm", "orientation_bound_deg")  # the bounds' names in the units users read

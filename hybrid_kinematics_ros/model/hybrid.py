@@ -100,6 +100,8 @@ class HybridModel:
         self._periodic = chain.revolute & (self.trained_upper - self.trained_lower <= 2 * np.pi)
         self._turn_centre = 0.5 * (self.trained_lower + self.trained_upper)
         self._range_lists = (self._range[0].tolist(), self._range[1].tolist())
+        self._trained_lists = (self.trained_lower.tolist(), self.trained_upper.tolist())  # error_bounds' exact test
+        self._revolute_list = chain.revolute.tolist()
         section = self.manifest.get("parametric")
         self.base = model_from_manifest(chain, section) if section else ElasticChain.rigid(chain)
         self._rigid_base = self.base.chain if self.base.is_rigid else None  # fk_single's shortcut
@@ -186,7 +188,14 @@ class HybridModel:
         parametric stage's alone."""
         if self.bounds is None:
             return None
-        q = self.same_turn(np.atleast_2d(np.asarray(q, dtype=float)))
+        q = np.asarray(q, dtype=float)
+        if q.size == len(self._revolute_list) and (not self.nets or not self._by_range):
+            one = q.ravel().tolist()  # one configuration (a service's call): inside the trained range, no growth
+            lower, upper = self._trained_lists
+            if all(lo <= v <= hi for lo, v, hi in zip(lower, one, upper, strict=True)):
+                position, orientation = self.bounds.inside_one(one, self._revolute_list)
+                return np.array([position]), None if orientation is None else np.array([orientation])
+        q = self.same_turn(np.atleast_2d(q))
         x = excess(q, self.trained_lower, self.trained_upper, self.chain.revolute)
         nets = self.bounds.of(q, x, self.chain.revolute)
         if not self.nets or (not x.any() and not self._by_range):

@@ -103,6 +103,21 @@ def test_bounds_hold_on_pairs_the_model_never_saw(trained):
     assert np.median(1e3 * position) < 5.0 * np.median(pos_mm)  # a bound, not a wall
 
 
+def test_one_configurations_bound_is_the_batch_paths(shoulder_model):
+    """A service's call (one configuration, in Python floats) gives the batch path's bound, inside the trained
+    range, at its ends and beyond them (where the one-configuration path hands over to the batch path)."""
+    _, model, inside, beyond = shoulder_model
+    at_end = inside.q[:5].copy()
+    at_end[:, 1] = model.trained_lower[1]  # on the end of the shoulder's range: still inside
+    for q in (*inside.q[:20], *at_end, *beyond.q[:10]):
+        one = model.error_bounds(q)
+        batch = model.error_bounds(np.vstack([q, q]))  # two rows: the numpy path
+        for a, b in zip(one, batch, strict=True):
+            assert a.shape == (1,)
+            np.testing.assert_allclose(a, b[:1], rtol=1e-12, atol=0)
+    assert model.error_bounds(beyond.q[0])[0][0] > 2 * model.error_bounds(inside.q[0])[0][0]
+
+
 def test_bounds_grow_beyond_the_trained_range_with_the_error(shoulder_model):
     _, model, inside, beyond = shoulder_model
     assert model.bounds is not None
