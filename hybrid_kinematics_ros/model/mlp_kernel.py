@@ -109,8 +109,8 @@ def mlp_values(q, center, half_span, n_joints, sincos, flat, layout, codes, memb
 @numba.njit(cache=True, nogil=True, fastmath=_FLAGS)
 def mlp_value_and_jacobian(q, center, half_span, n_joints, sincos, flat, layout, codes, members, scale, mean):
     """One input's :func:`mlp_values` ``(3,)`` and its derivative ``(3, k)`` in the inputs, by reverse mode:
-    the three outputs' gradients go back through each layer together (a ``(3, width)`` product), then
-    through the features by the chain rule."""
+    the three outputs' gradients go back through each layer as three matrix-vector products (the module
+    docstring says why not one ``(3, width)`` product), then through the features by the chain rule."""
     x = _features(q, center, half_span, n_joints, sincos)
     per = layout.shape[0] // members
     total = np.zeros(3)
