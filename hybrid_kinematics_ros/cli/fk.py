@@ -22,6 +22,7 @@ from hybrid_kinematics_ros.cli.common import (
 )
 from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
 from hybrid_kinematics_ros.model.hybrid import HybridModel
+from hybrid_kinematics_ros.model.range_policy import OUTSIDE
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -54,6 +55,8 @@ def run(args: argparse.Namespace) -> int:
     outside = int(np.sum(~model.in_calibrated_range(q))) if model.nets and not args.analytic else 0
     print(f"wrote {len(q)} poses to {args.out}")
     if outside:
-        what = "extrapolated by the nets" if args.out_of_range == "warn" else "without the nets"
-        print(f"warning: {outside} configuration(s) outside the calibrated range, {what}", file=sys.stderr)
+        print(
+            f"warning: {outside} configuration(s) outside the calibrated range: {OUTSIDE[args.out_of_range]}",
+            file=sys.stderr,
+        )
     return 0

@@ -290,6 +290,17 @@ class ElasticChain:
         extra = (c(self.cubic_compliance), c(self.signed_compliance), c(self.bending), bool(np.any(self.bending)))
         return (*self.chain.kernel_operands, *loads, c(self.gravity), *stiffness, *extra)
 
+    @cached_property
+    def pose_operands(self) -> tuple | None:
+        """What ``model/pose_kernel.hybrid_pose`` takes of the stage after the joints: the zero offsets, the
+        cyclic errors' coefficients ``(n, K, 2)`` (K = 0 without them), whether it is elastic, and
+        :func:`fk_kernel.elastic_pose`'s operands; None with a joint error map (not compiled)."""
+        if self.joint_map is not None:
+            return None
+        coefficients = self._cyclic_coefficients if self.joint_error is not None else np.zeros((self.dof, 0, 2))
+        offset = np.ascontiguousarray(self.zero_offset, dtype=float)
+        return offset, coefficients, self.is_elastic, self._kernel_operands
+
     def _single(self, q: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray]:
         """The tip ``(4, 4)`` and (zeros unless ``jacobian``) the Jacobian ``(6, n)`` of one configuration, before
         the joint errors' slopes: the compiled kernel (:func:`fk_kernel.elastic_pose`), where the batch code

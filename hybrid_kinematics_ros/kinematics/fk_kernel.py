@@ -130,7 +130,7 @@ def cyclic_errors(q, coefficients):
 
 
 @numba.njit(cache=True, nogil=True)
-def _rotation(w):
+def rotation(w):
     """``exp(ŵ)`` (Rodrigues) of one rotation vector ``(3,)``: :func:`se3.exp_so3` inside the kernel, which
     cannot call numpy's; test_elastic checks the kernel's pose against the batch, which uses that one."""
     t = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
@@ -224,7 +224,7 @@ def elastic_pose(
         for k in range(n):
             for i in range(3):
                 w[i] = torque[k] * bending[k, i]
-            rotations[k] = _rotation(w)
+            rotations[k] = rotation(w)
     _frames(q_def, generators, revolute, rotations, frames)
     tip = _times(frames[-1], post)
     jac = _jacobian(frames, tip, axes, revolute, rotations) if jacobian else np.zeros((6, n))

@@ -40,7 +40,7 @@ from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
 from hybrid_kinematics_ros.kinematics.se3 import exp_so3, rodrigues_one, skew
 from hybrid_kinematics_ros.kinematics.unrolled import Rows, unrolled_fk
-from hybrid_kinematics_ros.model import approach
+from hybrid_kinematics_ros.model import approach, pose_kernel
 from hybrid_kinematics_ros.model.bounds import DISTANCE, Bounds, excess
 from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.model.nets import FastResidual
@@ -91,6 +91,7 @@ class HybridModel:
         self.manifest = dict(manifest or {})
         self.path = path
         self._fast = {kind: FastResidual.from_module(net) for kind, net in self.nets.items()}
+        self._pose_cache: tuple | None = None  # (the stage it was built for, _pose_operands)
         rng = self.manifest.get("trained_range")
         self.trained_lower = np.asarray(rng["lower"], dtype=float) if rng else chain.lower
         self.trained_upper = np.asarray(rng["upper"], dtype=float) if rng else chain.upper
@@ -574,17 +575,31 @@ class HybridModel:
         return self.correct(T, dp * use[:, :1], w * use[:, 1:])
 
     def fk_single(self, q: np.ndarray, analytic: bool = False) -> np.ndarray:
-        """One pose ``(4, 4)`` on the low-overhead path: numpy FK and, for MLP nets, numpy inference."""
+        """One pose ``(4, 4)`` on the low-overhead path: with MLP nets one compiled call
+        (:mod:`~hybrid_kinematics_ros.model.pose_kernel`), else the stage's kernel and the nets'."""
         q = np.asarray(q, dtype=float)
         if analytic:
             return fk.fk_single(self.chain, q)
         q = self.same_turn(q)
         reached = self._approached(q)
-        T = self.base.fk_single(reached) if self._rigid_base is None else fk.fk_single(self._rigid_base, reached)
         if not self.nets:
-            return T
+            return self.base.fk_single(reached) if self._rigid_base is None else fk.fk_single(self._rigid_base, reached)
         use = self._nets_apply(q[None])
         position, orientation = (True, True) if use is True else use[0]
+        compiled = self._pose_operands()
+        if compiled is not None:
+            stage, p_net, o_net = compiled
+            x = np.ascontiguousarray(self._inputs(q))
+            return pose_kernel.hybrid_pose(
+                np.ascontiguousarray(reached),
+                x,
+                *stage,
+                position and "position" in self.nets,
+                p_net,
+                orientation and "orientation" in self.nets,
+                o_net,
+            )
+        T = self.base.fk_single(reached) if self._rigid_base is None else fk.fk_single(self._rigid_base, reached)
         if not (position or orientation):
             return T
         if not all(self._fast.values()):
@@ -597,17 +612,35 @@ class HybridModel:
             T[:3, :3] = exp_so3(self._fast["orientation"](x)) @ T[:3, :3]
         return T
 
-    def link_pose(self, link: str, q: np.ndarray) -> np.ndarray:
+    def _pose_operands(self) -> tuple | None:
+        """``pose_kernel.hybrid_pose``'s operands after the joints and the nets' input: the stage's, then the
+        position and the orientation net's (an absent net's slot holds the other's, unused); None where the
+        kernel does not apply (a joint error map, or a net that is no plain MLP). Built once per stage: a
+        model serving another payload (:meth:`with_payload`) has another."""
+        cached = self._pose_cache
+        if cached is None or cached[0] is not self.base:
+            fast = [f for f in self._fast.values() if f is not None]
+            stage = self.base.pose_operands
+            if stage is None or len(fast) != len(self._fast):
+                operands = None
+            else:
+                p_net, o_net = (self._fast.get(kind, fast[0]).kernel_operands for kind in ("position", "orientation"))
+                operands = (stage, p_net, o_net)
+            self._pose_cache = cached = (self.base, operands)
+        return cached[1]
+
+    def link_pose(self, link: str, q: np.ndarray, analytic: bool = False) -> np.ndarray:
         """``(4, 4)``: where ``link`` of the chain is at joints ``q (n,)``, in the base frame. The tip link, and
-        every link fixed to it, come from this model's tip pose (what the robot really does there); links
-        between the joints from the URDF (the stage and the nets correct the tip only)."""
+        every link fixed to it, come from this model's tip pose (what the robot really does there), or the
+        URDF model's when ``analytic``; links between the joints from the URDF (the stage and the nets correct
+        the tip only)."""
         frames = self.chain.link_frames
         if link not in frames:
             raise ModelError(f"'{link}' is not a link of the chain (its links: {', '.join(frames)})")
         k, offset = frames[link]
         q = np.asarray(q, dtype=float)
         if k == self.chain.dof - 1:
-            return self.fk_single(q) @ np.linalg.inv(self.chain.post) @ offset
+            return self.fk_single(q, analytic=analytic) @ np.linalg.inv(self.chain.post) @ offset
         if k < 0:
             return offset.copy()
         return fk.joint_frames(self.chain, q[None])[0, k] @ offset

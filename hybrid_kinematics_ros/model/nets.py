@@ -75,6 +75,9 @@ class FastResidual:
         self.members = len(stacks)  # one list of layers per ensemble member (one for a single net)
         self._packed = mlp_kernel.pack(stacks)
         self.turner = AxisTurn(self.axis)
+        # the net as model/pose_kernel.hybrid_pose takes it: the kernel's operands, the turn's axis and whether
+        # the residual turns with joint 1
+        self.kernel_operands = (*self._args(), self.mean, np.ascontiguousarray(self.axis, dtype=np.float64), self.turn)
 
     @classmethod
     def from_module(cls, module: torch.nn.Module) -> FastResidual | None:

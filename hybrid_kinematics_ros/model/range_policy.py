@@ -11,6 +11,14 @@ RANGE_POLICIES = {
     "bound": "each net only where its error bound is below the parametric stage's alone",
 }
 
+# what FK did with configurations outside the calibrated range, per policy (the node's message, the CLI's warning)
+OUTSIDE = {
+    "warn": "their correction is extrapolated",
+    "parametric": "they got the parametric model without the nets",
+    "refuse": "",
+    "bound": "each got a net's correction only where its error bound is below the parametric stage's alone",
+}
+
 
 def described() -> str:
     """The policies and what each does, as one phrase for help texts."""

@@ -41,6 +41,7 @@ from hybrid_kinematics_ros.model import approach, range_policy
 from hybrid_kinematics_ros.model.approach import ApproachTracker
 from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.model.hybrid import HybridModel
+from hybrid_kinematics_ros.model.range_policy import OUTSIDE
 from hybrid_kinematics_ros.nodes.convert import (
     RequestError,
     joint_list_from_msg,
@@ -63,12 +64,6 @@ from hybrid_kinematics_ros.nodes.stats import RequestStats
 LOAD_ERRORS = (DataError, KinematicsError, ModelError, OSError)
 MAX_SOLUTIONS = 16
 SERVICE_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-OUTSIDE = {  # what FK did with configurations outside the calibrated range, per range policy
-    "warn": "their correction is extrapolated",
-    "parametric": "they got the parametric model without the nets",
-    "refuse": "",
-    "bound": "each got a net's correction only where its error bound is below the parametric stage's alone",
-}
 
 
 class KinematicsNode(Node):
@@ -474,7 +469,7 @@ class KinematicsNode(Node):
                         f"a target in frame '{frame}' is relative to where that link is: give a seed, or "
                         "publish joint states"
                     )
-                target = model.link_pose(frame, seed) @ target
+                target = model.link_pose(frame, seed, analytic=request.analytic_only) @ target
             k = max(1, int(request.max_solutions))
             if k > MAX_SOLUTIONS:
                 raise RequestError(f"max_solutions {k} is above the limit of {MAX_SOLUTIONS}")

@@ -49,6 +49,42 @@ def test_single_and_batched_hybrid_fk_agree(trained):
         np.testing.assert_allclose(model.fk_single(test_pairs.q[i]), batch[i], atol=5e-9, rtol=0)
 
 
+def _compiled_against_batch(model: HybridModel, q: np.ndarray) -> None:
+    """One-configuration poses (the compiled kernel, which the model must take) against the batch path (the
+    stage's numpy FK, TorchScript nets above 16 rows, scipy's rotation), to nanometres and nanoradians."""
+    assert model._pose_operands() is not None
+    batch = model.fk(q)
+    assert len(q) > 16
+    single = np.array([model.fk_single(row) for row in q])
+    np.testing.assert_allclose(single, batch, atol=5e-9, rtol=0)
+
+
+def test_the_compiled_pose_is_the_batch_paths(trained, thermal_models, shoulder_model):
+    """Every stage the kernel takes: none (nets on the URDF), elastic with cyclic joint errors and a condition
+    channel, elastic with a payload; per-net range policies; a payload changed after the first call."""
+    _, rigid, _, test_pairs = trained
+    _compiled_against_batch(rigid, test_pairs.q[:24])
+    models, thermal_test = thermal_models
+    thermal = models["thermal"]
+    assert thermal.base.is_elastic and thermal.base.has_joint_error and thermal.condition_names == ("temperature",)
+    for temperature in (19.0, 27.0):
+        with thermal.using(np.array([temperature])):
+            _compiled_against_batch(thermal, thermal_test.q[:24])
+    path, _, inside, beyond = shoulder_model
+    model = HybridModel.load(path)
+    _compiled_against_batch(model, inside.q[:24])
+    model.range_policy = "bound"  # beyond the shoulder's range each net serves where its bound is the lower
+    serve = model._nets_apply(model.same_turn(beyond.q[:40]))
+    assert serve is not True and serve.any() and not serve.all()  # some nets off, some on
+    _compiled_against_batch(model, beyond.q[:40])
+    model.range_policy = "warn"
+    before = model.fk_single(inside.q[0])
+    heavier = model.with_payload(model.base.payload_mass + 5.0, model.base.payload_com)
+    _compiled_against_batch(heavier, inside.q[:24])
+    assert np.abs(heavier.fk_single(inside.q[0])[:3, 3] - before[:3, 3]).max() > 1e-5  # the stage followed it
+    np.testing.assert_array_equal(model.fk_single(inside.q[0]), before)
+
+
 def test_hybrid_jacobian_matches_finite_differences(trained):
     _, model, _, test_pairs = trained
     q = test_pairs.q[:3]

@@ -103,6 +103,7 @@ def test_train_evaluate_fk_workflow(tmp_path, capsys):
     assert model.joint_names[2] in refused.stderr
     warned = cli("fk", "--model", str(model_dir), "--joints", str(far), "--out", out)
     assert warned.returncode == 0 and "1 configuration(s) outside the calibrated range" in warned.stderr
+    assert "their correction is extrapolated" in warned.stderr  # what the policy did, in the node's words
     # inside every joint's range, but far from the training data: outside once a coverage radius is given
     middle = tmp_path / "middle.csv"
     centre = 0.5 * (model.trained_lower + model.trained_upper)

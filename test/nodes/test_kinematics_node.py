@@ -134,6 +134,13 @@ def test_ik_targets_in_the_chains_links_are_relative_to_where_they_are(served):
     assert resp.success, resp.message
     pos, rot = se3.pose_errors(model.fk_single(np.array(resp.solutions[0].position)), model.fk_single(q) @ step)
     assert pos < 1e-4 and rot < 1e-4
+    # analytic_only: relative to where the URDF model puts tool0 (it was the hybrid pose, millimetres off: a
+    # "stay where you are" target moved the URDF tool by the calibration's correction)
+    req = ik_request(np.eye(4), q, model.joint_names)
+    req.target.header.frame_id, req.analytic_only = "tool0", True
+    resp = client.call(ik, req)
+    assert resp.success, resp.message
+    np.testing.assert_allclose(resp.solutions[0].position, q, atol=1e-7)
     link_3 = fk.joint_frames(model.chain, q[None])[0, 2]  # link_3 moves with joint 3
     goal = model.fk_single(q + 0.02)
     req = ik_request(np.linalg.inv(link_3) @ goal, q, model.joint_names)
