@@ -989,9 +989,10 @@ class IKSolver:
         for i in range(n):
             if np.isfinite(errors[i, 0]):
                 result = self.result(q[i], targets[i], False, start, {"method": "batch chord"}, tuple(errors[i]))
-            else:  # from the pose before, on the side its joints arrived from
+            else:  # from the pose before (its answer: the chord step leaves an unconverged pose's last iterate
+                # in q), on the side its joints arrived from
                 with self.model.approaching(None if arrive is None or not i else arrive[i - 1]):
-                    result = self.solve(targets[i], q[i - 1] if i else seed)
+                    result = self.solve(targets[i], results[i - 1].q if i else seed)
             results.append(result)
         per_pose = (time.perf_counter() - start) / max(n, 1)
         for result in results:

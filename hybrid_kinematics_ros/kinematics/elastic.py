@@ -181,7 +181,10 @@ class ElasticChain:
 
     @property
     def is_rigid(self) -> bool:
-        return not (np.any(self.zero_offset) or self.is_elastic or self.has_joint_error)
+        """The chain's own FK, unchanged: no offsets, no deflections, no joint errors and no backlash (which
+        shifts the joints wherever their approach directions are known)."""
+        backlash = self.backlash is not None and bool(np.any(self.backlash))
+        return not (np.any(self.zero_offset) or self.is_elastic or self.has_joint_error or backlash)
 
     @cached_property
     def is_elastic(self) -> bool:

@@ -38,6 +38,10 @@ def test_rigid_elastic_chain_is_the_plain_chain(elastic):
     q = joints(elastic.chain, 100)
     np.testing.assert_array_equal(rigid.fk(q), fk.fk(elastic.chain, q))
     assert rigid.is_rigid and not elastic.is_rigid
+    # backlash alone shifts the joints wherever their approach directions are known: not the plain chain
+    # (a model counted it rigid and served the URDF's unrolled FK, without the shift, on its one-pose path)
+    assert not replace(rigid, backlash=np.full(rigid.dof, 1e-3)).is_rigid
+    assert replace(rigid, backlash=np.zeros(rigid.dof)).is_rigid
 
 
 def _single_paths_agree(model: ElasticChain, q: np.ndarray) -> np.ndarray:
