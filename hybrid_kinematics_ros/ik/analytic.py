@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hybrid_kinematics_ros.ik import round_kernel
 from hybrid_kinematics_ros.ik.lm import error6, error6_batch, joint_limits
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import Chain
@@ -125,6 +126,7 @@ class AnalyticIK:
         self._robot = getattr(ik_geo.Robot, family)(h.tolist(), p.tolist())
         self._tip_rotation_t = g.tip[:3, :3].T  # R_target · R_tip(0)ᵀ is what IK-Geo's model reaches
         self.lower, self.upper, _ = joint_limits(chain)  # an unlimited joint: ±2π, as the iterative solver
+        self._limits = (np.ascontiguousarray(self.lower, dtype=float), np.ascontiguousarray(self.upper, dtype=float))
         self._last: tuple[bytes, tuple[np.ndarray, np.ndarray]] | None = None  # the last answers (_answers)
 
     @classmethod
@@ -198,8 +200,8 @@ class AnalyticIK:
     def nearest(self, target: np.ndarray, seed: np.ndarray) -> np.ndarray | None:
         """The exact branch within the limits nearest the seed, unchecked (the caller checks it on the model it
         solves for), or None."""
-        q = fold(self.raw_branches(target), seed, self.lower, self.upper)
-        return q[_nearest_row(q, seed)] if len(q) else None
+        q = round_kernel.nearest_copy(self.raw_branches(target), np.ascontiguousarray(seed, dtype=float), *self._limits)
+        return q if len(q) else None
 
     def branches(self, target: np.ndarray, seed: np.ndarray) -> np.ndarray:
         """Every exact branch ``(k, 6)`` within the joint limits, each joint shifted by 2π to lie nearest the
@@ -213,10 +215,10 @@ class AnalyticIK:
         (:func:`~hybrid_kinematics_ros.ik.lm.error6`) and Jacobian on our FK: the exact branch within the
         limits nearest the seed, checked; None where it fails the check (another branch may then be the
         nearest that passes)."""
-        q = fold(self.raw_branches(target), seed, self.lower, self.upper)
-        if not len(q):
+        q = self.nearest(target, seed)
+        if q is None:
             return None
-        q, e, jac = self._checked(q[_nearest_row(q, seed)][None], target)
+        q, e, jac = self._checked(q[None], target)
         return (q[0], e[0], jac[0]) if len(q) else None
 
     def _checked(self, q: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -253,12 +255,6 @@ class AnalyticIK:
 
 _NONE = np.empty((0, 6))
 _NONE.setflags(write=False)
-
-
-def _nearest_row(q: np.ndarray, seed: np.ndarray) -> int:
-    """The index of the row of ``q (k, n)`` nearest ``seed`` (Euclidean; einsum: a third of norm's cost)."""
-    d = q - seed
-    return int(np.argmin(np.einsum("ij,ij->i", d, d)))
 
 
 def _finite(rows: list[list[float]]) -> np.ndarray:

@@ -70,6 +70,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hybrid_kinematics_ros.ik import round_kernel
 from hybrid_kinematics_ros.ik import seeds as seeding
 from hybrid_kinematics_ros.ik.analytic import AnalyticIK, turns
 from hybrid_kinematics_ros.ik.errors import IKError
@@ -668,10 +669,14 @@ class IKSolver:
         best, best_cost, best_errors, best_hybrid, q = q0, np.inf, None, None, q0
         least_squares = converged = stepped = False
         newton = True
+        urdf = self.model.chain.kernel_operands
         ask = COARSE
         for round_ in range(rounds + 1):
             hybrid = yield q, ask
-            e = error6(target, hybrid)
+            # the error, and the compensated target the round needs unless it stops here, in one call
+            e, moved = round_kernel.error_and_compensated(target, hybrid, np.ascontiguousarray(q), *urdf)
+            if math.isnan(e[3]):  # an angle near π: error6's scipy path
+                e = error6(target, hybrid)
             ep, er = math.sqrt(e[:3] @ e[:3]), math.sqrt(e[3:] @ e[3:])
             cost = math.hypot(ep, er)  # m and rad, as LM weighs them
             stalled = least_squares and cost > STALLED * best_cost
@@ -695,7 +700,6 @@ class IKSolver:
                     q, ask = q_next, PRECISE
                     continue
                 stepped = False
-            moved = compensated_target(self.model, target, q, hybrid)
             q_next = self.closed_form.nearest(moved, q)
             least_squares = q_next is None
             if least_squares:  # beyond the URDF model's reach: its nearest answer on this branch

@@ -1,0 +1,84 @@
+"""The arithmetic of one round of the closed forms' fixed point (``IKSolver._fixed_point_rounds``), compiled.
+
+A round takes the hybrid pose at its configuration, its error to the target, the compensated target and the
+closed forms' branch nearest it: a UR10 solve makes five rounds, and in numpy each of these steps costs a
+dozen calls of a microsecond or more, most of a round once the hybrid pose is one compiled call
+(``model/pose_kernel.py``). The maths is that of ``lm.error6``, ``solver.compensated_target`` and
+``analytic.fold``; tests check these kernels against them.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from hybrid_kinematics_ros.kinematics import fk_kernel
+
+TAU = 2.0 * math.pi
+# error6 takes scipy's rotation vector beyond this angle (rad), where the closed form loses digits; here the
+# rotation part is NaN there, and the caller takes error6
+FAR_RAD = 3.0
+
+
+@numba.njit(cache=True, nogil=True)
+def error_and_compensated(target, hybrid, q, generators, revolute, post, axes):
+    """``lm.error6(target, hybrid)`` ``(6,)`` (its rotation part NaN beyond FAR_RAD) and the compensated target
+    ``target · hybrid⁻¹ · T_URDF(q)`` ``(4, 4)`` (``solver.compensated_target``), the URDF pose from the chain's
+    kernel operands."""
+    e = np.empty(6)
+    for i in range(3):
+        e[i] = target[i, 3] - hybrid[i, 3]
+    r = np.empty((3, 3))  # R_target · R_hybridᵀ
+    for i in range(3):
+        for j in range(3):
+            r[i, j] = target[i, 0] * hybrid[j, 0] + target[i, 1] * hybrid[j, 1] + target[i, 2] * hybrid[j, 2]
+    x, y, z = r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]
+    s = 0.5 * math.sqrt(x * x + y * y + z * z)
+    angle = math.atan2(s, 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0))
+    k = math.nan if angle > FAR_RAD else (0.5 if angle < 1e-9 else angle / (2.0 * s))
+    e[3], e[4], e[5] = k * x, k * y, k * z
+    urdf = fk_kernel.tip_pose(q, generators, revolute, post, axes)
+    # hybrid⁻¹ · urdf = [Rᵀ R_u, Rᵀ (p_u − p)], then target times it
+    inner = np.zeros((4, 4))
+    for i in range(3):
+        for j in range(4):
+            total = 0.0
+            for m in range(3):
+                total += hybrid[m, i] * (urdf[m, j] - (hybrid[m, 3] if j == 3 else 0.0))
+            inner[i, j] = total
+    inner[3, 3] = 1.0
+    out = np.zeros((4, 4))
+    for i in range(3):
+        for j in range(4):
+            out[i, j] = target[i, 0] * inner[0, j] + target[i, 1] * inner[1, j] + target[i, 2] * inner[2, j]
+        out[i, 3] += target[i, 3]
+    out[3, 3] = 1.0
+    return e, out
+
+
+@numba.njit(cache=True, nogil=True)
+def nearest_copy(q, seed, lower, upper):
+    """The row of ``q (k, n)`` whose copy by whole turns within ``[lower, upper]`` (each joint's nearest the
+    seed, as ``analytic.fold``) lies nearest ``seed``, that copy ``(n,)``; an empty array where no row has
+    one."""
+    best, best_d = np.empty(0), math.inf
+    n = q.shape[1]
+    row = np.empty(n)
+    for k in range(q.shape[0]):
+        d = 0.0
+        ok = True
+        for j in range(n):
+            v = q[k, j]
+            first = math.ceil((lower[j] - 1e-12 - v) / TAU)
+            last = math.floor((upper[j] + 1e-12 - v) / TAU)
+            if first > last:
+                ok = False
+                break
+            shift = min(max(np.rint((seed[j] - v) / TAU), first), last)
+            row[j] = v + TAU * shift
+            d += (row[j] - seed[j]) ** 2
+        if ok and d < best_d:
+            best, best_d = row.copy(), d
+    return best

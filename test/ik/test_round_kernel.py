@@ -1,0 +1,61 @@
+"""The fixed point's compiled round against the numpy it replaces: error6 (scipy's rotation vector near π),
+the compensated target, and the closed forms' fold by whole turns."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from hybrid_kinematics_ros.ik.analytic import fold
+from hybrid_kinematics_ros.ik.lm import error6
+from hybrid_kinematics_ros.ik.round_kernel import FAR_RAD, error_and_compensated, nearest_copy
+from hybrid_kinematics_ros.kinematics import fk, se3
+from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+
+
+def _pose(rotation: Rotation, position: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = rotation.as_matrix(), position
+    return T
+
+
+def test_the_rounds_error_and_compensated_target_are_numpys():
+    chain = load_robot_config("ur10").chain
+    rng = np.random.default_rng(4)
+    far = 0
+    for angle in (0.0, 1e-12, 1e-6, 1e-3, 0.5, 2.9, 3.1, np.pi - 1e-9):
+        for _ in range(20):
+            q = rng.uniform(chain.lower, chain.upper)
+            target = _pose(Rotation.random(random_state=rng), rng.normal(size=3))
+            # the hybrid pose: the target turned by ``angle`` about a random axis and moved by a millimetre
+            axis = rng.normal(size=3)
+            turn = Rotation.from_rotvec(angle * axis / np.linalg.norm(axis))
+            hybrid = _pose(turn * Rotation.from_matrix(target[:3, :3]), target[:3, 3] + 1e-3 * rng.normal(size=3))
+            e, moved = error_and_compensated(target, hybrid, q, *chain.kernel_operands)
+            expected = target @ se3.inverse(hybrid) @ fk.fk_single(chain, q)
+            np.testing.assert_allclose(moved, expected, atol=1e-14, rtol=0)
+            if angle > FAR_RAD:  # NaN: the caller takes error6's scipy path there
+                assert np.isnan(e[3:]).all() and np.allclose(e[:3], error6(target, hybrid)[:3], atol=1e-15)
+                far += 1
+            else:
+                np.testing.assert_allclose(e, error6(target, hybrid), atol=1e-13, rtol=0)
+                np.testing.assert_allclose(np.linalg.norm(e[3:]), angle, atol=1e-9)
+    assert far == 40
+
+
+def test_the_nearest_copy_within_the_limits_is_folds_nearest_row():
+    lower = np.array([-2 * np.pi, -np.pi, -2.8, -2 * np.pi, -np.pi, -2 * np.pi])
+    upper = np.array([2 * np.pi, 0.0, 2.8, 2 * np.pi, np.pi, 2 * np.pi])
+    rng = np.random.default_rng(5)
+    empty = 0
+    for _ in range(300):
+        answers = rng.uniform(-np.pi, np.pi, (rng.integers(0, 9), 6))  # IK-Geo's answers lie in (-π, π]
+        seed = rng.uniform(lower, upper)
+        folded = fold(answers, seed, lower, upper)
+        found = nearest_copy(answers, seed, lower, upper)
+        if not len(folded):  # no row has a copy within the limits (q2 > 0, |q3| > 2.8)
+            assert found.shape == (0,)
+            empty += 1
+            continue
+        np.testing.assert_array_equal(found, folded[np.argmin(np.linalg.norm(folded - seed, axis=1))])
+    assert 0 < empty < 300
