@@ -712,13 +712,11 @@ class IKSolver:
 
     def _newton_step(self, q: np.ndarray, e: np.ndarray) -> np.ndarray | None:
         """``q`` moved by Newton's chord step for the hybrid error ``e`` (6,) on the URDF model's Jacobian at
-        ``q``, within the limits; None where it is singular."""
-        jac = self.model.fk_and_jacobian_single(q, analytic=True)[1]
-        try:
-            step = np.linalg.solve(jac, e)
-        except np.linalg.LinAlgError:
-            return None
-        return np.clip(q + step, self.lower, self.upper)
+        ``q``, within the limits; None where it is singular. Compiled (the closed forms' chains have six joints,
+        so the Jacobian is square)."""
+        urdf = self.model.chain.kernel_operands
+        q_next = round_kernel.chord_step(np.ascontiguousarray(q), e, *urdf, self.lower, self.upper)
+        return q_next if len(q_next) else None
 
     def _fixed_point_only(
         self,

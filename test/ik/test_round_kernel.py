@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.ik.analytic import fold
 from hybrid_kinematics_ros.ik.lm import error6
-from hybrid_kinematics_ros.ik.round_kernel import FAR_RAD, error_and_compensated, nearest_copy
+from hybrid_kinematics_ros.ik.round_kernel import FAR_RAD, chord_step, error_and_compensated, nearest_copy
 from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 
@@ -59,3 +59,23 @@ def test_the_nearest_copy_within_the_limits_is_folds_nearest_row():
             continue
         np.testing.assert_array_equal(found, folded[np.argmin(np.linalg.norm(folded - seed, axis=1))])
     assert 0 < empty < 300
+
+
+def test_the_chord_step_is_numpys_solve_and_none_where_singular():
+    chain = load_robot_config("ur10").chain
+    lower, upper = chain.lower.copy(), chain.upper.copy()
+    rng = np.random.default_rng(6)
+    clipped = 0
+    for _ in range(200):
+        q = rng.uniform(lower, upper)
+        e = rng.normal(scale=rng.choice([1e-6, 1e-3, 1.0]), size=6)
+        jac = fk.fk_and_jacobian_single(chain, q)[1]
+        expected = np.clip(q + np.linalg.solve(jac, e), lower, upper)
+        clipped += int(np.any((expected == lower) | (expected == upper)))
+        np.testing.assert_allclose(chord_step(q, e, *chain.kernel_operands, lower, upper), expected, atol=1e-9)
+    assert clipped  # some steps leave the limits and are clipped, as np.clip does
+    q = np.zeros(6)  # the UR10 stretched out, its wrist straight: the Jacobian's rank is lost exactly
+    q[4] = 0.0
+    with np.testing.assert_raises(np.linalg.LinAlgError):
+        np.linalg.solve(fk.fk_and_jacobian_single(chain, q)[1], np.ones(6))
+    assert chord_step(q, np.ones(6), *chain.kernel_operands, lower, upper).shape == (0,)
