@@ -2,7 +2,8 @@
 onto the joint limits, with the rules that end a run which will not reach the target (a stall, a floor).
 
 Which FK and Jacobian it runs on (the URDF model, the hybrid model, or the hybrid pose with the URDF
-Jacobian) is the caller's choice, passed as one function.
+Jacobian) is the caller's choice, passed as one function. On the URDF model (:class:`ChainFkJac`) the same
+loop runs compiled (``ik/lm_kernel.py``).
 """
 
 from __future__ import annotations
@@ -13,7 +14,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.ik import lm_kernel
+from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.chain import Chain
 
 FkJac = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -98,6 +100,22 @@ def project(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, revolute: np.nd
     return np.clip(q, lower, upper)
 
 
+class ChainFkJac:
+    """A chain's URDF pose and Jacobian of one configuration, as :func:`lm_solve`'s ``fk_jac``, which then runs
+    its compiled loop (``ik/lm_kernel.py``) on the chain's kernel operands."""
+
+    def __init__(self, chain: Chain) -> None:
+        self.chain = chain
+        self.operands = chain.kernel_operands
+
+    def __call__(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return fk.fk_and_jacobian_single(self.chain, q)
+
+
+# iterations per compiled call: the deadline is checked between calls (a few µs an iteration)
+LM_CHUNK = 16
+
+
 def lm_solve(
     fk_jac: FkJac,
     target: np.ndarray,
@@ -118,6 +136,8 @@ def lm_solve(
     ``damping`` is the starting λ: small when the seed is known to be close (Gauss-Newton steps at once).
     ``stop_crawl``: also give up on a crawl (CRAWL_WINDOW), when other seeds are cheaper than waiting.
     """
+    if isinstance(fk_jac, ChainFkJac):
+        return _lm_compiled(fk_jac, target, seed, limits, tol_m, tol_rad, max_iterations, deadline, damping, stop_crawl)
     lower, upper, revolute = limits
     q = project(seed, lower, upper, revolute)
     T, J = fk_jac(q)
@@ -154,3 +174,50 @@ def lm_solve(
             if lam >= LAMBDA_MAX:
                 break
     return q, float(np.sqrt(e[:3] @ e[:3])), float(np.sqrt(e[3:] @ e[3:])), iterations
+
+
+_CONSTANTS = np.array(
+    [
+        STALL_ITERATIONS,
+        STALL_COST,
+        CRAWL_WINDOW,
+        CRAWL_GAIN,
+        FLOOR_RATIO,
+        FLOOR_STEPS,
+        LAMBDA_DOWN,
+        LAMBDA_UP,
+        LAMBDA_MIN,
+        LAMBDA_MAX,
+    ],
+    dtype=float,
+)
+
+
+def _lm_compiled(
+    fk_jac: ChainFkJac,
+    target: np.ndarray,
+    seed: np.ndarray,
+    limits: Limits,
+    tol_m: float,
+    tol_rad: float,
+    max_iterations: int,
+    deadline: float,
+    damping: float,
+    stop_crawl: bool,
+) -> tuple[np.ndarray, float, float, int]:
+    """:func:`lm_solve`'s loop on the URDF model, LM_CHUNK iterations a compiled call, the deadline checked
+    between calls (before the first too: a past deadline runs no iteration)."""
+    lower, upper, revolute = (np.ascontiguousarray(a) for a in limits)
+    q = np.array(seed, dtype=float)
+    target = np.ascontiguousarray(target, dtype=float)
+    state = np.array([damping, 0.0, 0.0, 0.0, 0.0, 0.0])
+    steps = 0 if time.perf_counter() > deadline else LM_CHUNK
+    while True:
+        e = lm_kernel.lm_steps(
+            target, q, state, steps, lower, upper, revolute, tol_m, tol_rad, max_iterations, stop_crawl,
+            _CONSTANTS, *fk_jac.operands,
+        )  # fmt: skip
+        if state[5] == lm_kernel.DONE or time.perf_counter() > deadline:
+            break
+        steps = LM_CHUNK
+    return q, math.sqrt(e[:3] @ e[:3]), math.sqrt(e[3:] @ e[3:]), int(state[1])

@@ -74,7 +74,7 @@ from hybrid_kinematics_ros.ik import round_kernel
 from hybrid_kinematics_ros.ik import seeds as seeding
 from hybrid_kinematics_ros.ik.analytic import AnalyticIK, turns
 from hybrid_kinematics_ros.ik.errors import IKError
-from hybrid_kinematics_ros.ik.lm import error6, joint_limits, lm_solve
+from hybrid_kinematics_ros.ik.lm import ChainFkJac, error6, joint_limits, lm_solve
 from hybrid_kinematics_ros.ik.refine import HybridRefiner
 from hybrid_kinematics_ros.ik.valley import valley_starts
 from hybrid_kinematics_ros.kinematics import se3
@@ -108,7 +108,12 @@ LINEAR_M = LINEAR_RAD = 1e-5
 # (Newton's steps on the hybrid Jacobian instead, from 1e-4 m, took one round fewer, but the Jacobian of two nets
 # costs more than the round: a UR10's solve 301 against 265 µs with 64x2 nets, even with 256x3 ones, interleaved.)
 COARSE, PRECISE = "coarse", "precise"  # what a fixed point's round asks for
-VALLEY_SHARE = 0.5  # of the budget, still left, for the search along a singular valley (ik/valley.py)
+# Of the budget, still left, for the search along a singular valley (ik/valley.py); the search stops at the
+# deadline itself. At 0.5 it was skipped for targets it finds in 10-20 ms once the other strategies had run (a UR10
+# with the wrist centre near axis 1, or its wrist straight: solved at 36 ms with a 200 ms budget, missed with 50);
+# 200 targets per near-singular case, 50 ms, the compiled LM and fixed point, misses other than the q3-limit one
+# per run: 0.5: 2, 0, 0, 4, 0; 0.25: 0, 0; 0.1: 0, 0, 1 (UR10); RX160 0, 0 / 1 / 0.
+VALLEY_SHARE = 0.2
 POLISH_ITERATIONS = 12  # LM steps on a least-squares answer beyond a fold (6-9 reach the URDF model's nearest point)
 # A probe's fixed point that ends this near the target (mm) has stalled at a fold of the URDF model, where its
 # rounds only halve the error: LM on the hybrid model finishes in a few steps (a UR10 with the wrist centre
@@ -188,7 +193,7 @@ class IKSolver:
             model, self.limits, o.position_tolerance_mm, o.orientation_tolerance_deg, o.refine_width_rad, o.timeout_s
         )
         self.inner_tol = self.refiner.inner_tol
-        self.analytic_fk_jac = lambda q: model.fk_and_jacobian_single(q, analytic=True)
+        self.analytic_fk_jac = ChainFkJac(model.chain)  # lm_solve runs compiled on it
         self.seeds = seeding.SeedTable(model, self.lower, self.upper)
         self.closed_form = AnalyticIK.of(model.chain) if o.closed_form else None  # None: iterative only
         self.path = f"closed form ({self.closed_form.family})" if self.closed_form else "iterative"
