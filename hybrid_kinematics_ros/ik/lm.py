@@ -38,6 +38,22 @@ FLOOR_RATIO, FLOOR_STEPS = 0.98, 3
 CRAWL_WINDOW, CRAWL_GAIN = 10, 2.0
 # Marquardt's damping schedule: divide on a good step, multiply on a bad one, give up past LAMBDA_MAX.
 LAMBDA_DOWN, LAMBDA_UP, LAMBDA_MIN, LAMBDA_MAX = 5.0, 8.0, 1e-12, 1e8
+# the rules above as the compiled loop takes them (lm_kernel.lm_steps)
+_CONSTANTS = np.array(
+    [
+        STALL_ITERATIONS,
+        STALL_COST,
+        CRAWL_WINDOW,
+        CRAWL_GAIN,
+        FLOOR_RATIO,
+        FLOOR_STEPS,
+        LAMBDA_DOWN,
+        LAMBDA_UP,
+        LAMBDA_MIN,
+        LAMBDA_MAX,
+    ],
+    dtype=float,
+)
 
 
 def log_so3(r: np.ndarray) -> np.ndarray:
@@ -136,8 +152,20 @@ def lm_solve(
     ``damping`` is the starting λ: small when the seed is known to be close (Gauss-Newton steps at once).
     ``stop_crawl``: also give up on a crawl (CRAWL_WINDOW), when other seeds are cheaper than waiting.
     """
-    if isinstance(fk_jac, ChainFkJac):
-        return _lm_compiled(fk_jac, target, seed, limits, tol_m, tol_rad, max_iterations, deadline, damping, stop_crawl)
+    if isinstance(fk_jac, ChainFkJac):  # the same loop compiled, LM_CHUNK iterations a call: the deadline between
+        lower, upper, revolute = (np.ascontiguousarray(a) for a in limits)  # calls (a past one runs none)
+        q = np.array(seed, dtype=float)
+        state = np.array([damping, 0.0, 0.0, 0.0, 0.0, 0.0])
+        target = np.ascontiguousarray(target, dtype=float)
+        steps = 0 if time.perf_counter() > deadline else LM_CHUNK
+        while True:
+            e = lm_kernel.lm_steps(
+                target, q, state, steps, lower, upper, revolute, tol_m, tol_rad, max_iterations, stop_crawl,
+                _CONSTANTS, *fk_jac.operands,
+            )  # fmt: skip
+            if state[5] == lm_kernel.DONE or time.perf_counter() > deadline:
+                return q, math.sqrt(e[:3] @ e[:3]), math.sqrt(e[3:] @ e[3:]), int(state[1])
+            steps = LM_CHUNK
     lower, upper, revolute = limits
     q = project(seed, lower, upper, revolute)
     T, J = fk_jac(q)
@@ -174,50 +202,3 @@ def lm_solve(
             if lam >= LAMBDA_MAX:
                 break
     return q, float(np.sqrt(e[:3] @ e[:3])), float(np.sqrt(e[3:] @ e[3:])), iterations
-
-
-_CONSTANTS = np.array(
-    [
-        STALL_ITERATIONS,
-        STALL_COST,
-        CRAWL_WINDOW,
-        CRAWL_GAIN,
-        FLOOR_RATIO,
-        FLOOR_STEPS,
-        LAMBDA_DOWN,
-        LAMBDA_UP,
-        LAMBDA_MIN,
-        LAMBDA_MAX,
-    ],
-    dtype=float,
-)
-
-
-def _lm_compiled(
-    fk_jac: ChainFkJac,
-    target: np.ndarray,
-    seed: np.ndarray,
-    limits: Limits,
-    tol_m: float,
-    tol_rad: float,
-    max_iterations: int,
-    deadline: float,
-    damping: float,
-    stop_crawl: bool,
-) -> tuple[np.ndarray, float, float, int]:
-    """:func:`lm_solve`'s loop on the URDF model, LM_CHUNK iterations a compiled call, the deadline checked
-    between calls (before the first too: a past deadline runs no iteration)."""
-    lower, upper, revolute = (np.ascontiguousarray(a) for a in limits)
-    q = np.array(seed, dtype=float)
-    target = np.ascontiguousarray(target, dtype=float)
-    state = np.array([damping, 0.0, 0.0, 0.0, 0.0, 0.0])
-    steps = 0 if time.perf_counter() > deadline else LM_CHUNK
-    while True:
-        e = lm_kernel.lm_steps(
-            target, q, state, steps, lower, upper, revolute, tol_m, tol_rad, max_iterations, stop_crawl,
-            _CONSTANTS, *fk_jac.operands,
-        )  # fmt: skip
-        if state[5] == lm_kernel.DONE or time.perf_counter() > deadline:
-            break
-        steps = LM_CHUNK
-    return q, math.sqrt(e[:3] @ e[:3]), math.sqrt(e[3:] @ e[3:]), int(state[1])

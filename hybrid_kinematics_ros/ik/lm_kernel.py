@@ -65,7 +65,7 @@ def _project(q, lower, upper, revolute):
 
 
 @numba.njit(cache=True, nogil=True)
-def _solve(a, b):
+def solve(a, b):
     """``a x = b`` for a small square ``a`` by Gaussian elimination with partial pivoting (both overwritten);
     False where a pivot is exactly zero."""
     n = b.shape[0]
@@ -179,7 +179,7 @@ def lm_steps(
             diagonal[a] = jtj[a, a]
         for a in range(n):
             jtj[a, a] += lam * (diagonal[a] + 1e-9)
-        if not _solve(jtj, rhs):  # numpy's solve raises there: the Python loop would stop with an error
+        if not solve(jtj, rhs):  # numpy's solve raises there: the Python loop would stop with an error
             done = True
             break
         for a in range(n):

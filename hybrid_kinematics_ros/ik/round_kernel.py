@@ -14,6 +14,7 @@ import math
 import numba
 import numpy as np
 
+from hybrid_kinematics_ros.ik import lm_kernel
 from hybrid_kinematics_ros.kinematics import fk_kernel
 
 TAU = 2.0 * math.pi
@@ -87,36 +88,13 @@ def nearest_copy(q, seed, lower, upper):
 @numba.njit(cache=True, nogil=True)
 def chord_step(q, e, generators, revolute, post, axes, lower, upper):
     """``q (6,)`` moved by Newton's chord step for the error ``e (6,)`` on the URDF model's Jacobian at ``q``,
-    clipped into ``[lower, upper]`` (``IKSolver._newton_step``): the 6×6 system by Gaussian elimination with
-    partial pivoting, as LAPACK's ``gesv``; an empty array where a pivot is exactly zero (a singular
-    Jacobian, where ``numpy.linalg.solve`` raises)."""
+    clipped into ``[lower, upper]`` (``IKSolver._newton_step``): the 6×6 system by ``lm_kernel.solve``; an empty
+    array where a pivot is exactly zero (a singular Jacobian, where ``numpy.linalg.solve`` raises)."""
     jac = fk_kernel.tip_pose_and_jacobian(q, generators, revolute, post, axes)[1]
-    n = q.shape[0]
-    a = jac.copy()
-    b = e.copy()
-    for k in range(n):
-        p = k
-        for i in range(k + 1, n):
-            if abs(a[i, k]) > abs(a[p, k]):
-                p = i
-        if a[p, k] == 0.0:
-            return np.empty(0)
-        if p != k:
-            for j in range(n):
-                a[k, j], a[p, j] = a[p, j], a[k, j]
-            b[k], b[p] = b[p], b[k]
-        for i in range(k + 1, n):
-            f = a[i, k] / a[k, k]
-            for j in range(k, n):
-                a[i, j] -= f * a[k, j]
-            b[i] -= f * b[k]
-    step = np.empty(n)
-    for i in range(n - 1, -1, -1):
-        total = b[i]
-        for j in range(i + 1, n):
-            total -= a[i, j] * step[j]
-        step[i] = total / a[i, i]
-    out = np.empty(n)
-    for i in range(n):
+    step = e.copy()
+    if not lm_kernel.solve(jac.copy(), step):
+        return np.empty(0)
+    out = np.empty(q.shape[0])
+    for i in range(q.shape[0]):
         out[i] = min(max(q[i] + step[i], lower[i]), upper[i])
     return out
