@@ -199,6 +199,13 @@ class IKSolver:
         self.path = f"closed form ({self.closed_form.family})" if self.closed_form else "iterative"
         self._last_rank: tuple[bytes, bool] | None = None  # see _rank_lost
         self._mid = model.chain.mid_limits()  # the seed of a request without one
+        # the compiled kernels (LM, the fixed point's round) load here, or on a fresh checkout compile (a few
+        # seconds, once), not in a first request: an LM step, one solve off the middle of the limits, a chord step
+        target = model.fk_single(self._mid + 0.1 * (model.chain.upper - model.chain.lower) / 4)
+        lm_solve(self.analytic_fk_jac, target, self._mid, self.limits, *self.inner_tol, 1, float("inf"))
+        if self.closed_form is not None:
+            self.solve(target, self._mid)
+            self._newton_step(self._mid, np.zeros(6))  # a solve may end before its chord steps
 
     def branches(self, target: np.ndarray, seed: np.ndarray) -> np.ndarray:
         """The closed forms' branches within the limits, nearest the seed first; none without closed forms."""
