@@ -201,7 +201,7 @@ class IKSolver:
         self._mid = model.chain.mid_limits()  # the seed of a request without one
         # the compiled kernels (LM, the fixed point's round) load here, or on a fresh checkout compile (a few
         # seconds, once), not in a first request: an LM step, one solve off the middle of the limits, a chord step
-        target = model.fk_single(self._mid + 0.1 * (model.chain.upper - model.chain.lower) / 4)
+        target = model.fk_single(self._mid + 0.025 * (self.upper - self.lower))  # finite: ±2π where unlimited
         lm_solve(self.analytic_fk_jac, target, self._mid, self.limits, *self.inner_tol, 1, float("inf"))
         if self.closed_form is not None:
             self.solve(target, self._mid)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -235,3 +236,16 @@ def test_the_pose_error_is_scipys_rotation_vector():
         e = error6(target, pose)
         np.testing.assert_allclose(e[:3], target[:3, 3] - pose[:3, 3], atol=1e-15)
         np.testing.assert_allclose(e[3:], w, atol=1e-13, rtol=0)
+
+
+def test_a_chain_with_a_continuous_joint_builds_its_solver_and_solves():
+    """The solver's warm-up at construction stays within finite limits (a continuous joint's are infinite: its
+    first warm-up target was NaN, and every arm with one, a Jaco's, was refused at construction)."""
+    chain = load_robot_config("ur10").chain
+    lower, upper = chain.lower.copy(), chain.upper.copy()
+    lower[5], upper[5] = -np.inf, np.inf
+    chain = replace(chain, lower=lower, upper=upper)
+    solver = IKSolver(HybridModel.analytic_only(chain))
+    q = np.array([0.3, -1.2, 1.3, -0.9, 1.1, 4.0])
+    result = solver.solve(fk.fk_single(chain, q))
+    assert result.success, result.message
