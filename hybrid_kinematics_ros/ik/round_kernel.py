@@ -18,28 +18,15 @@ from hybrid_kinematics_ros.ik import lm_kernel
 from hybrid_kinematics_ros.kinematics import fk_kernel
 
 TAU = 2.0 * math.pi
-# error6 takes scipy's rotation vector beyond this angle (rad), where the closed form loses digits; here the
-# rotation part is NaN there, and the caller takes error6
-FAR_RAD = 3.0
 
 
 @numba.njit(cache=True, nogil=True)
 def error_and_compensated(target, hybrid, q, generators, revolute, post, axes):
-    """``lm.error6(target, hybrid)`` ``(6,)`` (its rotation part NaN beyond FAR_RAD) and the compensated target
+    """``lm.error6(target, hybrid)`` ``(6,)`` (``lm_kernel.error6``) and the compensated target
     ``target · hybrid⁻¹ · T_URDF(q)`` ``(4, 4)`` (``solver.compensated_target``), the URDF pose from the chain's
     kernel operands."""
     e = np.empty(6)
-    for i in range(3):
-        e[i] = target[i, 3] - hybrid[i, 3]
-    r = np.empty((3, 3))  # R_target · R_hybridᵀ
-    for i in range(3):
-        for j in range(3):
-            r[i, j] = target[i, 0] * hybrid[j, 0] + target[i, 1] * hybrid[j, 1] + target[i, 2] * hybrid[j, 2]
-    x, y, z = r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]
-    s = 0.5 * math.sqrt(x * x + y * y + z * z)
-    angle = math.atan2(s, 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0))
-    k = math.nan if angle > FAR_RAD else (0.5 if angle < 1e-9 else angle / (2.0 * s))
-    e[3], e[4], e[5] = k * x, k * y, k * z
+    lm_kernel.error6(target, hybrid, e)
     urdf = fk_kernel.tip_pose(q, generators, revolute, post, axes)
     # hybrid⁻¹ · urdf = [Rᵀ R_u, Rᵀ (p_u − p)], then target times it
     inner = np.zeros((4, 4))

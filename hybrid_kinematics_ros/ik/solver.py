@@ -687,8 +687,6 @@ class IKSolver:
             hybrid = yield q, ask
             # the error, and the compensated target the round needs unless it stops here, in one call
             e, moved = round_kernel.error_and_compensated(target, hybrid, np.ascontiguousarray(q), *urdf)
-            if math.isnan(e[3]):  # an angle near π: error6's scipy path
-                e = error6(target, hybrid)
             ep, er = math.sqrt(e[:3] @ e[:3]), math.sqrt(e[3:] @ e[3:])
             cost = math.hypot(ep, er)  # m and rad, as LM weighs them
             stalled = least_squares and cost > STALLED * best_cost
