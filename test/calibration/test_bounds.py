@@ -4,6 +4,7 @@ the bound grows at there, and their coverage on pairs the model never saw, insid
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ import pytest
 from bench.bench_bounds import shoulder_configurations
 from hybrid_kinematics_ros.calibration import bounds as calibration_bounds
 from hybrid_kinematics_ros.calibration.evaluate import pose_errors_of
+from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.model.bounds import DISTANCE, Bounds, ErrorBound, Scale, excess
 from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -181,3 +183,38 @@ def test_the_bound_policy_needs_the_stages_bounds(trained):
     assert HybridModel(model.chain, model.nets, older).bounds.position.stage_quantile is None
     with pytest.raises(ModelError, match="retrain"):
         HybridModel(model.chain, model.nets, older, range_policy="bound")
+
+
+def test_under_another_payload_the_bound_adds_what_no_measurement_checked(shoulder_model, ur10):
+    """Another payload than the calibrated one: no bound was calibrated for it (the stage's error grows too).
+    The bound is the stage's calibrated one plus the move the payload made in the stage's answer, plus the
+    nets' correction where they serve (``warn``); on both paths, and it holds on pairs measured with that
+    payload, where the bounds calibrated under the trained payload do not."""
+    out, *_ = shoulder_model
+    model = HybridModel.load(out)
+    assert model.range_policy == "warn"
+    mass, com = 15.0, np.array([0.0, 0.05, 0.15])
+    heavy = model.with_payload(mass, com)
+    cell = VirtualCell.from_config(replace(ur10, payload_mass=mass, payload_com=com), noise=False)
+    pairs = cell.pairs(shoulder_configurations(300, (-2.0, -1.0), seed=5), seed=5)
+    q = heavy.same_turn(pairs.q)  # the turn the nets were trained on, as every bound takes it
+    x = excess(q, heavy.trained_lower, heavy.trained_upper, ur10.chain.revolute)
+    stage = heavy.bounds.of(q, x, ur10.chain.revolute, stage=True)
+    moved_mm, moved_deg = se3.pose_errors(heavy.fk(q, nets=False), model.fk(q, nets=False))
+    dp, w = heavy.residuals(q)
+    for policy, nets in (("warn", 1.0), ("parametric", 0.0)):
+        heavy.range_policy = policy
+        position, orientation = heavy.error_bounds(pairs.q)
+        np.testing.assert_allclose(position, stage[0] + 1e-3 * moved_mm + nets * np.linalg.norm(dp, axis=1), rtol=1e-9)
+        np.testing.assert_allclose(
+            orientation, stage[1] + np.radians(moved_deg) + nets * np.linalg.norm(w, axis=1), rtol=1e-9
+        )
+        one = heavy.error_bounds(pairs.q[0])  # a service's single configuration: the same bound
+        np.testing.assert_allclose(one[0], position[:1], rtol=1e-6)  # the nets in float32 on either path
+        pos_mm, rot_deg = pose_errors_of(heavy, pairs)["hybrid"]
+        covered = np.mean(pos_mm <= 1e3 * position), np.mean(rot_deg <= np.degrees(orientation))
+        assert min(covered) >= 0.9, (policy, covered)
+    heavy.range_policy = "warn"
+    pos_mm, rot_deg = pose_errors_of(heavy, pairs)["hybrid"]
+    own = model.error_bounds(pairs.q)  # what the calibrated bounds claim: they do not hold here
+    assert np.mean(pos_mm <= 1e3 * own[0]) < 0.5
