@@ -65,6 +65,7 @@ PREDICTION_WITH_PRIOR = (
 # mean over RMS of the norm of an isotropic 3-D Gaussian error (chi distribution with 3 degrees of freedom)
 MEAN_OVER_RMS = float(np.sqrt(8.0 / (3.0 * np.pi)))
 MAX_INFORMATION_CANDIDATES = 4000  # candidates linearised at once: a few thousand cover a working range
+LIMIT_SLACK = 1e-9  # rad (or m): a pool row this far beyond a joint limit counts as on it (rounding in a CSV)
 EVALUATION_POSES = 500  # where the predicted accuracy is averaged
 CURVE = (50, 100, 200, 300, 500, 750, 1000, 1500, 2000)
 
@@ -222,8 +223,9 @@ def draw_configurations(lower: np.ndarray, upper: np.ndarray, count: int, seed: 
 
 def visible(chain: Chain, q: np.ndarray, view: TrackerView, target: np.ndarray | None) -> tuple[np.ndarray, dict]:
     """The mask of configurations the tracker can measure, and how many each check kept in turn."""
-    kept = np.ones(len(q), dtype=bool)
-    counts = {"given": len(q)}
+    # a pool's rows beyond the joint limits (another robot's data set, a typo) would send the robot there
+    kept = np.all((q >= chain.lower - LIMIT_SLACK) & (q <= chain.upper + LIMIT_SLACK), axis=1)
+    counts = {"given": len(q), "within the joint limits": int(kept.sum())}
     for name, mask in view.kept(fk(chain, q), target).items():
         kept &= mask
         counts[f"after {name}"] = int(kept.sum())
@@ -396,7 +398,7 @@ def tour(q: np.ndarray, start: int = 0) -> np.ndarray:
     largest joint move as the distance."""
     n = len(q)
     if n <= 2:
-        return np.arange(n)
+        return np.r_[start, np.delete(np.arange(n), start)] if n else np.arange(0)
     dist = np.max(np.abs(q[:, None, :] - q[None, :, :]), axis=2)
     order = [start]
     free = np.ones(n, dtype=bool)
@@ -476,14 +478,13 @@ def plan(
         raise CalibrationError(f"criterion {options.criterion!r}: choose i-optimal or d-optimal")
     order, _ = _greedy(info, spread, last, options.coverage_weight, metric)
     chosen = order[: options.count]
-    middle = int(np.argmin(np.linalg.norm(spread[chosen] - 0.5, axis=1)))  # start near the range's middle
-    path = chosen[tour(q[chosen], middle)]
-    times = travel_seconds(q[path], options)
+    path, times = _toured(q, spread, chosen, options)
     curve = [
         {
             "poses": c,
             **_predicted(problem, order[:c], everywhere, options),
-            "measuring_time_h": round(c * _per_pose(times) / 3600, 2),
+            # each count's own tour: denser poses are closer together, so a time per pose would overstate it
+            "measuring_time_h": round(float(_toured(q, spread, order[:c], options)[1][-1]) / 3600, 2),
         }
         for c in stops
     ]
@@ -500,8 +501,14 @@ def plan(
     )
 
 
-def _per_pose(times: np.ndarray) -> float:
-    return float(times[-1] / len(times))
+def _toured(
+    q: np.ndarray, spread: np.ndarray, chosen: np.ndarray, options: PlanOptions
+) -> tuple[np.ndarray, np.ndarray]:
+    """The rows ``chosen`` of ``q`` in tour order, from the one nearest the range's middle, and when each is
+    measured (:func:`travel_seconds`)."""
+    middle = int(np.argmin(np.linalg.norm(spread[chosen] - 0.5, axis=1)))
+    path = chosen[tour(q[chosen], middle)]
+    return path, travel_seconds(q[path], options)
 
 
 def trajectory_message(joint_names: tuple[str, ...], q: np.ndarray, seconds: np.ndarray) -> dict[str, Any]:

@@ -122,6 +122,9 @@ def run(args: argparse.Namespace) -> int:
         raise DataError("--candidates and --joint-range: the pool is the working range; give one of them")
     if args.cone_deg is not None and not args.tracker_xyz:
         raise DataError("--cone-deg needs --tracker-xyz: the cone is checked against the direction to the tracker")
+    for name, default in (("min_distance_m", 0.0), ("max_distance_m", float("inf"))):
+        if getattr(args, name) != default and not args.tracker_xyz:
+            raise DataError(f"--{name.replace('_', '-')} needs --tracker-xyz: the distance is to the tracker")
     if args.candidates:
         _, candidates = read_csv(args.candidates, chain.joint_names)
         with args.candidates.open(newline="") as f:

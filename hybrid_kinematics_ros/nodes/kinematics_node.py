@@ -558,9 +558,10 @@ class KinematicsNode(Node):
                 None if result.velocities is None else result.velocities[:keep],
                 None if result.accelerations is None else result.accelerations[:keep],
             )
-            response.position_error_mm = result.position_error_mm.tolist()
-            response.orientation_error_deg = result.orientation_error_deg.tolist()
-            response.in_calibrated_range = result.in_calibrated_range.tolist()
+            # every per-point array covers the points returned (the failed one's error is in the message)
+            response.position_error_mm = result.position_error_mm[:keep].tolist()
+            response.orientation_error_deg = result.orientation_error_deg[:keep].tolist()
+            response.in_calibrated_range = result.in_calibrated_range[:keep].tolist()
             if keep:
                 set_bounds(response, model, result.positions[:keep])
             response.failed_index = result.failed_index

@@ -46,6 +46,18 @@ def test_a_pool_is_planned_into_its_own_rows_a_trajectory_and_a_summary(tmp_path
     assert summary["poses"] == 30 and summary["predicted"]["position_mean_mm"] > 0
     assert [row["poses"] for row in summary["curve"]][:3] == [50, 100, 200]
     assert "self-occlusion" in " ".join(summary["tracker"]["not_checked"])
+    # the pool's rows beyond the joint limits (the shoulder lift above 0) are never planned, and are counted
+    beyond = ~np.all((q >= chain.lower) & (q <= chain.upper), axis=1)
+    assert beyond.any() and summary["candidates"]["within the joint limits"] == int((~beyond).sum())
+    planned_q = np.array([[float(v) for v in line.split(",")[1:]] for line in planned[1:]])
+    assert np.all((planned_q >= chain.lower) & (planned_q <= chain.upper))
+    # a curve stop's measuring time is that count's own plan (its own, shorter moves), not 30 poses' rate
+    assert (
+        main(["plan", "--robot", "ur10", "--candidates", str(pool), "--count", "200", "--out", str(tmp_path / "p")])
+        == 0
+    )
+    alone = json.loads((tmp_path / "p" / "plan.json").read_text())["measuring_time_h"]
+    assert summary["curve"][2]["measuring_time_h"] == alone
 
 
 def test_bad_input_is_one_line_naming_it(tmp_path, capsys):
@@ -63,6 +75,7 @@ def test_bad_input_is_one_line_naming_it(tmp_path, capsys):
         ("--count", "30", "--joint-range", "elbow:0:1"): "no joint 'elbow'",
         ("--count", "30", "--tracker-xyz", "3", "0", "0.5", "--max-distance-m", "0.5"): "only 0 usable",
         ("--count", "5", "--cone-deg", "30"): "--cone-deg needs --tracker-xyz",
+        ("--count", "5", "--max-distance-m", "4"): "--max-distance-m needs --tracker-xyz",
     }
     for args, message in cases.items():
         code = main(["plan", "--robot", "ur10", "--out", str(tmp_path / "out"), *args])

@@ -204,6 +204,8 @@ def test_compensate_trajectory_service(ros, trained):
             k = singular.failed_index
             assert k >= 0 and abs(q2[k, 4]) < 0.2 and f"point {k}" in singular.message
             assert len(singular.trajectory.points) == k
+            per_point = ("position_error_mm", "orientation_error_deg", "in_calibrated_range", "position_bound_mm")
+            assert {len(getattr(singular, name)) for name in per_point} == {k}  # each names the points returned
         bad = trajectory_request(t[:3], q[:3, :5], model.joint_names[:5])
         answer = client.call(srv, bad)
         assert not answer.success and "missing wrist_3_joint" in answer.message
