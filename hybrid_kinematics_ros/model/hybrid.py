@@ -218,9 +218,9 @@ class HybridModel:
         """:meth:`error_bounds` under another payload than the calibrated one (:meth:`with_payload`), where no
         bound was calibrated: what no measurement checked is added to the stage's calibrated bound (the
         triangle inequality, as beyond the trained range): the move of the stage's answer that the payload
-        change made, and, where the nets serve, their whole correction. Loose, but it holds: a UR10 stage's
-        error grew from 0.002 to 0.04 mm with 15 kg instead of 2 kg (``test_bounds.py``), while the bounds
-        calibrated under 2 kg claimed 0.006."""
+        change made, and, where the nets serve, their whole correction. Loose, but it holds: a virtual UR10's
+        stage error grew from 0.002 to 0.04 mm (median) with 15 kg instead of 2 kg, where the nets' bound
+        calibrated under 2 kg said 0.0004 mm and covered none of the errors (``test_bounds.py``, docs/model.md)."""
         q = self.same_turn(np.atleast_2d(np.asarray(q, dtype=float)))
         x = excess(q, self.trained_lower, self.trained_upper, self.chain.revolute)
         out = list(self.bounds.of(q, x, self.chain.revolute, stage=bool(self.nets) and self.bounds.has_stage))
