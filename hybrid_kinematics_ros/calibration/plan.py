@@ -222,7 +222,8 @@ def draw_configurations(lower: np.ndarray, upper: np.ndarray, count: int, seed: 
 
 
 def visible(chain: Chain, q: np.ndarray, view: TrackerView, target: np.ndarray | None) -> tuple[np.ndarray, dict]:
-    """The mask of configurations the tracker can measure, and how many each check kept in turn."""
+    """The mask of configurations within the joint limits that the tracker can measure, and how many each
+    check kept in turn."""
     # a pool's rows beyond the joint limits (another robot's data set, a typo) would send the robot there
     kept = np.all((q >= chain.lower - LIMIT_SLACK) & (q <= chain.upper + LIMIT_SLACK), axis=1)
     counts = {"given": len(q), "within the joint limits": int(kept.sum())}

@@ -223,7 +223,9 @@ class HybridModel:
         calibrated under 2 kg said 0.0004 mm and covered none of the errors (``test_bounds.py``, docs/model.md)."""
         q = self.same_turn(np.atleast_2d(np.asarray(q, dtype=float)))
         x = excess(q, self.trained_lower, self.trained_upper, self.chain.revolute)
-        out = list(self.bounds.of(q, x, self.chain.revolute, stage=bool(self.nets) and self.bounds.has_stage))
+        position, orientation = self.bounds.of(
+            q, x, self.chain.revolute, stage=bool(self.nets) and self.bounds.has_stage
+        )
         reached = self._approached(q, conditions)
         moved_mm, moved_deg = pose_errors(self.base.fk(reached), self._trained_base.fk(reached))
         unchecked = [1e-3 * moved_mm, np.radians(moved_deg)]
@@ -232,7 +234,7 @@ class HybridModel:
             use = np.broadcast_to(served, (len(q), 2))
             for k, r in enumerate(self.residuals(q, conditions)):
                 unchecked[k] = unchecked[k] + use[:, k] * np.linalg.norm(r, axis=1)
-        return out[0] + unchecked[0], None if out[1] is None else out[1] + unchecked[1]
+        return position + unchecked[0], None if orientation is None else orientation + unchecked[1]
 
     def _extrapolation(
         self,
