@@ -249,6 +249,28 @@ def test_hybrid_targets_beyond_the_urdf_models_reach_start_from_its_nearest_answ
     assert beyond >= 5, beyond
 
 
+def test_a_near_miss_beyond_reach_restarts_along_its_weak_direction_before_the_valley_search(trained):
+    """Beyond the URDF model's reach, the nearest least-squares answer's fixed point can stall next to a hybrid
+    solution at a near-singular Jacobian. The restarts along its weak direction (a few ms of LM) run before the
+    valley search, which took a 50 ms budget where they would have solved (an RX160, elbow stretched). On the
+    UR10 with its elbow stretched they find 4 of the 10 beyond reach here, each a solution through the hybrid FK."""
+    _, model, _, _ = trained
+    solver = IKSolver(model, GENEROUS)
+    qs = cases(model.chain, 100, np.random.default_rng(8))["elbow stretched"]
+    beyond, weak = 0, 0
+    for target in model.fk(qs):
+        result = solver.solve(target)
+        if not result.stats.get("beyond_urdf_reach"):
+            continue
+        beyond += 1
+        assert result.success, (result.position_error_mm, result.stats)
+        assert max(hybrid_errors(model, result.q, target)) < 1e-4
+        if result.stats.get("weak_restart"):
+            weak += 1
+            assert result.stats.get("method") != "singular valley" and result.stats["attempts"] == 0
+    assert beyond >= 5 and weak >= 2, (beyond, weak)
+
+
 def test_the_fixed_points_side_by_side_are_each_branchs_own(trained):
     """``solve_many``'s fixed points run in step, the rounds before a Newton step batched: each branch ends where
     its fixed point alone ends (the batch's float32 products differ by about a nanometre, which the Newton
