@@ -29,9 +29,18 @@ from bench.report import table, write_section
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import target_errors
 from hybrid_kinematics_ros.calibration.fit import approach_of, identify_stations, reference_all, split
-from hybrid_kinematics_ros.calibration.plan import MEAN_OVER_RMS, CyclicPrior, PlanOptions, draw_configurations, plan
+from hybrid_kinematics_ros.calibration.plan import (
+    MEAN_OVER_RMS,
+    CyclicPrior,
+    PlanOptions,
+    TrackerView,
+    draw_configurations,
+    plan,
+    visible,
+)
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.referencing import to_base_frame
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
@@ -93,6 +102,7 @@ def options(
 
 def compare(
     cfg,
+    chain,
     pool_q: np.ndarray,
     error_of,
     counts,
@@ -106,14 +116,15 @@ def compare(
     against the truth (``noisy_test`` False) is predicted without the test measurement's noise."""
     rng = np.random.default_rng(0)
     rows = []
+    within = np.flatnonzero(visible(chain, pool_q, TrackerView(), None)[0])  # what plan may choose from
     for count in counts:
         start = time.perf_counter()
-        planned = plan(cfg.chain, pool_q, options(cfg, count, noise, floor, cyclic))
+        planned = plan(chain, pool_q, options(cfg, count, noise, floor, cyclic))
         seconds = time.perf_counter() - start
         mine = error_of(planned.rows)
-        random = [error_of(np.sort(rng.choice(len(pool_q), count, replace=False))) for _ in range(draws)]
+        random = [error_of(np.sort(rng.choice(within, count, replace=False))) for _ in range(draws)]
         # the same plan's prediction without the cyclic errors (what plan says without --prior-model)
-        blind = plan(cfg.chain, pool_q, options(cfg, count, noise, floor, None)).predicted
+        blind = plan(chain, pool_q, options(cfg, count, noise, floor, None)).predicted
         predicted, without = (
             p["position_mean_mm"] if noisy_test else float(np.hypot(p["parameters_part_mm"], floor[0]))
             for p in (planned.predicted, blind)
@@ -168,8 +179,14 @@ def main() -> None:
         float(np.sqrt(max(whole[1] ** 2 - noise_deg**2, 0.0))),
     )
     print(f"A: pool {len(pool)}, test {len(test)}, noise floor {noise_mm:.4f} mm {noise_deg:.4f} deg, whole {whole}")
+    # the robot measured A within its URDF's joint limits; config/ur10.yaml's narrower working range (for
+    # sampling virtual cells: the shoulder lift at most 0) would leave out the rows it measured beyond
+    urdf = chain_from_urdf(cfg.urdf_path, cfg.base_link, cfg.tip_link)
+    measured = cfg.chain.with_limits(urdf.lower, urdf.upper)
+    outside = len(pool) - int(visible(cfg.chain, pool.q, TrackerView(), None)[0].sum())
     real = compare(
         cfg,
+        measured,
         pool.q,
         lambda rows: stage_errors(cfg, pool.subset(rows), test)[0],
         counts,
@@ -203,6 +220,7 @@ def main() -> None:
     virtual_whole, virtual_cyclic = virtual_fit(np.arange(len(pool_q)))
     virtual = compare(
         cfg,
+        cfg.chain,
         pool_q,
         lambda rows: virtual_fit(rows)[0],
         counts,
@@ -214,7 +232,9 @@ def main() -> None:
     )
     body = (
         f"Stage alone, capacity chosen from each subset. Real A: pool {len(pool)} poses (the block-split training "
-        f"part), test {len(test)} held-out poses; noise floor {noise_mm:.4f} mm / {noise_deg:.4f} deg; the stage on "
+        f"part; planned within the URDF's joint limits, where the robot measured it: config/ur10.yaml's working "
+        f"range would leave out {outside} of its rows), test {len(test)} held-out poses; noise floor "
+        f"{noise_mm:.4f} mm / {noise_deg:.4f} deg; the stage on "
         f"the whole pool {whole[0]:.4f} mm / {whole[1]:.4f} deg, so {floor[0]:.4f} mm / {floor[1]:.4f} deg it cannot "
         f"learn. The prediction uses those two figures, the "
         f"parameters' covariance of each plan, and the cyclic joint errors of the stage on the whole pool "
