@@ -202,9 +202,12 @@ class IKSolver:
         self.path = f"closed form ({self.closed_form.family})" if self.closed_form else "iterative"
         self._last_rank: tuple[bytes, bool] | None = None  # see _rank_lost
         self._mid = model.chain.mid_limits()  # the seed of a request without one
-        # the compiled kernels (LM, the fixed point's round) load here, or on a fresh checkout compile (a few
-        # seconds, once), not in a first request: an LM step, one solve off the middle of the limits, a chord step
+        # the compiled kernels (LM, the fixed point's round, the URDF model's pose) load here, or on a fresh
+        # checkout compile (a few seconds, once), not in a first request: an LM step, one solve off the middle of
+        # the limits, a chord step. The URDF pose is what a near-singular request checks its branches with, and
+        # no regular solve calls it: loaded there, it took 20-25 ms of the 50 ms budget (a first q5 = 0 target)
         target = model.fk_single(self._mid + 0.025 * (self.upper - self.lower))  # finite: ±2π where unlimited
+        model.fk_single(self._mid, analytic=True)
         lm_solve(self.analytic_fk_jac, target, self._mid, self.limits, *self.inner_tol, 1, float("inf"))
         if self.closed_form is not None:
             self.solve(target, self._mid)
