@@ -30,7 +30,9 @@ composes the parts, with ``solve``, ``solve_many`` and ``solve_trajectory``.
    beyond the URDF model's reach (no exact branch) gets the same search from the least-squares answers, after
    the restarts along the nearest one's weak direction that 3. would try later (a few ms of LM: an RX160's elbow
    stretched beyond reach is solved there in 6-12 ms where the search took the budget first, and a UR10's wrist
-   centre on axis 1 misses 1 target in 200 instead of 4-7), and
+   centre on axis 1 misses 1 target in 200 instead of 4-7) and the fixed point on its few copies shifted by 2π
+   (an RX160's elbow stretched: the nets reach further on another copy, where the search found nothing in
+   40-65 ms; 5-6 misses in 200 at 50 ms to 1-2), and
    where the URDF model reaches it only past a joint limit, from its answers clipped into the limits and
    polished there; no exact branch within the limits means no restart of the URDF model's LM finds one, so
    that stage gets a tenth of the budget instead of half. What they leave goes to bounded LM through the
@@ -117,6 +119,7 @@ COARSE, PRECISE = "coarse", "precise"  # what a fixed point's round asks for
 # 200 targets per near-singular case, 50 ms, the compiled LM and fixed point, misses other than the q3-limit one
 # per run: 0.5: 2, 0, 0, 4, 0; 0.25: 0, 0; 0.1: 0, 0, 1 (UR10); RX160 0, 0 / 1 / 0.
 VALLEY_SHARE = 0.2
+COPY_PROBES = 4  # copies of a near miss beyond the URDF model's reach tried before the valley search
 POLISH_ITERATIONS = 12  # LM steps on a least-squares answer beyond a fold (6-9 reach the URDF model's nearest point)
 # A probe's fixed point that ends this near the target (mm) has stalled at a fold of the URDF model, where its
 # rounds only halve the error: LM on the hybrid model finishes in a few steps (a UR10 with the wrist centre
@@ -314,6 +317,7 @@ class IKSolver:
         o = self.options
         deadline = start + o.timeout_s
         stats = {"attempts": 0, "refinements": 0, "path": self.path}
+        restarted: list[np.ndarray] = []  # the weak-direction restarts run already (3.), none twice
         urdf_only = analytic or not self.model.is_corrected
         if urdf_only:
             found = self._nearest_exact(target, seed, analytic, start, stats)
@@ -329,11 +333,11 @@ class IKSolver:
             q, _, _, stats["attempts"] = self.classical(target, seed, deadline, restarts, closed)
             return self._singular(self.result(q, target, analytic, start, stats))
         near = self._beyond_reach(target, seed, closed)
+        nearest_miss = None  # beyond the URDF model's reach: the branch's fixed point that came nearest
         if len(near):  # the closed forms are complete: no URDF-model restart would find an exact branch
             stats["beyond_urdf_reach"] = True
             # the hybrid model reaches the target on some of these branches only (the edge of its workspace
             # moved by the corrections): the cheap fixed point on each first, nearest the seed first
-            nearest_miss = None
             for q in near:
                 result = self._from_branch(target, q, analytic, start, deadline, stats, origin, self._fixed_point_only)
                 if result.success:
@@ -347,7 +351,10 @@ class IKSolver:
             # 7 / 6 and 3 / 7 -> 8 / 7 and 6 / 4 (the same within this machine's noise). Moving the search after
             # the branches' 2π copies instead solved all but 0-3 of the RX160's, but left the UR10's q5 targets
             # beyond reach, which the search solves: 9-10 misses there.
-            found = self._weak_restarts(target, nearest_miss, analytic, start, deadline, stats, origin)
+            found = self._weak_restarts(target, nearest_miss, analytic, start, deadline, stats, origin, restarted)
+            if found is not None:
+                return self._singular(found)
+            found = self._copies(target, nearest_miss.q, analytic, start, deadline, stats, origin, restarted)
             if found is not None:
                 return self._singular(found)
             found = self._valley(target, q0, start, deadline, stats, near=near)
@@ -403,12 +410,22 @@ class IKSolver:
         branches = np.vstack([closed, near])
         copies = turns(branches, self.lower, self.upper)
         copies = copies[np.argsort(np.linalg.norm(copies - seed, axis=1), kind="stable")]
-        copies = [q for q in copies if seeding.is_new_branch(q, list(branches))]
+        if nearest_miss is not None:
+            # beyond the URDF model's reach, the copies of the branch that came nearest first: where no copy of
+            # the seed's reaches, the nets' reach on another copy of that branch is what differs (RX160, elbow
+            # stretched: its solution was the 11th copy nearest the seed, 30 ms later)
+            mine = turns(nearest_miss.q[None], self.lower, self.upper)
+            copies = np.vstack([mine[np.argsort(np.linalg.norm(mine - seed, axis=1), kind="stable")], copies])
+        unique: list[np.ndarray] = list(branches)
+        copies = [q for q in copies if seeding.is_new_branch(q, unique) and not unique.append(q)]
         table = self.seeds.nearest(target, 2 * seeding.TABLE_RESTARTS)
         # (start, whether LM on the hybrid model follows a fixed point that stalls beyond the branch's reach: on
         # a copy, the nets' reach is what differs, and the hybrid Jacobian is what finds it)
         starts = iter([(q, False) for q in closed] + [(q, True) for q in copies] + [(q, False) for q in table])
         valley = [] if analytic else seeding.valley_seeds(self.model, best.q, best.position_error_mm, self.limits)
+        # beyond the URDF model's reach, the nearest miss's restarts ran before the valley search, and the
+        # refinement since then ends next to it: the same restarts again took 4-7 ms (RX160, elbow stretched)
+        valley = [q for q in valley if seeding.is_new_branch(q, restarted)]
         others = [q for q in near[1:] if seeding.is_new_branch(q, tried)]
         while True:
             if time.perf_counter() > deadline:
@@ -451,18 +468,50 @@ class IKSolver:
         deadline: float,
         stats: dict,
         origin: np.ndarray | None,
+        restarted: list[np.ndarray],
     ) -> IKResult | None:
         """The restarts along the weak direction of a near miss (``seeds.valley_seeds``, as the fallback loop
-        of 3. has them), each finished by :meth:`_other_branch`: the first that reaches the target, else None."""
+        of 3. has them), each finished by :meth:`_other_branch`: the first that reaches the target, else None.
+        Each start is added to ``restarted``, for the fallback loop to skip."""
         if analytic:
             return None
         for q in seeding.valley_seeds(self.model, miss.q, miss.position_error_mm, self.limits):
             if time.perf_counter() > deadline:
                 break
+            restarted.append(q)
             result = self._other_branch(target, q, analytic, start, deadline, stats, origin)
             stats["valley"] = stats.get("valley", 0) + 1
             if result.success:
                 result.stats["weak_restart"] = True  # how it was found: before any valley search
+                return result
+        return None
+
+    def _copies(
+        self,
+        target: np.ndarray,
+        q: np.ndarray,
+        analytic: bool,
+        start: float,
+        deadline: float,
+        stats: dict,
+        origin: np.ndarray | None,
+        restarted: list[np.ndarray],
+    ) -> IKResult | None:
+        """The copies of a near miss ``q`` beyond the URDF model's reach shifted by 2π, the COPY_PROBES nearest
+        it, each finished by :meth:`_other_branch` with LM past a stall: where the branch's fixed point stalls
+        beyond its reach, the nets' reach on another copy is what differs (the nets see raw joint values). The
+        first that reaches the target, else None; each start is added to ``restarted``."""
+        if analytic:
+            return None
+        copies = turns(q[None], self.lower, self.upper)
+        copies = copies[np.argsort(np.linalg.norm(copies - q, axis=1), kind="stable")[1 : 1 + COPY_PROBES]]
+        for c in copies:
+            if time.perf_counter() > deadline:
+                break
+            restarted.append(c)
+            result = self._other_branch(target, c, analytic, start, deadline, stats, origin, lm_beyond=True)
+            if result.success:
+                result.stats["copy"] = True
                 return result
         return None
 
