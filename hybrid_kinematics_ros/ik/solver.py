@@ -119,6 +119,7 @@ COARSE, PRECISE = "coarse", "precise"  # what a fixed point's round asks for
 # 200 targets per near-singular case, 50 ms, the compiled LM and fixed point, misses other than the q3-limit one
 # per run: 0.5: 2, 0, 0, 4, 0; 0.25: 0, 0; 0.1: 0, 0, 1 (UR10); RX160 0, 0 / 1 / 0.
 VALLEY_SHARE = 0.2
+WEAK_RESTART_SHARE = 0.05  # of the budget, for each weak-direction restart beyond the URDF model's reach
 COPY_PROBES = 4  # copies of a near miss beyond the URDF model's reach tried before the valley search
 POLISH_ITERATIONS = 12  # LM steps on a least-squares answer beyond a fold (6-9 reach the URDF model's nearest point)
 # A probe's fixed point that ends this near the target (mm) has stalled at a fold of the URDF model, where its
@@ -476,10 +477,14 @@ class IKSolver:
         if analytic:
             return None
         for q in seeding.valley_seeds(self.model, miss.q, miss.position_error_mm, self.limits):
-            if time.perf_counter() > deadline:
+            now = time.perf_counter()
+            if now > deadline:
                 break
             restarted.append(q)
-            result = self._other_branch(target, q, analytic, start, deadline, stats, origin)
+            # each a slice of the budget: those that solve take 1-2 ms; at a UR10's q5 = 0 the others crawl along
+            # its continuum, 28 ms each, where the valley search after them solves in 17
+            until = min(deadline, now + WEAK_RESTART_SHARE * self.options.timeout_s)
+            result = self._other_branch(target, q, analytic, start, until, stats, origin)
             stats["valley"] = stats.get("valley", 0) + 1
             if result.success:
                 result.stats["weak_restart"] = True  # how it was found: before any valley search
