@@ -84,7 +84,7 @@ from hybrid_kinematics_ros.ik.refine import HybridRefiner
 from hybrid_kinematics_ros.ik.valley import valley_starts
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.model import approach
-from hybrid_kinematics_ros.model.hybrid import HybridModel
+from hybrid_kinematics_ros.model.hybrid import COMPILED_ROWS, HybridModel
 
 # Budget shares. CLASSICAL_SHARE (650d758): a target the URDF model cannot reach exactly (near the edge of its
 # workspace) makes every classical attempt fail, yet the hybrid stages solve it from there, so the seed's
@@ -212,6 +212,11 @@ class IKSolver:
         # no regular solve calls it: loaded there, it took 20-25 ms of the 50 ms budget (a first q5 = 0 target)
         target = model.fk_single(self._mid + 0.025 * (self.upper - self.lower))  # finite: ±2π where unlimited
         model.fk_single(self._mid, analytic=True)
+        # and the batched hybrid FK's two paths (compiled up to COMPILED_ROWS rows, TorchScript beyond), which the
+        # valley search and the side-by-side fixed points take: the first call of each took 11-18 ms, in a first
+        # valley search's first settle (RX160, wrist centre on axis 1: answers 4-8 ms after a 50 ms budget)
+        for rows in (2, COMPILED_ROWS + 1):
+            model.fk(np.tile(self._mid, (rows, 1)))
         lm_solve(self.analytic_fk_jac, target, self._mid, self.limits, *self.inner_tol, 1, float("inf"))
         if self.closed_form is not None:
             self.solve(target, self._mid)
@@ -870,6 +875,10 @@ class IKSolver:
         is its answer; ``valley``: False where the valley search has run already."""
         q, errors = q0, None
         corrected = not analytic and self.model.is_corrected
+        if time.perf_counter() > deadline:
+            # the valley search took the budget: the verdict on what it left, no refinement after the deadline
+            # (each stage's first step ran regardless: RX160 wrist centre on axis 1, answers 4-12 ms late)
+            return self.result(q0, target, analytic, start, dict(stats))
         if corrected and self.closed_form is not None:
             # ``fixed`` holds for its own answer only (a rerun with other approach directions starts elsewhere)
             ran = fixed is not None and np.array_equal(fixed.q, q0)
@@ -889,7 +898,7 @@ class IKSolver:
             stats["refinements"] += 1
             stats.update(info)
         result = self.result(q, target, analytic, start, dict(stats), errors)
-        if not result.success and corrected:
+        if not result.success and corrected and time.perf_counter() < deadline:
             q, *_ = self.refiner.unbounded(target, q, deadline)
             stats["hybrid_lm"] = stats.get("hybrid_lm", 0) + 1
             result = self.result(q, target, analytic, start, dict(stats))

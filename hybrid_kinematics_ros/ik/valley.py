@@ -171,10 +171,18 @@ def _free(j: np.ndarray, n: int) -> np.ndarray:
 
 
 def settle(
-    model: HybridModel, target: np.ndarray, Q: np.ndarray, j: np.ndarray, limits: Limits, steps: int
+    model: HybridModel,
+    target: np.ndarray,
+    Q: np.ndarray,
+    j: np.ndarray,
+    limits: Limits,
+    steps: int,
+    deadline: float = float("inf"),
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Chord steps in the free joints of every row of ``Q (K, n)`` (in place), each row's valley joint
-    ``j (K,)`` held. Returns ``Q``, the pose errors ``(K, 6)`` and the URDF Jacobians ``(K, 6, n)`` there."""
+    ``j (K,)`` held. Returns ``Q``, the pose errors ``(K, 6)`` and the URDF Jacobians ``(K, 6, n)`` there.
+    ``deadline``: no step after it (a step of a whole valley's points takes 1-3 ms; without the check, a
+    search's answer came 4-8 ms after its budget); the errors and Jacobians are still those at ``Q``."""
     n = Q.shape[1]
     free = _free(j, n)
     rows = np.arange(len(Q))[:, None]
@@ -182,7 +190,7 @@ def settle(
     for step in range(steps + 1):
         T, J = _poses_and_jacobians(model, Q)
         e = error6_batch(target, T)
-        if step == steps:  # the last evaluation measures, no step follows it
+        if step == steps or time.perf_counter() > deadline:  # the last evaluation measures, no step follows it
             break
         J5 = np.take_along_axis(J, free[:, None, :], axis=2)
         jt = J5.mT
@@ -273,7 +281,7 @@ def _starts_along(
     if time.perf_counter() > deadline:
         return []
     joint = np.argmax(np.abs(motions), axis=1)
-    Q, e, J = settle(model, target, points.copy(), joint, limits, POINT_STEPS)
+    Q, e, J = settle(model, target, points.copy(), joint, limits, POINT_STEPS, deadline)
     settled = along(e, J, joint)[1] < SETTLED  # a point whose free joints could not settle brackets nothing
     # neighbours along the valley: (k, k + 1), and across the seam of a closed one
     m = len(Q)
