@@ -30,7 +30,7 @@ composes the parts, with ``solve``, ``solve_many`` and ``solve_trajectory``.
    beyond the URDF model's reach (no exact branch) gets the same search from the least-squares answers, after
    the restarts along the nearest one's weak direction that 3. would try later (a few ms of LM: an RX160's elbow
    stretched beyond reach is solved there in 6-12 ms where the search took the budget first, and a UR10's wrist
-   centre on axis 1 misses 1 target in 200 instead of 4-7) and the fixed point on its few copies shifted by 2π
+   centre on axis 1 misses 1 target in 200 instead of 4-7) and the fixed point, then LM, on its few copies shifted by 2π
    (an RX160's elbow stretched: the nets reach further on another copy, where the search found nothing in
    40-65 ms; 5-6 misses in 200 at 50 ms to 1-2), and
    where the URDF model reaches it only past a joint limit, from its answers clipped into the limits and
@@ -119,7 +119,7 @@ COARSE, PRECISE = "coarse", "precise"  # what a fixed point's round asks for
 # 200 targets per near-singular case, 50 ms, the compiled LM and fixed point, misses other than the q3-limit one
 # per run: 0.5: 2, 0, 0, 4, 0; 0.25: 0, 0; 0.1: 0, 0, 1 (UR10); RX160 0, 0 / 1 / 0.
 VALLEY_SHARE = 0.2
-WEAK_RESTART_SHARE = 0.05  # of the budget, for each weak-direction restart beyond the URDF model's reach
+RESTART_SHARE = 0.05  # of the budget, for each restart beyond the URDF model's reach before the valley search
 COPY_PROBES = 4  # copies of a near miss beyond the URDF model's reach tried before the valley search
 POLISH_ITERATIONS = 12  # LM steps on a least-squares answer beyond a fold (6-9 reach the URDF model's nearest point)
 # A probe's fixed point that ends this near the target (mm) has stalled at a fold of the URDF model, where its
@@ -422,15 +422,21 @@ class IKSolver:
             # stretched: its solution was the 11th copy nearest the seed, 30 ms later)
             mine = turns(nearest_miss.q[None], self.lower, self.upper)
             copies = np.vstack([mine[np.argsort(np.linalg.norm(mine - seed, axis=1), kind="stable")], copies])
-        unique: list[np.ndarray] = list(branches)
-        copies = [q for q in copies if seeding.is_new_branch(q, unique) and not unique.append(q)]
+        unique: list[np.ndarray] = [*branches, *restarted]  # the copies tried before the valley search too
+        kept = []
+        for q in copies:
+            if seeding.is_new_branch(q, unique):
+                unique.append(q)
+                kept.append(q)
+        copies = kept
         table = self.seeds.nearest(target, 2 * seeding.TABLE_RESTARTS)
         # (start, whether LM on the hybrid model follows a fixed point that stalls beyond the branch's reach: on
         # a copy, the nets' reach is what differs, and the hybrid Jacobian is what finds it)
         starts = iter([(q, False) for q in closed] + [(q, True) for q in copies] + [(q, False) for q in table])
         valley = [] if analytic else seeding.valley_seeds(self.model, best.q, best.position_error_mm, self.limits)
         # beyond the URDF model's reach, the nearest miss's restarts ran before the valley search, and the
-        # refinement since then ends next to it: the same restarts again took 4-7 ms (RX160, elbow stretched)
+        # refinement since then ends next to it: the same restarts again took 4-7 ms (RX160, elbow stretched);
+        # those cut short by their share run again here, with the time left
         valley = [q for q in valley if seeding.is_new_branch(q, restarted)]
         others = [q for q in near[1:] if seeding.is_new_branch(q, tried)]
         while True:
@@ -465,6 +471,41 @@ class IKSolver:
         best.seconds = time.perf_counter() - start
         return self._singular(best)
 
+    def _restarts(
+        self,
+        target: np.ndarray,
+        starts: list[np.ndarray],
+        mark: str,
+        analytic: bool,
+        start: float,
+        deadline: float,
+        stats: dict,
+        origin: np.ndarray | None,
+        restarted: list[np.ndarray],
+        lm_beyond: bool = False,
+    ) -> IKResult | None:
+        """Beyond the URDF model's reach, before the valley search: each of ``starts`` finished by
+        :meth:`_other_branch` (``lm_beyond``: LM past a stalled fixed point too) within RESTART_SHARE of the
+        budget. The first that reaches the target, with ``stats[mark]`` set (how it was found), else None. A start
+        that finished within its share is added to ``restarted``, for the fallback loop to skip; one cut short
+        gets the time that loop has left."""
+        if analytic:
+            return None
+        for q in starts:
+            now = time.perf_counter()
+            if now > deadline:
+                break
+            # each a slice of the budget: those that solve take 1-2 ms; at a UR10's q5 = 0 the others crawl along
+            # its continuum, 28 ms each, where the valley search after them solves in 17
+            until = min(deadline, now + RESTART_SHARE * self.options.timeout_s)
+            result = self._other_branch(target, q, analytic, start, until, stats, origin, lm_beyond)
+            if time.perf_counter() < until:
+                restarted.append(q)
+            if result.success:
+                result.stats[mark] = True
+                return result
+        return None
+
     def _weak_restarts(
         self,
         target: np.ndarray,
@@ -477,24 +518,12 @@ class IKSolver:
         restarted: list[np.ndarray],
     ) -> IKResult | None:
         """The restarts along the weak direction of a near miss (``seeds.valley_seeds``, as the fallback loop
-        of 3. has them), each finished by :meth:`_other_branch`: the first that reaches the target, else None.
-        Each start is added to ``restarted``, for the fallback loop to skip."""
+        of 3. has them), by :meth:`_restarts`."""
         if analytic:
             return None
-        for q in seeding.valley_seeds(self.model, miss.q, miss.position_error_mm, self.limits):
-            now = time.perf_counter()
-            if now > deadline:
-                break
-            restarted.append(q)
-            # each a slice of the budget: those that solve take 1-2 ms; at a UR10's q5 = 0 the others crawl along
-            # its continuum, 28 ms each, where the valley search after them solves in 17
-            until = min(deadline, now + WEAK_RESTART_SHARE * self.options.timeout_s)
-            result = self._other_branch(target, q, analytic, start, until, stats, origin)
-            stats["valley"] = stats.get("valley", 0) + 1
-            if result.success:
-                result.stats["weak_restart"] = True  # how it was found: before any valley search
-                return result
-        return None
+        starts = seeding.valley_seeds(self.model, miss.q, miss.position_error_mm, self.limits)
+        stats["valley"] = stats.get("valley", 0) + len(starts)
+        return self._restarts(target, starts, "weak_restart", analytic, start, deadline, stats, origin, restarted)
 
     def _copies(
         self,
@@ -507,23 +536,13 @@ class IKSolver:
         origin: np.ndarray | None,
         restarted: list[np.ndarray],
     ) -> IKResult | None:
-        """The copies of a near miss ``q`` beyond the URDF model's reach shifted by 2π, the COPY_PROBES nearest
-        it, each finished by :meth:`_other_branch` with LM past a stall: where the branch's fixed point stalls
-        beyond its reach, the nets' reach on another copy is what differs (the nets see raw joint values). The
-        first that reaches the target, else None; each start is added to ``restarted``."""
-        if analytic:
-            return None
+        """The copies of a near miss ``q`` shifted by 2π, the COPY_PROBES nearest it, by :meth:`_restarts` with
+        LM past a stall: where the branch's fixed point stalls beyond its reach, the nets' reach on another
+        copy is what differs (they see raw joint values)."""
         copies = turns(q[None], self.lower, self.upper)
-        copies = copies[np.argsort(np.linalg.norm(copies - q, axis=1), kind="stable")[1 : 1 + COPY_PROBES]]
-        for c in copies:
-            if time.perf_counter() > deadline:
-                break
-            restarted.append(c)
-            result = self._other_branch(target, c, analytic, start, deadline, stats, origin, lm_beyond=True)
-            if result.success:
-                result.stats["copy"] = True
-                return result
-        return None
+        copies = copies[np.argsort(np.linalg.norm(copies - q, axis=1), kind="stable")]
+        copies = [c for c in copies if seeding.is_new_branch(c, [q])][:COPY_PROBES]
+        return self._restarts(target, copies, "copy", analytic, start, deadline, stats, origin, restarted, True)
 
     def _reserve(
         self,
@@ -876,8 +895,11 @@ class IKSolver:
         q, errors = q0, None
         corrected = not analytic and self.model.is_corrected
         if time.perf_counter() > deadline:
-            # the valley search took the budget: the verdict on what it left, no refinement after the deadline
-            # (each stage's first step ran regardless: RX160 wrist centre on axis 1, answers 4-12 ms late)
+            # the budget is spent (by the valley search, mostly): the verdict on what is there, no refinement
+            # after the deadline (each stage's first step ran regardless: RX160 wrist centre on axis 1, answers
+            # 4-12 ms late)
+            if fixed is not None and np.array_equal(fixed.q, q0):
+                return fixed
             return self.result(q0, target, analytic, start, dict(stats))
         if corrected and self.closed_form is not None:
             # ``fixed`` holds for its own answer only (a rerun with other approach directions starts elsewhere)

@@ -62,7 +62,9 @@ print(sum(len(k.signatures) for k in kernels) - loaded)
 
 def test_the_solver_loads_its_compiled_kernels_before_the_first_request():
     """Loading a compiled kernel takes 20-25 ms (on a fresh checkout, seconds to compile), half a request's
-    budget: the solver loads them all when it is built, the URDF model's pose with them, which regular targets
-    never need and near-singular ones do. In a fresh process, where no other test loaded them first."""
-    out = subprocess.run([sys.executable, "-c", WARM_SCRIPT], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "0", out.stdout + out.stderr
+    budget: the solver loads the compiled IK and FK kernels when it is built, the URDF model's pose with them,
+    which regular targets never need and near-singular ones do. In a fresh process, where no other test loaded
+    them first. (The batched hybrid FK's TorchScript path is loaded with them; numba's signatures cannot show
+    that.)"""
+    out = subprocess.run([sys.executable, "-c", WARM_SCRIPT], capture_output=True, text=True, check=False)
+    assert out.returncode == 0 and out.stdout.strip() == "0", out.stdout + out.stderr

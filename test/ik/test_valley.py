@@ -12,7 +12,7 @@ import pytest
 
 from hybrid_kinematics_ros.ik.lm import error6, joint_limits
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
-from hybrid_kinematics_ros.ik.valley import NEAR_SINGULAR, TRACE_STEP, trace, valley_starts, weak_direction
+from hybrid_kinematics_ros.ik.valley import NEAR_SINGULAR, TRACE_STEP, settle, trace, valley_starts, weak_direction
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
@@ -170,3 +170,21 @@ def test_wrist_straight_targets_beyond_the_urdf_models_reach_are_searched_along_
     # each by the valley search or a fixed point, none left to the other branches' LM (before: 1 of 7, 2.3 s)
     assert set(methods) <= {"singular valley", "closed-form fixed point"}, methods
     assert methods.count("singular valley") >= len(beyond) // 2, methods
+
+
+def test_settle_takes_no_step_after_its_deadline(trained):
+    """A settle of a whole valley's points takes 1-3 ms a step; past its deadline it steps no more, and what it
+    returns is still consistent: the errors and Jacobians at the points it returns (those it was given, at a
+    deadline already past), the same as a settle of no steps. With time, it moves them."""
+    _, model, _, _ = trained
+    limits = joint_limits(model.chain)
+    q = wrist_singular(model, 12, 4)
+    target = model.fk_single(q[0])
+    held = np.zeros(len(q), dtype=int) + 3  # q4 held, the five others step
+    late = settle(model, target, q.copy(), held, limits, 2, deadline=time.perf_counter())
+    none = settle(model, target, q.copy(), held, limits, 0)
+    for a, b in zip(late, none, strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(late[0], q)
+    moved = settle(model, target, q.copy(), held, limits, 2)[0]
+    assert np.abs(moved - q).max() > 1e-6
