@@ -4,7 +4,10 @@ singularity class, TRAC-IK's protocol on the URDF model, and the branch count ag
 The "iterative" rows are the same solver with its closed forms switched off (what it was before them). Hybrid
 models are trained here first on a short budget: IK accuracy is measured against the hybrid FK itself.
 
-Usage: python -m bench.bench_ik_singular [--targets N] [--train-minutes M]
+Usage: python -m bench.bench_ik_singular [--targets N] [--train-minutes M] [--keep-models DIR]
+
+``--keep-models DIR`` keeps the models trained here (``DIR/ur10``, ``DIR/rx160``) for tracing a miss afterwards:
+a minute's training on a loaded machine gives another model, and the misses move with it.
 """
 
 from __future__ import annotations
@@ -115,13 +118,15 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--targets", type=int, default=200, help="per case")
     parser.add_argument("--train-minutes", type=float, default=1.0)
+    parser.add_argument("--keep-models", type=Path, default=None, help="train the models into DIR and keep them")
     args = parser.parse_args()
     options = IKOptions(timeout_s=BUDGET_S)
     rows, many, counts = [], [], []
     rng = np.random.default_rng(7)
     with tempfile.TemporaryDirectory() as tmp:
+        models = args.keep_models or Path(tmp)
         for robot in ("ur10", "rx160"):
-            model = trained_model(robot, Path(tmp), args.train_minutes)
+            model = trained_model(robot, models, args.train_minutes)
             urdf = HybridModel.analytic_only(model.chain)
             family = IKSolver(urdf, options).path
             for label, q in cases(model.chain, args.targets, rng).items():
