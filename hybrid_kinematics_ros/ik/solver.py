@@ -325,10 +325,11 @@ class IKSolver:
         stats = {"attempts": 0, "refinements": 0, "path": self.path}
         restarted: list[np.ndarray] = []  # the weak-direction restarts run already (3.), none twice
         urdf_only = analytic or not self.model.is_corrected
+        missed = None  # the nearest branch's fixed point that missed: the search below starts from it again
         if urdf_only:
             found = self._nearest_exact(target, seed, analytic, start, stats)
         else:
-            found = self._nearest_fixed_point(target, seed, analytic, start, deadline, stats, origin)
+            found, missed = self._nearest_fixed_point(target, seed, analytic, start, deadline, stats, origin)
         if found is not None:
             return found
         closed = self.branches(target, seed)
@@ -378,7 +379,10 @@ class IKSolver:
         reserve = None
         refine = None
         if len(closed) > 1:  # the seed's fixed point first: if it fails, the other branches' wait in reserve
-            first = self._from_branch(target, q0, analytic, start, deadline, stats, origin, self._fixed_point_only)
+            if missed is not None and np.array_equal(missed[0], q0):  # the same fixed point: its miss, not 2-3 ms more
+                first = missed[1]
+            else:
+                first = self._from_branch(target, q0, analytic, start, deadline, stats, origin, self._fixed_point_only)
             if first.success:
                 return self._singular(first)
             # the rest of the seed's branch goes on from the fixed point's answer, which it does not repeat
@@ -617,19 +621,21 @@ class IKSolver:
         deadline: float,
         stats: dict,
         origin: np.ndarray | None,
-    ) -> IKResult | None:
+    ) -> tuple[IKResult | None, tuple[np.ndarray, IKResult] | None]:
         """The hybrid answer for one IK-Geo call: the closed forms' fixed point from their branch nearest the
         seed (:meth:`AnalyticIK.nearest`), where it converges, as on nearly every target. None otherwise,
         and the whole search follows (from the same branch first). The same answer as the search's, without
-        checking every other branch first (a UR10's single solution in half the time: BENCHMARKS.md)."""
+        checking every other branch first (a UR10's single solution in half the time: BENCHMARKS.md).
+        Second: the branch and its fixed point's verdict where that missed (the search's first step, which
+        near a singularity took 2-3 ms again), else None."""
         if self.closed_form is None:
-            return None
+            return None, None
         q = self.closed_form.nearest(target, seed)  # checked on the hybrid FK: an answer that misses fails there
         if q is None:
-            return None
+            return None, None
         stats["attempts"] = 1
         result = self._from_branch(target, q, analytic, start, deadline, stats, origin, self._fixed_point_only)
-        return self._singular(result) if result.success else None
+        return (self._singular(result), None) if result.success else (None, (q, result))
 
     def _beyond_reach(self, target: np.ndarray, seed: np.ndarray, closed: np.ndarray) -> np.ndarray:
         """Where the closed forms give no exact branch within the limits: their least-squares answers within
