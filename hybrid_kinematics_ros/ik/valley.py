@@ -279,6 +279,8 @@ def _search(
             continue
         path = trace(model, q, v, limits, deadline)
         traced.append(path[0])
+        if time.perf_counter() > deadline:  # no valley is searched after it: no evaluation to rank this one
+            return
         T, J = _poses_and_jacobians(model, path[0])
         at = (error6_batch(target, T), J)
         if _neighbours(path[0], *at, path[2], limits[2])[-1].any():
