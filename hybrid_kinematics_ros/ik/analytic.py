@@ -188,14 +188,24 @@ class AnalyticIK:
         return q[np.argsort(np.linalg.norm(q - seed, axis=1), kind="stable")]
 
     def clipped(self, target: np.ndarray, seed: np.ndarray) -> np.ndarray:
-        """IK-Geo's answers ``(k, 6)``, exact and least-squares, that have no copy within the limits, each joint's
-        copy nearest the seed clipped into them: where the URDF model reaches the target (or gets nearest) only
+        """IK-Geo's answers ``(k, 6)``, exact and least-squares, that have no copy within the limits
+        (:meth:`past_limits`), clipped into them: where the URDF model reaches the target (or gets nearest) only
         past a joint limit (a UR10 near its q2 = 0 or q3 = -2.8 limit with its wrist straight), starts for its
         nearest point within them."""
-        q = np.vstack(self._answers(target)).reshape(-1, 6)
+        return np.clip(self.past_limits(target, seed, least_squares=True), self.lower, self.upper)
+
+    def past_limits(self, target: np.ndarray, seed: np.ndarray, least_squares: bool = False) -> np.ndarray:
+        """IK-Geo's exact answers ``(k, 6)`` (and its least-squares ones with ``least_squares``) that have no copy
+        within the limits, unchecked: each joint's copy within them nearest the seed, and where a joint has
+        none, its copy nearest the seed. A hybrid target near a singularity and next to a limit can have its
+        solution within the limits while every exact branch of the URDF model lies past them (a UR10 with its
+        wrist straight next to q3 = -2.8): the valley search walks from these into the limits."""
+        q = np.vstack(self._answers(target) if least_squares else self._answers(target)[:1]).reshape(-1, 6)
         first, last = _turn_range(q, self.lower, self.upper)
-        q = q[(first > last).any(axis=1)]
-        return np.clip(q + TAU * np.round((seed - q) / TAU), self.lower, self.upper)
+        past = (first > last).any(axis=1)
+        q, first, last = q[past], first[past], last[past]
+        shift = np.round((seed - q) / TAU)
+        return q + TAU * np.where(first <= last, np.clip(shift, first, last), shift)
 
     def nearest(self, target: np.ndarray, seed: np.ndarray) -> np.ndarray | None:
         """The exact branch within the limits nearest the seed, unchecked (the caller checks it on the model it

@@ -980,7 +980,10 @@ class IKSolver:
         # the valleys of every closed-form branch, one by one: at a shoulder singularity the solution can lie on
         # another branch's valley (the shoulder flipped), and the seed's wanders across the wrist's
         others = self.branches(target, q0) if near is None else near
-        near = np.vstack([*([] if nearest is None else [nearest]), q0, *others])
+        # then the exact branches past a joint limit: their valleys can enter the limits (valley.enter), where
+        # the hybrid solution can lie (a UR10 with its wrist straight next to q3 = -2.8)
+        past = [] if self.closed_form is None else self.closed_form.past_limits(target, q0)
+        near = np.vstack([*([] if nearest is None else [nearest]), q0, *others, *past])
         starts = valley_starts(self.model, target, near, self.limits, deadline, self.inner_tol[0])
         if starts is None:
             return None

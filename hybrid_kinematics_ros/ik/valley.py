@@ -38,6 +38,11 @@ crosses the wrist's singularity cannot be followed across it. So the valleys of 
 branches'), one after the other, the seed's first, each only when the previous ones' starts failed (all in one
 batch, the search before, took 32-42 ms a target on the RX160 there; one by one 25-28 ms, and 90-94 % solved
 within 50 ms against 68-89 %, side by side on a machine at half its usual speed).
+
+A branch past a joint limit has its valley too, and the valley can cross into the limits where the hybrid
+solution lies: a UR10 with its wrist straight next to its q3 = -2.8 limit had every exact branch past it
+(q3 = -3.06 and -2.67) and its solution at -2.78, found by LM restarts after 0.6-0.75 s. Such a branch is walked
+along its valley into the limits (:func:`enter`) and searched from there, after the branches within them.
 """
 
 from __future__ import annotations
@@ -104,6 +109,60 @@ def _poses_and_jacobians(model: HybridModel, Q: np.ndarray) -> tuple[np.ndarray,
     return model.fk(Q), model.fk_and_jacobian(Q, analytic=True)[1]
 
 
+def _onto(
+    model: HybridModel, pose: np.ndarray, x: np.ndarray, border: np.ndarray, v: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """One Newton step from ``x`` back onto the valley of the URDF ``pose``, along no ``border``: the point, the
+    weak motion there and the step's length. With J's weak motion w, (JᵀJ + v vᵀ) w = v (w·v): the bordered
+    matrix turns v into w, and Jᵀe has next to nothing along w (J's smallest singular value times the error's
+    lost part)."""
+    T, J = model.fk_and_jacobian_single(x, analytic=True)
+    step, w = np.linalg.solve(J.T @ J + np.outer(border, border), np.stack([J.T @ error6(pose, T), v], 1)).T
+    return x + step, w / np.linalg.norm(w), float(np.linalg.norm(step))
+
+
+def _advance(
+    model: HybridModel, pose: np.ndarray, q: np.ndarray, v: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The next point of the valley of the URDF ``pose`` from its point ``q`` along its weak motion ``v``, and
+    the weak motion there: TRACE_STEP on, halved where the valley turns sharply (a Newton step back onto it
+    longer than TURN times the step), up to TURN_HALVINGS times; None where no step short enough keeps to it."""
+    h = TRACE_STEP
+    for _ in range(TURN_HALVINGS + 1):
+        x, w, moved = _onto(model, pose, q + h * v, v, v)
+        if moved < TURN * h:
+            return x, w
+        h /= 2
+    return None
+
+
+def enter(
+    model: HybridModel, q0: np.ndarray, v0: np.ndarray, limits: Limits, deadline: float = float("inf")
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """A point ``q0`` of a valley past the joint limits, walked along its valley (weak motion ``v0`` at ``q0``)
+    into them: the first point within them and its weak motion, or None where the valley comes no nearer to
+    them either way. At a singularity the valley is a continuum of the URDF model's solutions, and a hybrid
+    target's can cross the limits where every closed-form branch lies past them (a UR10 with its wrist
+    straight next to its q3 = -2.8 limit: branches at q3 = -3.06, the hybrid solution at -2.78, found by LM
+    restarts only after 0.6-0.75 s)."""
+    lower, upper, _ = limits
+
+    def past(x: np.ndarray) -> float:
+        return float(np.sum(np.maximum(lower - x, 0.0) + np.maximum(x - upper, 0.0)))
+
+    pose = model.fk_single(q0, analytic=True)
+    for sign in (1.0, -1.0):
+        q, v, left = q0, sign * v0, past(q0)
+        for _ in range(TRACE_POINTS):
+            ahead = _advance(model, pose, q, v) if time.perf_counter() < deadline else None
+            if ahead is None or past(ahead[0]) >= left:
+                break
+            (q, v), left = ahead, past(ahead[0])
+            if left == 0.0:
+                return q, v
+    return None
+
+
 def trace(
     model: HybridModel, q0: np.ndarray, v0: np.ndarray, limits: Limits, deadline: float = float("inf")
 ) -> tuple[np.ndarray, np.ndarray, bool]:
@@ -122,28 +181,15 @@ def trace(
     halves, closed = [], False
     eye = np.eye(len(q0))
 
-    def onto(x: np.ndarray, border: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        """One Newton step from ``x`` back onto the valley, along no ``border``: the point, the weak motion
-        there and the step's length. With J's weak motion w, (JᵀJ + v vᵀ) w = v (w·v): the bordered matrix
-        turns v into w, and Jᵀe has next to nothing along w (J's smallest singular value times the error's
-        lost part)."""
-        T, J = model.fk_and_jacobian_single(x, analytic=True)
-        step, w = np.linalg.solve(J.T @ J + np.outer(border, border), np.stack([J.T @ error6(pose, T), v], 1)).T
-        return x + step, w / np.linalg.norm(w), float(np.linalg.norm(step))
-
     for sign in (1.0, -1.0):
         q, v, points, motions = q0, sign * v0, [], []
         for _ in range(TRACE_POINTS):
             if time.perf_counter() > deadline:  # the part traced so far is searched
                 break
-            h = TRACE_STEP
-            for _ in range(TURN_HALVINGS + 1):  # where the valley turns sharply, shorter steps keep to it
-                x, w, moved = onto(q + h * v, v, v)
-                if moved < TURN * h:
-                    break
-                h /= 2
-            else:  # no step short enough keeps to it: this way ends here
+            ahead = _advance(model, pose, q, v)
+            if ahead is None:  # no step short enough keeps to it: this way ends here
                 break
+            x, w = ahead
             beyond = (x < lower) | (x > upper)
             if beyond.any():
                 # a last point on the limit, that joint held there (and settled so): a root between the
@@ -151,7 +197,7 @@ def trace(
                 reach = (np.where(x < lower, lower, upper) - q) / np.where(beyond, x - q, np.inf)
                 first = int(np.argmin(np.where(beyond, reach, np.inf)))
                 if reach[first] > 0.1:  # else the last point is on the limit already
-                    x = np.clip(onto(q + reach[first] * (x - q), eye[first], v)[0], lower, upper)
+                    x = np.clip(_onto(model, pose, q + reach[first] * (x - q), eye[first], v)[0], lower, upper)
                     points.append(x)
                     motions.append(eye[first])
                 break
@@ -267,13 +313,20 @@ def _search(
     tol: float,
 ) -> Iterator[np.ndarray]:
     """:func:`valley_starts`' generator: ``singular`` holds the rows near a singularity with their weak
-    motions; a row on a valley traced already starts none of its own. A valley whose traced points' errors
+    motions; a row on a valley traced already starts none of its own, and a row past the limits (a closed-form
+    branch there) the valley it enters them on (:func:`enter`), if any. A valley whose traced points' errors
     along the lost direction change sign nowhere is searched after the others (module docstring, 4.)."""
     traced: list[np.ndarray] = []
     later: list[tuple[tuple[np.ndarray, np.ndarray, bool], tuple[np.ndarray, np.ndarray]]] = []
+    lower, upper, _ = limits
     for q, v in singular:
         if time.perf_counter() > deadline:
             return
+        if np.any((q < lower) | (q > upper)):  # a row past the limits starts where its valley enters them
+            entered = enter(model, q, v, limits, deadline)
+            if entered is None:
+                continue
+            q, v = entered
         # a row on a valley traced already (in raw joint values: the nets see another turn as another problem)
         if any(np.linalg.norm(points - q, axis=1).min() < TRACE_STEP for points in traced):
             continue

@@ -12,7 +12,15 @@ import pytest
 
 from hybrid_kinematics_ros.ik.lm import error6, joint_limits
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
-from hybrid_kinematics_ros.ik.valley import NEAR_SINGULAR, TRACE_STEP, settle, trace, valley_starts, weak_direction
+from hybrid_kinematics_ros.ik.valley import (
+    NEAR_SINGULAR,
+    TRACE_STEP,
+    enter,
+    settle,
+    trace,
+    valley_starts,
+    weak_direction,
+)
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
@@ -250,3 +258,58 @@ def test_the_seeds_fixed_point_stalled_next_to_a_solution_is_finished_by_lm(trai
         assert result.success and max(hybrid_errors(model, result.q, target)) < 1e-4
         assert not traced and np.abs(result.q - q).max() < 1e-3, result.stats
     assert stalled >= 1, stalled  # measured 3 of these 288 targets
+
+
+def test_a_valley_past_a_joint_limit_is_walked_into_the_limits(ur10):
+    """With the wrist straight the UR10's solutions form a continuum along which q2, q3, q4 and q6 all move:
+    from a member with q3 past its -2.8 limit, ``enter`` walks along it into the limits and stops at its
+    first point within them, on the same URDF pose (to the tens of micrometres one Newton step a point leaves, as
+    ``trace``'s points; settling removes the rest) and still singular."""
+    model = HybridModel.analytic_only(ur10.chain)
+    limits = joint_limits(model.chain)
+    rng = np.random.default_rng(2)
+    entered = 0
+    for _ in range(20):
+        q0 = rng.uniform(0.8 * model.chain.lower, 0.8 * model.chain.upper)
+        q0[2], q0[4] = rng.uniform(-3.05, -2.85), 0.0
+        v, sigma = weak_direction(model, q0)
+        assert sigma < 1e-9
+        found = enter(model, q0, v, limits)
+        if found is None:
+            continue
+        entered += 1
+        q, w = found
+        assert np.all((q >= limits[0]) & (q <= limits[1]))
+        assert abs(w @ weak_direction(model, q)[0]) > 0.99  # the weak motion there, up to its sign
+        e = error6(model.fk_single(q0), model.fk_single(q))
+        assert np.linalg.norm(e[:3]) < 1e-4 and np.linalg.norm(e[3:]) < 1e-6, e
+        assert weak_direction(model, q)[1] < 1e-6
+    assert entered >= 10, entered
+
+
+def test_wrist_straight_next_to_a_limit_the_valley_past_it_holds_the_solution(trained):
+    """A hybrid target with the wrist straight and q3 next to its -2.8 limit can have every exact branch of the
+    URDF model past that limit, its hybrid solution within it (measured on a bench model: branches at q3 =
+    -3.06 and -2.67, the solution at -2.78). No classical restart finds a branch within the limits; the LM
+    restarts that followed found the solution after 0.6-0.75 s. The valleys of the branches past the limit
+    are walked into the limits and searched: the solution is found along them, or by a fixed point, never by
+    LM restarts from other branches."""
+    _, model, _, _ = trained
+    solver = IKSolver(model, GENEROUS)
+    rng = np.random.default_rng(6)
+    q = rng.uniform(0.8 * model.chain.lower, 0.8 * model.chain.upper, (2000, 6))
+    q[:, 2], q[:, 4] = rng.uniform(-2.8, -2.72, 2000), 0.0
+    seed = model.chain.mid_limits()
+    past = [
+        t
+        for t in model.fk(q)
+        if not len(solver.branches(t, seed))
+        and len(solver.closed_form.past_limits(t, seed))
+        and not len(solver.closed_form.approximations(t, seed, np.inf, np.inf))
+    ]
+    assert len(past) >= 4, len(past)
+    methods = answered_methods(solver, np.array(past))
+    # measured 15 of 24 along the valleys, 6 by a fixed point, none by LM restarts; before: 4 along the
+    # valleys, 11 by LM restarts
+    assert "lm" not in methods, methods
+    assert methods.count("singular valley") >= len(past) // 2, methods
