@@ -23,6 +23,7 @@ from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 # the hard targets (at singularities) need many branches: one RX160 target took 0.65 s; most take a few ms
 LONG_BUDGET_S = 1.0
+FAST_MS = 5.0  # #35: ≥ 99.9 % of random targets within this
 
 
 def trained_model(robot: str, tmp: Path, minutes: float) -> HybridModel:
@@ -52,6 +53,7 @@ def paper_protocol(model: HybridModel, n: int, options: IKOptions) -> tuple[list
             [
                 label,
                 f"{100 * ok.mean():.2f}",
+                f"{100 * np.mean(ok & (ms <= FAST_MS)):.2f}",
                 f"{pos.mean():.3g}",
                 f"{pos.std():.3g}",
                 f"{rot.mean():.3g}",
@@ -73,6 +75,7 @@ def main() -> None:
     head = [
         "robot / method",
         "success (%)",
+        f"solved within {FAST_MS:g} ms (%)",
         "position mean (mm)",
         "position std (mm)",
         "orientation mean (deg)",
@@ -134,7 +137,8 @@ def main() -> None:
         f"Paper protocol (Tables IV and V): {args.targets} random configurations within the working range, "
         "targets from the hybrid FK, solved from a mid-limits seed (the budget per target is in each row), "
         "error of the answer measured with the hybrid FK. Paper (virtual): 6.02e-6 mm and 4.85e-4° mean. "
-        "Targets: success ≥ 99.9 %, mean ≤ 1e-6 mm and ≤ 1e-6°, median ≤ 5 ms. The means and stds are over all "
+        "Targets: success ≥ 99.9 % (100 % within 50 ms and ≥ 99.9 % within 5 ms since #35), mean ≤ 1e-6 mm and "
+        "≤ 1e-6°, median ≤ 5 ms. The means and stds are over all "
         "targets, misses included; one column gives the means over the solved targets alone.\n\n"
         + table(head, rows)
         + "\n\nCost of the refinement (UR10, 500 targets): the 6-vector residual (position in mm, rotation vector"

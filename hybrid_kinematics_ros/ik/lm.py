@@ -108,12 +108,16 @@ def turned(d: np.ndarray, revolute: np.ndarray) -> np.ndarray:
     return np.where(revolute, (d + np.pi) % (2 * np.pi) - np.pi, d)
 
 
-def project(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, revolute: np.ndarray) -> np.ndarray:
-    """Into the limits: wrap revolute joints by 2π where that lands inside, clip the rest."""
+def wrap(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, revolute: np.ndarray) -> np.ndarray:
+    """Revolute joints past a limit wrapped by 2π where that lands inside; the rest as they are."""
     two_pi = 2.0 * np.pi
     q = np.where(revolute & (q > upper) & (q - two_pi >= lower), q - two_pi, q)
-    q = np.where(revolute & (q < lower) & (q + two_pi <= upper), q + two_pi, q)
-    return np.clip(q, lower, upper)
+    return np.where(revolute & (q < lower) & (q + two_pi <= upper), q + two_pi, q)
+
+
+def project(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, revolute: np.ndarray) -> np.ndarray:
+    """Into the limits: wrap revolute joints by 2π where that lands inside, clip the rest."""
+    return np.clip(wrap(q, lower, upper, revolute), lower, upper)
 
 
 class ChainFkJac:

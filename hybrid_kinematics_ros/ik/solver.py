@@ -368,15 +368,6 @@ class IKSolver:
             if found is not None:
                 return self._singular(found)
         else:
-            if self.closed_form is not None and not len(closed):
-                # every exact branch past a joint limit: near a singularity the hybrid solution can lie within the
-                # limits on one of their valleys (a UR10 with its wrist straight next to q3 = -2.8), searched
-                # before the classical stage, whose nearest point within the limits the fixed point then left
-                # as beyond its branch's reach, and LM restarts found the solution after 0.1-0.6 s
-                past = self.closed_form.past_limits(target, seed)
-                found = self._valley(target, past[0], start, deadline, stats) if len(past) else None
-                if found is not None:
-                    return self._singular(found)
             # closed forms that give no branch within the limits are complete: no restart of the URDF model's LM
             # finds one, and its nearest point within them comes from the first few (a UR10 wrist straight next
             # to its q3 limit: 86 restarts took the half budget the valley search needed)

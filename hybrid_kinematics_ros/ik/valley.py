@@ -52,7 +52,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from hybrid_kinematics_ros.ik.lm import Limits, error6, error6_batch, project, turned
+from hybrid_kinematics_ros.ik.lm import Limits, error6, error6_batch, project, turned, wrap
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 # Each valley is traced from its first point, TRACE_STEP (rad, joint space) apart, one period or from limit to
@@ -122,11 +122,12 @@ def _onto(
 
 
 def _advance(
-    model: HybridModel, pose: np.ndarray, q: np.ndarray, v: np.ndarray
+    model: HybridModel, pose: np.ndarray, q: np.ndarray, v: np.ndarray, limits: Limits
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The next point of the valley of the URDF ``pose`` from its point ``q`` along its weak motion ``v``, and
     the weak motion there: TRACE_STEP on, halved where the valley turns sharply (a Newton step back onto it
-    longer than TURN times the step), up to TURN_HALVINGS times; None where no step short enough keeps to it."""
+    longer than TURN times the step), up to TURN_HALVINGS times; None where no step short enough keeps to it.
+    On ``q``'s turn: the caller wraps it (:func:`~hybrid_kinematics_ros.ik.lm.wrap`)."""
     h = TRACE_STEP
     for _ in range(TURN_HALVINGS + 1):
         x, w, moved = _onto(model, pose, q + h * v, v, v)
@@ -154,10 +155,11 @@ def enter(
     for sign in (1.0, -1.0):
         q, v, left = q0, sign * v0, past(q0)
         for _ in range(TRACE_POINTS):
-            ahead = _advance(model, pose, q, v) if time.perf_counter() < deadline else None
-            if ahead is None or past(ahead[0]) >= left:
+            ahead = _advance(model, pose, q, v, limits) if time.perf_counter() < deadline else None
+            x = None if ahead is None else wrap(ahead[0], *limits)
+            if x is None or past(x) >= left:
                 break
-            (q, v), left = ahead, past(ahead[0])
+            (q, v), left = (x, ahead[1]), past(x)
             if left == 0.0:
                 return q, v
     return None
@@ -186,22 +188,26 @@ def trace(
         for _ in range(TRACE_POINTS):
             if time.perf_counter() > deadline:  # the part traced so far is searched
                 break
-            ahead = _advance(model, pose, q, v)
+            ahead = _advance(model, pose, q, v, limits)
             if ahead is None:  # no step short enough keeps to it: this way ends here
                 break
             x, w = ahead
-            beyond = (x < lower) | (x > upper)
+            # a revolute joint past a limit wrapped by 2π where that lands within them: a joint of a whole turn
+            # (a UR10's ±π) crosses its seam, where the valley goes on (a UR10 target with its wrist straight
+            # next to its q2 and q3 limits: the valley from the branches past them enters as q4 crosses π)
+            wrapped = wrap(x, *limits)
+            beyond = (wrapped < lower) | (wrapped > upper)
             if beyond.any():
                 # a last point on the limit, that joint held there (and settled so): a root between the
                 # last point and the limit is bracketed
                 reach = (np.where(x < lower, lower, upper) - q) / np.where(beyond, x - q, np.inf)
                 first = int(np.argmin(np.where(beyond, reach, np.inf)))
                 if reach[first] > 0.1:  # else the last point is on the limit already
-                    x = np.clip(_onto(model, pose, q + reach[first] * (x - q), eye[first], v)[0], lower, upper)
+                    x = project(_onto(model, pose, q + reach[first] * (x - q), eye[first], v)[0], *limits)
                     points.append(x)
                     motions.append(eye[first])
                 break
-            q, v = x, w
+            q, v = wrapped, w
             points.append(q)
             motions.append(v)
             if len(points) > 2 and np.linalg.norm(turned(q - q0, revolute)) < CLOSED * TRACE_STEP:
@@ -420,7 +426,9 @@ def _starts_along(
         elif time.perf_counter() < deadline:
             _, three, t, r3, jt = touches[k]
             starts.append(_touch(model, target, three, t, r3, jt, limits))
-    return starts
+    # a bracket across a joint's seam (±π, the trace wraps there) is searched on its first end's turn: its root
+    # wrapped back within the limits
+    return [project(q, *limits) for q in starts]
 
 
 def _touch(

@@ -106,8 +106,8 @@ def test_the_solver_answers_wrist_singular_hybrid_targets_within_tolerance(train
 def test_the_traced_valley_keeps_to_the_urdf_continuum(robot):
     """At q5 = 0 the solutions of a UR10 (joints 2, 3, 4 and 6 parallel) and of an RX160 (joints 4 and 6
     aligned) form a continuum. The trace keeps to it: every point reaches the start's URDF pose in the five
-    directions the Jacobian keeps, no step is much longer than TRACE_STEP (a closed valley's seam: up to
-    1.75 of it), and every point lies within the limits. On the UR10, where the wrist circle crosses the
+    directions the Jacobian keeps, no step is much longer than TRACE_STEP up to whole turns (a closed valley's
+    seam: up to 1.75 of it), and every point lies within the limits. On the UR10, where the wrist circle crosses the
     arm's reach, the continuum passes the stretched elbow and turns back in every joint: q3 changes sign
     along it, which a grid over any one joint cannot follow."""
     chain = load_robot_config(robot).chain
@@ -127,8 +127,9 @@ def test_the_traced_valley_keeps_to_the_urdf_continuum(robot):
             u = np.linalg.svd(model.fk_and_jacobian_single(p, analytic=True)[1])[0]
             assert np.abs(u[:, :5].T @ error6(pose, model.fk_single(p, analytic=True))).max() < 1e-2
         steps = np.diff(np.vstack([points, points[:1]]) if closed else points, axis=0)
-        if closed:  # the seam: the last point comes back next to the start up to whole turns
-            steps[-1] = np.where(limits[2], (steps[-1] + np.pi) % (2 * np.pi) - np.pi, steps[-1])
+        # up to whole turns: the last point of a closed valley comes back next to the start, and a joint of a
+        # whole turn is wrapped where it crosses ±π
+        steps = np.where(limits[2], (steps + np.pi) % (2 * np.pi) - np.pi, steps)
         assert np.linalg.norm(steps, axis=1).max() < 2 * TRACE_STEP  # a seam: up to 1 + CLOSED steps
         assert np.all((points >= limits[0] - 1e-12) & (points <= limits[1] + 1e-12))
         closed_count += closed
@@ -313,3 +314,21 @@ def test_wrist_straight_next_to_a_limit_the_valley_past_it_holds_the_solution(tr
     # valleys, 11 by LM restarts
     assert "lm" not in methods, methods
     assert methods.count("singular valley") >= len(past) // 2, methods
+
+
+def test_the_wrist_continuum_is_traced_across_the_seam_of_a_whole_turn_joint(ur10):
+    """The UR10's q4 and q6 span ±π, a whole turn: the wrist continuum (q5 = 0) from q4 = 2.9 crosses the seam at
+    ±π, where the trace wraps the joint and goes on, so that the valley closes (it stopped at the seam, and a
+    solution across it was found only by LM restarts). Every point lies within the limits."""
+    model = HybridModel.analytic_only(ur10.chain)
+    limits = joint_limits(model.chain)
+    rng = np.random.default_rng(1)
+    closed = 0
+    for _ in range(6):
+        q0 = rng.uniform(0.8 * model.chain.lower, 0.8 * model.chain.upper)
+        q0[3], q0[4] = 2.9, 0.0
+        points, _, whole = trace(model, q0, weak_direction(model, q0)[0], limits)
+        assert np.all((points >= limits[0]) & (points <= limits[1]))
+        assert points[:, 3].min() < -2.0 and points[:, 3].max() > 2.0  # both sides of the seam
+        closed += whole
+    assert closed >= 4, closed  # measured 5 of 6; before: 0, each way ending at ±π
