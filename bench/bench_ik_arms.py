@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.report import table, write_section
-from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
+from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, freeze_heap
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -50,6 +50,7 @@ def chains() -> list[tuple[str, str, Chain]]:
 def measure(chain: Chain, n: int) -> dict:
     model = HybridModel.analytic_only(chain)
     solver = IKSolver(model, IKOptions())
+    freeze_heap()  # as the node does: no full collection of the loaded models inside a timed solve
     lower = np.where(np.isfinite(chain.lower), chain.lower, -np.pi)
     upper = np.where(np.isfinite(chain.upper), chain.upper, np.pi)
     targets = model.fk(np.random.default_rng(11).uniform(lower, upper, (n, chain.dof)))

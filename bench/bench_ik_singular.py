@@ -23,7 +23,7 @@ from scipy.optimize import minimize_scalar
 
 from bench.bench_ik import trained_model
 from bench.report import table, write_section
-from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
+from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, freeze_heap
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -98,6 +98,7 @@ def side_by_side(model: HybridModel, targets: np.ndarray, analytic: bool, option
     if not analytic:
         solvers.append(IKSolver(model, replace(options, valley=False)))
     solvers.append(IKSolver(model, options))
+    freeze_heap()  # as the node does: no full collection of the loaded models inside a timed solve
     figures = [run(solver, targets, analytic) for solver in solvers]
     return [" / ".join(f"{f[k]:{spec}}" for f in figures) for k, spec in enumerate((".2f", ".3f", ".1f", ".3f"))]
 
@@ -138,6 +139,7 @@ def main() -> None:
             targets = model.fk(rng.uniform(model.chain.lower, model.chain.upper, (args.targets, 6)))
             for closed in (False, True):
                 solver = IKSolver(model, replace(options, closed_form=closed))
+                freeze_heap()
                 start = time.perf_counter()
                 found = [
                     len(solver.solve_many(t, max_solutions=8, deadline=time.perf_counter() + 8 * BUDGET_S))

@@ -153,7 +153,8 @@ def test_fold_keeps_each_joint_within_its_limits_nearest_the_seed():
 
 def test_a_branch_past_a_joint_limit_is_clipped_into_the_limits():
     """The UR10's q3 made 0.1 rad past its -2.8 rad limit: that branch is not among the in-limit ones, and
-    ``clipped`` gives it with q3 at the limit and the other joints as they were; in-limit branches stay out."""
+    ``clipped`` gives it with q3 at the limit and the other joints as they were, ``past_limits`` as it is;
+    in-limit branches stay out."""
     chain = load_robot_config("ur10").chain
     ik = AnalyticIK.of(chain)
     rng = np.random.default_rng(4)
@@ -170,6 +171,12 @@ def test_a_branch_past_a_joint_limit_is_clipped_into_the_limits():
         # the others: no copy of them lies within the limits
         for c in clipped:
             assert not any(np.abs(wrapped(b - c)).max() < 1e-9 for b in ik.branches(target, q))
+        # unclipped (the valley search walks from these into the limits): that branch itself, exact on our FK
+        past = ik.past_limits(target, q)
+        assert min(np.abs(wrapped(c - q)).max() for c in past) < 1e-6
+        assert np.all(np.any((past < chain.lower) | (past > chain.upper), axis=1))
+        for c in past:
+            assert np.abs(error6(target, fk.fk_single(chain, c))).max() < 1e-9
 
 
 @pytest.mark.parametrize("q5", [0.0, 1e-4])
