@@ -268,11 +268,10 @@ def test_a_valley_past_a_joint_limit_is_walked_into_the_limits(ur10):
     ``trace``'s points; settling removes the rest) and still singular."""
     model = HybridModel.analytic_only(ur10.chain)
     limits = joint_limits(model.chain)
-    rng = np.random.default_rng(2)
+    q = wrist_singular(model, 20, seed=2)
+    q[:, 2] = np.random.default_rng(2).uniform(-3.05, -2.85, len(q))
     entered = 0
-    for _ in range(20):
-        q0 = rng.uniform(0.8 * model.chain.lower, 0.8 * model.chain.upper)
-        q0[2], q0[4] = rng.uniform(-3.05, -2.85), 0.0
+    for q0 in q:
         v, sigma = weak_direction(model, q0)
         assert sigma < 1e-9
         found = enter(model, q0, v, limits)
@@ -322,11 +321,10 @@ def test_the_wrist_continuum_is_traced_across_the_seam_of_a_whole_turn_joint(ur1
     solution across it was found only by LM restarts). Every point lies within the limits."""
     model = HybridModel.analytic_only(ur10.chain)
     limits = joint_limits(model.chain)
-    rng = np.random.default_rng(1)
+    q = wrist_singular(model, 6, seed=1)
+    q[:, 3] = 2.9
     closed = 0
-    for _ in range(6):
-        q0 = rng.uniform(0.8 * model.chain.lower, 0.8 * model.chain.upper)
-        q0[3], q0[4] = 2.9, 0.0
+    for q0 in q:
         points, _, whole = trace(model, q0, weak_direction(model, q0)[0], limits)
         assert np.all((points >= limits[0]) & (points <= limits[1]))
         assert points[:, 3].min() < -2.0 and points[:, 3].max() > 2.0  # both sides of the seam
