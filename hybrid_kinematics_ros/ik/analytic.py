@@ -197,15 +197,19 @@ class AnalyticIK:
     def past_limits(self, target: np.ndarray, seed: np.ndarray, least_squares: bool = False) -> np.ndarray:
         """IK-Geo's exact answers ``(k, 6)`` (and its least-squares ones with ``least_squares``) that have no copy
         within the limits, unchecked: each joint's copy within them nearest the seed, and where a joint has
-        none, its copy nearest the seed. A hybrid target near a singularity and next to a limit can have its
-        solution within the limits while every exact branch of the URDF model lies past them (a UR10 with its
-        wrist straight next to q3 = -2.8): the valley search walks from these into the limits."""
+        none, its copy nearest the limits (the one past the lower limit or the one past the upper, whichever
+        is nearer; the seed does not choose: a UR10's q3 at -2.9 is 0.1 past its -2.8 limit, its copy at 3.38
+        0.58 past 2.8). A hybrid target near a singularity and next to a limit can have its solution within the
+        limits while every exact branch of the URDF model lies past them (a UR10 with its wrist straight next
+        to q3 = -2.8): the valley search walks from these into the limits."""
         q = np.vstack(self._answers(target) if least_squares else self._answers(target)[:1]).reshape(-1, 6)
         first, last = _turn_range(q, self.lower, self.upper)
         past = (first > last).any(axis=1)
         q, first, last = q[past], first[past], last[past]
-        shift = np.round((seed - q) / TAU)
-        return q + TAU * np.where(first <= last, np.clip(shift, first, last), shift)
+        # no copy within: q + TAU * last lies below the lower limit, q + TAU * first above the upper
+        nearer = np.where(self.lower - (q + TAU * last) <= q + TAU * first - self.upper, last, first)
+        inside = np.clip(np.round((seed - q) / TAU), first, last)
+        return q + TAU * np.where(first <= last, inside, nearer)
 
     def nearest(self, target: np.ndarray, seed: np.ndarray) -> np.ndarray | None:
         """The exact branch within the limits nearest the seed, unchecked (the caller checks it on the model it

@@ -122,12 +122,12 @@ def _onto(
 
 
 def _advance(
-    model: HybridModel, pose: np.ndarray, q: np.ndarray, v: np.ndarray, limits: Limits
+    model: HybridModel, pose: np.ndarray, q: np.ndarray, v: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The next point of the valley of the URDF ``pose`` from its point ``q`` along its weak motion ``v``, and
     the weak motion there: TRACE_STEP on, halved where the valley turns sharply (a Newton step back onto it
     longer than TURN times the step), up to TURN_HALVINGS times; None where no step short enough keeps to it.
-    On ``q``'s turn: the caller wraps it (:func:`~hybrid_kinematics_ros.ik.lm.wrap`)."""
+    On ``q``'s turn: the caller wraps it across a seam (:func:`_across_seams`)."""
     h = TRACE_STEP
     for _ in range(TURN_HALVINGS + 1):
         x, w, moved = _onto(model, pose, q + h * v, v, v)
@@ -135,6 +135,15 @@ def _advance(
             return x, w
         h /= 2
     return None
+
+
+def _across_seams(x: np.ndarray, limits: Limits) -> np.ndarray:
+    """``x`` with each revolute joint whose range is at most a whole turn (a UR10's ±π) wrapped by 2π where it
+    passed a limit and the wrapped value lies within them: the valley goes on across the seam. A joint of a
+    wider range (an RX160's ±270°) is not: its other copy is another problem for the nets, which see raw
+    joint values, and another part of the valley."""
+    lower, upper, revolute = limits
+    return wrap(x, lower, upper, revolute & (upper - lower <= 2.0 * np.pi + 1e-9))
 
 
 def enter(
@@ -155,8 +164,8 @@ def enter(
     for sign in (1.0, -1.0):
         q, v, left = q0, sign * v0, past(q0)
         for _ in range(TRACE_POINTS):
-            ahead = _advance(model, pose, q, v, limits) if time.perf_counter() < deadline else None
-            x = None if ahead is None else wrap(ahead[0], *limits)
+            ahead = _advance(model, pose, q, v) if time.perf_counter() < deadline else None
+            x = None if ahead is None else _across_seams(ahead[0], limits)
             if x is None or past(x) >= left:
                 break
             (q, v), left = (x, ahead[1]), past(x)
@@ -188,14 +197,13 @@ def trace(
         for _ in range(TRACE_POINTS):
             if time.perf_counter() > deadline:  # the part traced so far is searched
                 break
-            ahead = _advance(model, pose, q, v, limits)
+            ahead = _advance(model, pose, q, v)
             if ahead is None:  # no step short enough keeps to it: this way ends here
                 break
             x, w = ahead
-            # a revolute joint past a limit wrapped by 2π where that lands within them: a joint of a whole turn
-            # (a UR10's ±π) crosses its seam, where the valley goes on (a UR10 target with its wrist straight
-            # next to its q2 and q3 limits: the valley from the branches past them enters as q4 crosses π)
-            wrapped = wrap(x, *limits)
+            # a joint of a whole turn crosses its seam (a UR10 target with its wrist straight next to its q2 and
+            # q3 limits: the valley from the branches past them enters the limits as q4 crosses π)
+            wrapped = _across_seams(x, limits)
             beyond = (wrapped < lower) | (wrapped > upper)
             if beyond.any():
                 # a last point on the limit, that joint held there (and settled so): a root between the

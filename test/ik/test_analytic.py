@@ -171,9 +171,11 @@ def test_a_branch_past_a_joint_limit_is_clipped_into_the_limits():
         # the others: no copy of them lies within the limits
         for c in clipped:
             assert not any(np.abs(wrapped(b - c)).max() < 1e-9 for b in ik.branches(target, q))
-        # unclipped (the valley search walks from these into the limits): that branch itself, exact on our FK
-        past = ik.past_limits(target, q)
-        assert min(np.abs(wrapped(c - q)).max() for c in past) < 1e-6
+        # unclipped (the valley search walks from these into the limits): that branch itself, q3 0.1 past its
+        # lower limit rather than 0.58 past the upper one, whatever the seed; exact on our FK
+        for seed in (q, np.r_[q[:2], 2.0, q[3:]]):
+            past = ik.past_limits(target, seed)
+            assert min(np.abs(c - q).max() for c in past) < 1e-6
         assert np.all(np.any((past < chain.lower) | (past > chain.upper), axis=1))
         for c in past:
             assert np.abs(error6(target, fk.fk_single(chain, c))).max() < 1e-9

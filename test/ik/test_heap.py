@@ -23,13 +23,14 @@ def test_the_loaded_model_is_frozen_and_later_garbage_still_collected(trained):
         assert frozen > 10_000  # torch and the model's objects
         # what a full collection still walks: a small part of the heap
         assert len(gc.get_objects()) < 0.2 * frozen
-        # a cycle made afterwards (as a request makes them) is collected as before
+        # a cycle made afterwards (as a request makes them) is collected as before, by the collector's own
+        # young-generation pass that a request's allocations set off
         cycle = Cyclic()
         cycle.me = cycle
         gone = weakref.ref(cycle)
         del cycle
-        gc.collect()
-        assert gone() is None
+        allocated = [[] for _ in range(5 * gc.get_threshold()[0])]
+        assert gone() is None and allocated
         # a second call (a reload) freezes what is held now, once: the count does not pile up
         freeze_heap()
         assert abs(gc.get_freeze_count() - frozen) < 0.1 * frozen
