@@ -139,7 +139,9 @@ def freeze_heap() -> None:
     and its solver are loaded, and again after a reload (what was frozen before is collected first). torch and
     a model leave some 330,000 objects on the heap, and a full collection walks every one: 140 ms, inside
     whichever request's allocations trigger it (an RX160 solve answered after 141 ms of its 50 ms budget, about
-    one request in 2,500). Frozen, they are never walked again; what requests allocate is collected as before."""
+    one request in 2,500). Frozen, they are never walked again; what requests allocate is collected as before.
+    A reload pays one such collection (holding the interpreter lock, so the node's other services wait for it)
+    instead of a request."""
     gc.unfreeze()
     gc.collect()
     gc.freeze()
