@@ -98,7 +98,6 @@ def side_by_side(model: HybridModel, targets: np.ndarray, analytic: bool, option
     if not analytic:
         solvers.append(IKSolver(model, replace(options, valley=False)))
     solvers.append(IKSolver(model, options))
-    freeze_heap()  # as the node does: no full collection of the loaded models inside a timed solve
     figures = [run(solver, targets, analytic) for solver in solvers]
     return [" / ".join(f"{f[k]:{spec}}" for f in figures) for k, spec in enumerate((".2f", ".3f", ".1f", ".3f"))]
 
@@ -129,6 +128,7 @@ def main() -> None:
         for robot in ("ur10", "rx160"):
             model = trained_model(robot, models, args.train_minutes)
             urdf = HybridModel.analytic_only(model.chain)
+            freeze_heap()  # as the node does: no full collection of the loaded models inside a timed solve
             family = IKSolver(urdf, options).path
             for label, q in cases(model.chain, args.targets, rng).items():
                 for kind, m, analytic in (("hybrid", model, False), ("URDF", urdf, True)):
@@ -139,7 +139,6 @@ def main() -> None:
             targets = model.fk(rng.uniform(model.chain.lower, model.chain.upper, (args.targets, 6)))
             for closed in (False, True):
                 solver = IKSolver(model, replace(options, closed_form=closed))
-                freeze_heap()
                 start = time.perf_counter()
                 found = [
                     len(solver.solve_many(t, max_solutions=8, deadline=time.perf_counter() + 8 * BUDGET_S))
@@ -150,6 +149,7 @@ def main() -> None:
             counts.append([robot, *branch_counts(urdf, 1000)])
         # TRAC-IK's protocol on the UR10's URDF model
         trac_model = HybridModel.analytic_only(load_robot_config("ur10").chain)
+        freeze_heap()
         q = np.random.default_rng(5).uniform(trac_model.chain.lower, trac_model.chain.upper, (10_000, 6))
         trac = side_by_side(trac_model, trac_model.fk(q), True, IKOptions(timeout_s=0.005))
     head = [

@@ -310,7 +310,6 @@ def valley_starts(
     if len(limits[2]) != 6:
         return None
     rows = np.atleast_2d(q_near)
-    rows = rows[[not any(np.array_equal(q, r) for r in rows[:i]) for i, q in enumerate(rows)]]  # each row once
     weak = [weak_direction(model, q) for q in rows]
     singular = [(q, v) for q, (v, sigma) in zip(rows, weak, strict=True) if sigma <= NEAR_SINGULAR]
     if not singular:

@@ -282,11 +282,11 @@ def test_a_valley_past_a_joint_limit_is_walked_into_the_limits(ur10):
         if found is None:
             continue
         entered += 1
-        q, w = found
-        assert abs(w @ weak_direction(model, q)[0]) > 0.99  # the weak motion there, up to its sign
-        e = error6(model.fk_single(q0), model.fk_single(q))
+        inside, w = found
+        assert abs(w @ weak_direction(model, inside)[0]) > 0.99  # the weak motion there, up to its sign
+        e = error6(model.fk_single(q0), model.fk_single(inside))
         assert np.linalg.norm(e[:3]) < 1e-4 and np.linalg.norm(e[3:]) < 1e-6, e
-        assert weak_direction(model, q)[1] < 1e-6
+        assert weak_direction(model, inside)[1] < 1e-6
     assert entered >= 10, entered  # measured 17 of 20
 
 
