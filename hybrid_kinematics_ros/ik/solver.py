@@ -130,6 +130,11 @@ POLISH_ITERATIONS = 12  # LM steps on a least-squares answer beyond a fold (6-9 
 # axis 1: 0.019 mm after its branch's 16 rounds, solved by LM in 1.7 ms, where 1e-2 left it to other branches'
 # LM at 50-97 ms: 5,000 random targets, 1 miss at 50 ms to 0, the 18 near-singular cases unchanged, paired)
 NEAR_MISS_MM = 5e-2
+# Starts this near each other (rad, every joint) give the same fixed point and the same LM run, which a solve does
+# not repeat: the closed forms' nearest branch and its polished copy differ by 1e-8 to 2e-6 rad, and two branches
+# that merge at a fold (an RX160's elbow stretched) end their fixed points at the same point to 1e-10 rad (5,000
+# random RX160 targets: 7 of the 11 solved in 4-7 ms ran the same LM twice, 1-2 ms each).
+SAME_START_RAD = 1e-5
 SINGULAR = 1e-6  # the URDF Jacobian's smallest singular value (m or rad per rad) at a singular target's answer
 OTHER_BRANCH = "on another branch than the seed's, which found no solution within the budget"  # said with it
 
@@ -145,6 +150,11 @@ def freeze_heap() -> None:
     gc.unfreeze()
     gc.collect()
     gc.freeze()
+
+
+def _same_start(q: np.ndarray, starts: list[np.ndarray]) -> bool:
+    """``q`` lies within SAME_START_RAD of one of ``starts`` in every joint."""
+    return any(np.abs(q - s).max() < SAME_START_RAD for s in starts)
 
 
 def pose_problem(target: np.ndarray) -> str | None:
@@ -343,6 +353,7 @@ class IKSolver:
         restarted: list[np.ndarray] = []  # the weak-direction restarts run already (3.), none twice
         urdf_only = analytic or not self.model.is_corrected
         missed = None  # the nearest branch's fixed point that missed: the search below starts from it again
+        lm_starts: list[np.ndarray] = []  # where a near miss's LM has run (_near_miss_lm)
         if urdf_only:
             found = self._nearest_exact(target, seed, analytic, start, stats)
         else:
@@ -396,11 +407,11 @@ class IKSolver:
         reserve = None
         refine = None
         if len(closed) > 1:  # the seed's fixed point first: if it fails, the other branches' wait in reserve
-            if missed is not None and np.array_equal(missed[0], q0):  # the same fixed point: its miss, not 2-3 ms more
+            if missed is not None and _same_start(missed[0], [q0]):  # the same fixed point: its miss, not 1-3 ms more
                 first = missed[1]
             else:
                 first = self._from_branch(target, q0, analytic, start, deadline, stats, origin, self._fixed_point_only)
-            first = self._near_miss_lm(target, first, analytic, start, deadline, origin)
+            first = self._near_miss_lm(target, first, analytic, start, deadline, origin, lm_starts)
             if first.success:
                 return self._singular(first)
             # the rest of the seed's branch goes on from the fixed point's answer, which it does not repeat
@@ -412,7 +423,9 @@ class IKSolver:
             # valley)
             beyond = first.stats.get("beyond_branch_reach")
             if beyond:
-                reserve = self._reserve(target, first, closed_q, closed, analytic, start, deadline, stats, origin)
+                reserve = self._reserve(
+                    target, first, closed_q, closed, analytic, start, deadline, stats, origin, lm_starts
+                )
             if reserve is None:
                 valley = functools.partial(self._valley_only, nearest=closed_q)
                 found = self._from_branch(target, q0, analytic, start, deadline, stats, origin, valley)
@@ -420,7 +433,9 @@ class IKSolver:
                     return self._singular(found)
             refine = functools.partial(self._refine_branch, fixed=first, valley=False)
             if not beyond:
-                reserve = self._reserve(target, first, closed_q, closed, analytic, start, deadline, stats, origin)
+                reserve = self._reserve(
+                    target, first, closed_q, closed, analytic, start, deadline, stats, origin, lm_starts
+                )
         best = self._from_branch(target, q0, analytic, start, deadline, stats, origin, refine)
         if best.success:
             return self._singular(best)
@@ -577,6 +592,7 @@ class IKSolver:
         deadline: float,
         stats: dict,
         origin: np.ndarray | None,
+        lm_starts: list[np.ndarray],
     ) -> IKResult | None:
         """The seed's branch ``q0`` was not solved by its fixed point (``first``; near a wrist singularity it
         wanders among the members of a continuum): the other closed-form branches' fixed points, PROBE_ROUNDS
@@ -586,7 +602,7 @@ class IKSolver:
         offsets). Then, where fixed points stalled beyond their branch's reach (an elbow
         stretched to the URDF model's reach), the copies of those branches shifted by 2π, the nearest miss's
         first: the nets see raw joint values, so another copy can reach micrometres further. The first that
-        solves waits in reserve while the seed's branch gets the budget."""
+        solves waits in reserve while the seed's branch gets the budget. ``lm_starts``: :meth:`_near_miss_lm`'s."""
         tried = [q0]
         stalled = [(first.position_error_mm, q0)] if first.stats.get("beyond_branch_reach") else []
         probe = functools.partial(self._fixed_point_only, rounds=PROBE_ROUNDS)  # converging ones take 3
@@ -600,7 +616,7 @@ class IKSolver:
                 result = self._from_branch(
                     target, result.q, analytic, start, deadline, stats, origin, self._fixed_point_only
                 )
-            result = self._near_miss_lm(target, result, analytic, start, deadline, origin)
+            result = self._near_miss_lm(target, result, analytic, start, deadline, origin, lm_starts)
             if result.success:
                 return result
             if result.stats.get("beyond_branch_reach"):
@@ -623,15 +639,18 @@ class IKSolver:
         start: float,
         deadline: float,
         origin: np.ndarray | None,
+        starts: list[np.ndarray],
     ) -> IKResult:
         """A fixed point's ``result`` that missed by less than NEAR_MISS_MM has stalled at a fold of the URDF model
         (or where its Jacobian loses rank, next to the solution), where its rounds only halve the error: LM on the
         hybrid model from there, which finishes in a few steps. The seed's own fixed point gets it too: a UR10
         target with the wrist centre on axis 1 stalled 4e-4 mm away, 7 µrad from the solution, which LM reached
         in 1.4 ms, and the search went on to the other branches' copies and valleys (solved at 50-110 ms).
-        ``result`` itself otherwise."""
-        if result.success or result.position_error_mm >= NEAR_MISS_MM:
+        ``result`` itself otherwise, and where LM ran from the same start already (``starts``, the solve's: added
+        to)."""
+        if result.success or result.position_error_mm >= NEAR_MISS_MM or _same_start(result.q, starts):
             return result
+        starts.append(result.q)
         with self.model.approaching(self._arrival(origin, result.q)):
             q, *_ = self.refiner.unbounded(target, result.q, deadline)
             return self.result(q, target, analytic, start, dict(result.stats, hybrid_lm=1))
