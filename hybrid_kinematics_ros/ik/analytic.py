@@ -38,6 +38,10 @@ MEET_M = 1e-6
 CHECK_M, CHECK_RAD = 1e-5, 1e-5
 POLISH = 1e-10  # (m and rad) a branch further off gets one Newton step on our FK
 TAU = 2 * np.pi
+# Up to this many branches are checked one by one on the single-configuration path: a batch's FK, errors and SVD
+# cost ~240 µs for any few rows, a row alone 30-50 µs (RX160, 2 / 4 / 5 rows: 59-97 / 156-193 / 204 against
+# 235-267 µs); a near-singular target's search asks for its branches twice.
+SINGLE_CHECKS = 4
 
 # Families with closed forms in IK-Geo, most specific first (its search-based ones find nothing on a UR10).
 FAMILIES = (
@@ -243,6 +247,9 @@ class AnalyticIK:
         rank check takes it; a batch's are not kept up to date after the polish, so None)."""
         if len(q) == 1:  # the single-configuration path: a batch of one costs several times more
             return self._checked_one(q, target)
+        if 1 < len(q) <= SINGLE_CHECKS:
+            rows = [self._checked_one(q[i : i + 1], target) for i in range(len(q))]
+            return np.vstack([r[0] for r in rows]), np.vstack([r[1] for r in rows]), None
         if not len(q):
             return q, np.empty((0, 6)), None
         T, jac = fk.fk_and_jacobian(self.chain, q)

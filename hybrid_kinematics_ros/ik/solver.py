@@ -82,7 +82,7 @@ from hybrid_kinematics_ros.ik.analytic import AnalyticIK, turns
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.lm import ChainFkJac, error6, joint_limits, lm_solve
 from hybrid_kinematics_ros.ik.refine import HybridRefiner
-from hybrid_kinematics_ros.ik.valley import valley_starts
+from hybrid_kinematics_ros.ik.valley import valley_starts, warm_up
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.model import approach
 from hybrid_kinematics_ros.model.hybrid import COMPILED_ROWS, HybridModel
@@ -248,6 +248,8 @@ class IKSolver:
         if self.closed_form is not None:
             self.solve(target, self._mid)
             self._newton_step(self._mid, np.zeros(6))  # a solve may end before its chord steps
+            if model.chain.dof == 6:  # and the valley trace's step (valley.warm_up)
+                warm_up(model, self._mid)
 
     def branches(self, target: np.ndarray, seed: np.ndarray) -> np.ndarray:
         """The closed forms' branches within the limits, nearest the seed first; none without closed forms."""

@@ -52,7 +52,8 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from hybrid_kinematics_ros.ik.lm import Limits, error6, error6_batch, project, turned, wrap
+from hybrid_kinematics_ros.ik import valley_kernel
+from hybrid_kinematics_ros.ik.lm import Limits, error6_batch, project, turned, wrap
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 # Each valley is traced from its first point, TRACE_STEP (rad, joint space) apart, one period or from limit to
@@ -113,12 +114,11 @@ def _onto(
     model: HybridModel, pose: np.ndarray, x: np.ndarray, border: np.ndarray, v: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """One Newton step from ``x`` back onto the valley of the URDF ``pose``, along no ``border``: the point, the
-    weak motion there and the step's length. With J's weak motion w, (JᵀJ + v vᵀ) w = v (w·v): the bordered
-    matrix turns v into w, and Jᵀe has next to nothing along w (J's smallest singular value times the error's
-    lost part)."""
-    T, J = model.fk_and_jacobian_single(x, analytic=True)
-    step, w = np.linalg.solve(J.T @ J + np.outer(border, border), np.stack([J.T @ error6(pose, T), v], 1)).T
-    return x + step, w / np.linalg.norm(w), float(np.linalg.norm(step))
+    weak motion there and the step's length (inf where the bordered matrix is singular). With J's weak motion
+    w, (JᵀJ + v vᵀ) w = v (w·v): the bordered matrix turns v into w, and Jᵀe has next to nothing along w (J's
+    smallest singular value times the error's lost part). Compiled (:mod:`valley_kernel`)."""
+    arrays = (np.ascontiguousarray(a, dtype=float) for a in (pose, x, border, v))
+    return valley_kernel.onto(*arrays, *model.chain.kernel_operands)
 
 
 def _advance(
@@ -127,14 +127,18 @@ def _advance(
     """The next point of the valley of the URDF ``pose`` from its point ``q`` along its weak motion ``v``, and
     the weak motion there: TRACE_STEP on, halved where the valley turns sharply (a Newton step back onto it
     longer than TURN times the step), up to TURN_HALVINGS times; None where no step short enough keeps to it.
-    On ``q``'s turn: the caller wraps it across a seam (:func:`_across_seams`)."""
-    h = TRACE_STEP
-    for _ in range(TURN_HALVINGS + 1):
-        x, w, moved = _onto(model, pose, q + h * v, v, v)
-        if moved < TURN * h:
-            return x, w
-        h /= 2
-    return None
+    On ``q``'s turn: the caller wraps it across a seam (:func:`_across_seams`). Compiled (:mod:`valley_kernel`)."""
+    q, v = (np.ascontiguousarray(a, dtype=float) for a in (q, v))
+    x, w, ok = valley_kernel.advance(pose, q, v, TRACE_STEP, TURN, TURN_HALVINGS, *model.chain.kernel_operands)
+    return (x, w) if ok else None
+
+
+def warm_up(model: HybridModel, q: np.ndarray) -> None:
+    """Loads the compiled trace steps (:mod:`valley_kernel`'s two entry points) with a step from ``q``, so that a
+    first search does not (loading them from numba's cache took 11-20 ms, in a first RX160 search)."""
+    pose, along = model.fk_single(q, analytic=True), np.eye(len(q))[0]
+    _advance(model, pose, q, along)
+    _onto(model, pose, q, along, along)
 
 
 def _across_seams(x: np.ndarray, limits: Limits) -> np.ndarray:

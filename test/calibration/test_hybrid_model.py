@@ -153,6 +153,25 @@ def test_the_compiled_nets_jacobian_is_autograds(act, turn):
         np.testing.assert_allclose(value, net(torch.tensor(q[None]))[0].detach().numpy(), atol=1e-9)
 
 
+@pytest.mark.parametrize("members", [1, 3])
+def test_a_batch_through_the_compiled_net_is_its_rows_and_torchscripts(members):
+    """A batch through the compiled net (the path of up to COMPILED_ROWS rows): each row's own residual, and
+    TorchScript's, ensembles included."""
+    torch.manual_seed(1)
+    lower, upper = np.array([-3.0, -2.0, -2.5, -3.0, -2.0, -3.0]), np.array([3.0, 1.0, 2.5, 3.0, 2.0, 3.0])
+    scale = np.array([2e-3, 1e-3, 3e-3])
+    net = nets.ResidualNet("mlp:64x3:silu", lower, upper, np.full(3, 1e-4), scale, True, members=members)
+    net.eval()
+    fast = FastResidual.from_module(torch.jit.script(net))
+    assert fast is not None and fast.members == members
+    q = np.random.default_rng(5).uniform(lower, upper, (40, 6))
+    batch = fast(q)
+    rows = np.array([fast(row) for row in q])
+    np.testing.assert_allclose(batch, rows, atol=1e-6 * np.abs(rows).max(), rtol=0)  # float32 sums, in any order
+    np.testing.assert_allclose(batch, net(torch.tensor(q)).detach().numpy(), atol=1e-9, rtol=0)
+    assert np.abs(batch).max() > 1e-4  # the residuals are not just the mean
+
+
 def test_one_vectors_left_jacobian_is_the_batchs():
     w = np.concatenate([np.random.default_rng(4).normal(size=(12, 3)) * s for s in (1e-10, 1e-4, 1.0, 3.0)])
     np.testing.assert_allclose([left_jacobian_so3(v) for v in w], left_jacobian_so3(w), atol=1e-15)

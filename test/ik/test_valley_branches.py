@@ -151,7 +151,7 @@ def test_a_branch_its_probe_leaves_undecided_gets_its_whole_fixed_point(rx160_mo
         if not reachable:
             continue
         checked += 1
-        found = solver._reserve(target, first, closed[0], closed, False, start, start + 5.0, {}, None)
+        found = solver._reserve(target, first, closed[0], closed, False, start, start + 5.0, {}, None, [])
         assert found is not None and found.success
         assert max(hybrid_errors(rx160_model, found.q, target)) < 1e-4
     assert checked >= 3, checked  # measured 7 of these 24 targets (the old rule found none of them)
