@@ -389,13 +389,13 @@ def _starts_along(
     deadline: float,
     tol: float,
     at: tuple[np.ndarray, np.ndarray],
-) -> list[np.ndarray]:
+) -> Iterator[np.ndarray]:
     """The starts along one traced valley ``path`` (:func:`trace`), whose points' errors and Jacobians are
-    ``at``: the crossings nearest ``near`` first, then the double roots."""
+    ``at``: the crossings nearest ``near`` first, then the double roots; lazily, as the caller asks."""
     revolute = limits[2]
     points, motions, closed = path
     if time.perf_counter() > deadline:
-        return []
+        return
     joint = np.argmax(np.abs(motions), axis=1)
     Q, e, J = settle(model, target, points.copy(), joint, limits, POINT_STEPS, deadline, at)
     settled = along(e, J, joint)[1] < SETTLED  # a point whose free joints could not settle brackets nothing
@@ -429,17 +429,28 @@ def _starts_along(
     doubles = sorted(range(len(touches)), key=lambda i: np.linalg.norm(Q[touches[i][0]] - near))
     candidates = [*(("cross", k) for k in crossings), *(("touch", i) for i in doubles)][:MAX_ROOTS]
     cross = np.array([k for kind, k in candidates if kind == "cross"], dtype=int)
-    roots = iter(_roots(model, target, Q[a[cross]], qb[cross], ra[cross], rb[cross], jb[cross], limits, deadline, tol))
-    starts = []
+
+    def refined() -> Iterator[np.ndarray]:
+        # the first crossing alone (a row alone takes the single-pose path: an RX160 target's four brackets at once
+        # took 3.6 ms, and the first held the solution), the others together when the caller asks for them
+        for part in (cross[:1], cross[1:]):
+            if len(part):
+                yield from _roots(
+                    model, target, Q[a[part]], qb[part], ra[part], rb[part], jb[part], limits, deadline, tol
+                )
+
+    roots = refined()
     for kind, k in candidates:
         if kind == "cross":
-            starts.append(next(roots))
+            q = next(roots)
         elif time.perf_counter() < deadline:
             _, three, t, r3, jt = touches[k]
-            starts.append(_touch(model, target, three, t, r3, jt, limits))
-    # a bracket across a joint's seam (±π, the trace wraps there) is searched on its first end's turn: its root
-    # wrapped back within the limits
-    return [project(q, *limits) for q in starts]
+            q = _touch(model, target, three, t, r3, jt, limits)
+        else:
+            continue
+        # a bracket across a joint's seam (±π, the trace wraps there) is searched on its first end's turn: its
+        # root wrapped back within the limits
+        yield project(q, *limits)
 
 
 def _touch(
