@@ -627,7 +627,7 @@ class IKSolver:
             misses.append(result)
             if result.stats.get("beyond_branch_reach"):
                 stalled.append((result.position_error_mm, q))
-        for result in misses:  # after every branch's fixed point (module docstring of _reserve)
+        for result in [m for m in misses if not m.stats.get("beyond_branch_reach")]:  # after every fixed point
             result = self._near_miss_lm(target, result, analytic, start, deadline, origin, lm_starts)
             if result.success:
                 return result
@@ -639,6 +639,10 @@ class IKSolver:
                 result = self._from_branch(target, q, analytic, start, deadline, stats, origin, self._fixed_point_only)
                 if result.success:
                     return result
+        for result in [m for m in misses if m.stats.get("beyond_branch_reach")]:
+            result = self._near_miss_lm(target, result, analytic, start, deadline, origin, lm_starts)
+            if result.success:
+                return result
         return None
 
     def _near_miss_lm(
