@@ -60,3 +60,104 @@ def advance(pose, q, v, step, turn, halvings, generators, revolute, post, axes):
             return x, w, True
         h /= 2.0
     return q.copy(), v.copy(), False
+
+
+@numba.njit(cache=True, nogil=True)
+def _det(a):
+    """The determinant of a small square ``a`` (overwritten) by elimination with partial pivoting."""
+    n = a.shape[0]
+    det = 1.0
+    for k in range(n):
+        p = k
+        for i in range(k + 1, n):
+            if abs(a[i, k]) > abs(a[p, k]):
+                p = i
+        if a[p, k] == 0.0:
+            return 0.0
+        if p != k:
+            for c in range(n):
+                a[k, c], a[p, c] = a[p, c], a[k, c]
+            det = -det
+        det *= a[k, k]
+        for i in range(k + 1, n):
+            f = a[i, k] / a[k, k]
+            for c in range(k, n):
+                a[i, c] -= f * a[k, c]
+    return det
+
+
+@numba.njit(cache=True, nogil=True)
+def settle_step(target, T, q, j, lower, upper, generators, revolute, post, axes):
+    """``valley.settle``'s chord step of one row: the joints ``q (n,)`` but ``j`` moved by the least-squares step
+    that removes the error of the pose ``T`` (the hybrid pose at ``q``) to ``target`` on the URDF Jacobian's
+    other columns, each wrapped by 2π where it passed a limit and that lands inside (``lm.project``), then
+    clipped; ``q`` itself where the step's matrix is singular."""
+    n = q.shape[0]
+    J = fk_kernel.tip_pose_and_jacobian(q, generators, revolute, post, axes)[1]
+    e = np.empty(6)
+    lm_kernel.error6(target, T, e)
+    cols = np.empty(n - 1, dtype=np.int64)
+    m = 0
+    for c in range(n):
+        if c != j:
+            cols[m] = c
+            m += 1
+    a = np.empty((m, m))
+    b = np.empty(m)
+    for i in range(m):
+        for k in range(m):
+            total = 1e-12 if i == k else 0.0
+            for r in range(6):
+                total += J[r, cols[i]] * J[r, cols[k]]
+            a[i, k] = total
+        total = 0.0
+        for r in range(6):
+            total += J[r, cols[i]] * e[r]
+        b[i] = total
+    out = q.copy()
+    if not lm_kernel.solve(a, b):
+        return out
+    two_pi = 2.0 * math.pi
+    for i in range(m):
+        c = cols[i]
+        v = q[c] + b[i]
+        if revolute[c] and v > upper[c] and v - two_pi >= lower[c]:
+            v -= two_pi
+        if revolute[c] and v < lower[c] and v + two_pi <= upper[c]:
+            v += two_pi
+        out[c] = min(max(v, lower[c]), upper[c])
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def along_one(target, T, q, j, generators, revolute, post, axes):
+    """``valley.along`` of one row: the error of the pose ``T`` at ``q`` to ``target`` along the unit normal
+    to the URDF Jacobian's columns but ``j``'s (its signed 5×5 minors, as ``valley._normal``), and the error
+    left across it."""
+    J = fk_kernel.tip_pose_and_jacobian(q, generators, revolute, post, axes)[1]
+    e = np.empty(6)
+    lm_kernel.error6(target, T, e)
+    n = q.shape[0]
+    u = np.empty(6)
+    minor = np.empty((5, 5))
+    for skip in range(6):
+        row = 0
+        for r in range(6):
+            if r == skip:
+                continue
+            col = 0
+            for c in range(n):
+                if c != j:
+                    minor[row, col] = J[r, c]
+                    col += 1
+            row += 1
+        u[skip] = (1.0 if skip % 2 == 0 else -1.0) * _det(minor)
+    norm = max(math.sqrt(np.sum(u * u)), 1e-300)
+    along = 0.0
+    for r in range(6):
+        u[r] /= norm
+        along += u[r] * e[r]
+    across = 0.0
+    for r in range(6):
+        across += (e[r] - along * u[r]) ** 2
+    return along, math.sqrt(across)

@@ -171,3 +171,27 @@ def test_the_first_start_of_the_search_reaches_the_target(rx160_model):
         starts = valley_starts(rx160_model, target, branches, solver.limits, time.perf_counter() + 60.0, TOL_M)
         first += reaches(solver, target, itertools.islice(starts or [], 1))
     assert first >= 4 * TARGETS - 2, first
+
+
+def test_a_solve_runs_no_lm_twice_from_the_same_start(rx160_model, monkeypatch):
+    """At a stretched elbow both elbow branches' fixed points stall at the same point of the fold, where LM on the
+    hybrid model fails: a solve ran that LM from each of them, 1-4 ms apiece (5,000 random RX160 targets: 7 of the
+    11 that took 4-7 ms). LM from a start within SAME_START_RAD of one it has run from is not run again."""
+    solver = IKSolver(rx160_model, IKOptions(timeout_s=0.05))
+    starts: list[np.ndarray] = []
+    unbounded = solver.refiner.unbounded
+
+    def recorded(target, q, deadline, chord_first=False):
+        starts.append(np.array(q, dtype=float))
+        return unbounded(target, q, deadline, chord_first)
+
+    monkeypatch.setattr(solver.refiner, "unbounded", recorded)
+    runs = repeated = 0
+    q = cases(rx160_model.chain, 4 * TARGETS, np.random.default_rng(3))["elbow stretched"]
+    for target in rx160_model.fk(q):
+        starts.clear()
+        solver.solve(target)
+        runs += len(starts)
+        pairs = itertools.combinations(starts, 2)
+        repeated += sum(np.abs(a - b).max() < solver_module.SAME_START_RAD for a, b in pairs)
+    assert runs >= 5 and repeated == 0, (runs, repeated)
