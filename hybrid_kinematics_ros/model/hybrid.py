@@ -48,11 +48,11 @@ from hybrid_kinematics_ros.model.parametric import model_from_manifest
 from hybrid_kinematics_ros.model.range_policy import RANGE_POLICIES
 from hybrid_kinematics_ros.model.referencing import Referencing
 
-# Batches up to this many rows run the nets' compiled evaluators, a row at a time, instead of TorchScript (bench,
-# a UR10 256x3 net: 4 rows 0.06 against 0.13 ms, 16 rows 0.18 against 0.20 ms; a 64x2 net: 16 rows 0.04 against
-# 0.10 ms): the small batches of the IK's valley search and of several solutions, and a service's few
-# configurations.
-COMPILED_ROWS = 16
+# Batches up to this many rows run the nets' compiled evaluators (one matrix product a layer) instead of TorchScript
+# (bench, RX160 and UR10 256x3 nets, both nets, TorchScript on 2 threads: 4 rows 0.07 against 0.23 ms, 16 rows
+# 0.29-0.34 against 0.62-0.76 ms, 64 rows 0.77-0.80 against 0.86-1.04 ms, even at 128): the batches of the IK's
+# valley search (a valley's 20-40 traced points) and of several solutions, and a service's few configurations.
+COMPILED_ROWS = 64
 
 
 def left_jacobian_so3(w: np.ndarray) -> np.ndarray:
