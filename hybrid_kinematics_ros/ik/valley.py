@@ -402,12 +402,55 @@ def _starts_along(
     at: tuple[np.ndarray, np.ndarray],
 ) -> Iterator[np.ndarray]:
     """The starts along one traced valley ``path`` (:func:`trace`), whose points' errors and Jacobians are
-    ``at``: the crossings nearest ``near`` first, then the double roots; lazily, as the caller asks."""
+    ``at``: the crossings nearest ``near`` first, then the double roots; lazily, as the caller asks.
+
+    First the pair of neighbours nearest ``near`` whose unsettled ``r`` changes sign (module docstring, 4.),
+    its two points settled alone: where they still bracket a root, that root's start. Only when the caller asks
+    for more are all the points settled (one chord step of a valley's 20-40 points costs ~0.5 ms a hybrid FK)
+    and the other crossings and the double roots searched."""
     revolute = limits[2]
     points, motions, closed = path
     if time.perf_counter() > deadline:
         return
     joint = np.argmax(np.abs(motions), axis=1)
+    a, b, _, _, _, _, changes = _neighbours(points, *at, closed, revolute)
+    first = None
+    if changes.any():
+        first = min(np.flatnonzero(changes), key=lambda k: np.linalg.norm(points[a[k]] - near))
+        ends = np.array([a[first], b[first]])
+        Q2, e2, J2 = settle(model, target, points[ends], joint[ends], limits, POINT_STEPS, deadline, _at_rows(at, ends))
+        pair = _neighbours(Q2, e2, J2, False, revolute)
+        if (along(e2, J2, joint[ends])[1] < SETTLED).all() and pair[-1][0]:
+            _, _, qb, jb, ra, rb, _ = pair
+            yield project(_roots(model, target, Q2[:1], qb, ra, rb, jb, limits, deadline, tol)[0], *limits)
+        else:
+            first = None  # settled, the pair brackets nothing: the whole valley's search may find it again
+    yield from _all_starts(model, target, path, joint, near, limits, deadline, tol, at, first)
+
+
+def _at_rows(at: tuple[np.ndarray, np.ndarray], rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The errors and Jacobians ``at`` of some of a valley's points."""
+    return at[0][rows], at[1][rows]
+
+
+def _all_starts(
+    model: HybridModel,
+    target: np.ndarray,
+    path: tuple[np.ndarray, np.ndarray, bool],
+    joint: np.ndarray,
+    near: np.ndarray,
+    limits: Limits,
+    deadline: float,
+    tol: float,
+    at: tuple[np.ndarray, np.ndarray],
+    searched: int | None,
+) -> Iterator[np.ndarray]:
+    """:func:`_starts_along` over the whole valley, every point settled: the crossings nearest ``near`` first
+    but the pair ``searched`` already (its index among the neighbours), then the double roots."""
+    revolute = limits[2]
+    points, _, closed = path
+    if time.perf_counter() > deadline:
+        return
     Q, e, J = settle(model, target, points.copy(), joint, limits, POINT_STEPS, deadline, at)
     settled = along(e, J, joint)[1] < SETTLED  # a point whose free joints could not settle brackets nothing
     a, b, qb, jb, ra, rb, changes = _neighbours(Q, e, J, closed, revolute)
@@ -438,7 +481,8 @@ def _starts_along(
     # crossings before the double roots (module docstring, 5.)
     crossings = sorted(np.flatnonzero(crossing), key=lambda k: np.linalg.norm(Q[a[k]] - near))
     doubles = sorted(range(len(touches)), key=lambda i: np.linalg.norm(Q[touches[i][0]] - near))
-    candidates = [*(("cross", k) for k in crossings), *(("touch", i) for i in doubles)][:MAX_ROOTS]
+    candidates = [*(("cross", k) for k in crossings if k != searched), *(("touch", i) for i in doubles)]
+    candidates = candidates[: MAX_ROOTS - (searched is not None)]
     cross = np.array([k for kind, k in candidates if kind == "cross"], dtype=int)
 
     def refined() -> Iterator[np.ndarray]:

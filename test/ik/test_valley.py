@@ -10,6 +10,7 @@ import time
 import numpy as np
 import pytest
 
+from hybrid_kinematics_ros.ik import valley as valley_module
 from hybrid_kinematics_ros.ik.lm import error6, joint_limits
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.ik.valley import (
@@ -84,6 +85,44 @@ def test_a_start_a_radian_along_the_valley_finds_a_hybrid_solution(trained):
     # measured 8-9 of 11 through the valley; LM through the hybrid model alone from the same answers: 0 of 11
     assert found >= 0.6 * searched, (found, searched)
     assert lm_short >= searched // 2, (lm_short, searched)
+
+
+def test_a_valleys_first_start_settles_two_points_and_the_next_the_whole_valley(trained, monkeypatch):
+    """The first start of a valley comes from the pair of neighbours nearest the seed whose unsettled r changes
+    sign, its two points settled alone; the caller asking for the next start settles the valley's 20-40 points
+    (~0.5 ms a chord step). The first starts solve as the whole valley's first did (8-9 of 11)."""
+    _, model, _, _ = trained
+    limits = joint_limits(model.chain)
+    solver = IKSolver(model, GENEROUS)
+    rows: list[int] = []
+    settle_all = valley_module.settle
+
+    def counted(model, target, Q, *args, **kwargs):
+        rows.append(len(Q))
+        return settle_all(model, target, Q, *args, **kwargs)
+
+    monkeypatch.setattr(valley_module, "settle", counted)
+    paired = found = whole = 0
+    for q_star in wrist_singular(model, 12, seed=3):
+        target = model.fk_single(q_star)
+        v, _ = weak_direction(model, q_star)
+        start = solver.classical(target, q_star + 1.0 / np.abs(v).max() * v, time.perf_counter() + 60.0)[0]
+        starts = valley_starts(model, target, start, limits, time.perf_counter() + 60.0, TOL_M)
+        if starts is None:
+            continue
+        rows.clear()
+        first = next(starts, None)
+        if first is None or rows != [2]:  # no pair's sign changed before settling: the whole valley at once
+            continue
+        paired += 1
+        q, _, _ = solver.refiner.unbounded(target, first, time.perf_counter() + 60.0)
+        position, rotation = hybrid_errors(model, q, target)
+        found += position < 1e-4 and rotation < 1e-4
+        next(starts, None)
+        whole += max(rows) > 2
+    assert paired >= 6, paired
+    assert found >= 0.6 * paired, (found, paired)
+    assert whole >= paired // 2, (whole, paired)  # asked for more, the valley's points are settled
 
 
 def test_no_search_away_from_a_singularity(trained):
