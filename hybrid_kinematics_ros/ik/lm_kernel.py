@@ -65,20 +65,29 @@ def _project(q, lower, upper, revolute):
 
 
 @numba.njit(cache=True, nogil=True)
+def pivot(a, k):
+    """Partial pivoting of a small square ``a`` at column ``k``: row ``k`` swapped with the row at or below it
+    whose entry in that column is largest in magnitude; that row's index."""
+    p = k
+    for i in range(k + 1, a.shape[0]):
+        if abs(a[i, k]) > abs(a[p, k]):
+            p = i
+    if p != k:
+        for j in range(a.shape[1]):
+            a[k, j], a[p, j] = a[p, j], a[k, j]
+    return p
+
+
+@numba.njit(cache=True, nogil=True)
 def solve(a, b):
     """``a x = b`` for a small square ``a`` by Gaussian elimination with partial pivoting (both overwritten);
     False where a pivot is exactly zero."""
     n = b.shape[0]
     for k in range(n):
-        p = k
-        for i in range(k + 1, n):
-            if abs(a[i, k]) > abs(a[p, k]):
-                p = i
-        if a[p, k] == 0.0:
+        p = pivot(a, k)
+        if a[k, k] == 0.0:
             return False
         if p != k:
-            for j in range(n):
-                a[k, j], a[p, j] = a[p, j], a[k, j]
             b[k], b[p] = b[p], b[k]
         for i in range(k + 1, n):
             f = a[i, k] / a[k, k]

@@ -68,16 +68,10 @@ def _det(a):
     n = a.shape[0]
     det = 1.0
     for k in range(n):
-        p = k
-        for i in range(k + 1, n):
-            if abs(a[i, k]) > abs(a[p, k]):
-                p = i
-        if a[p, k] == 0.0:
-            return 0.0
-        if p != k:
-            for c in range(n):
-                a[k, c], a[p, c] = a[p, c], a[k, c]
+        if lm_kernel.pivot(a, k) != k:
             det = -det
+        if a[k, k] == 0.0:
+            return 0.0
         det *= a[k, k]
         for i in range(k + 1, n):
             f = a[i, k] / a[k, k]
