@@ -346,7 +346,7 @@ def _search(
     branch there) the valley it enters them on (:func:`enter`), if any. A valley whose traced points' errors
     along the lost direction change sign nowhere is searched after the others (module docstring, 4.)."""
     traced: list[np.ndarray] = []
-    later: list[tuple[tuple[np.ndarray, np.ndarray, bool], tuple[np.ndarray, np.ndarray]]] = []
+    later: list[tuple[tuple[np.ndarray, np.ndarray, bool], tuple[np.ndarray, np.ndarray], tuple]] = []
     lower, upper, _ = limits
     for q, v in singular:
         if time.perf_counter() > deadline:
@@ -365,12 +365,13 @@ def _search(
             return
         T, J = _poses_and_jacobians(model, path[0])
         at = (error6_batch(target, T), J)
-        if _neighbours(path[0], *at, path[2], limits[2])[-1].any():
-            yield from _starts_along(model, target, path, near, limits, deadline, tol, at)
+        raw = _neighbours(path[0], *at, path[2], limits[2])
+        if raw[-1].any():
+            yield from _starts_along(model, target, path, near, limits, deadline, tol, at, raw)
         else:
-            later.append((path, at))
-    for path, at in later:
-        yield from _starts_along(model, target, path, near, limits, deadline, tol, at)
+            later.append((path, at, raw))
+    for path, at, raw in later:
+        yield from _starts_along(model, target, path, near, limits, deadline, tol, at, raw)
 
 
 def _neighbours(
@@ -400,25 +401,28 @@ def _starts_along(
     deadline: float,
     tol: float,
     at: tuple[np.ndarray, np.ndarray],
+    raw: tuple[np.ndarray, ...],
 ) -> Iterator[np.ndarray]:
     """The starts along one traced valley ``path`` (:func:`trace`), whose points' errors and Jacobians are
-    ``at``: the crossings nearest ``near`` first, then the double roots; lazily, as the caller asks.
+    ``at`` and whose neighbours there are ``raw`` (:func:`_neighbours`): the crossings nearest ``near`` first,
+    then the double roots; lazily, as the caller asks.
 
     First the pair of neighbours nearest ``near`` whose unsettled ``r`` changes sign (module docstring, 4.),
     its two points settled alone: where they still bracket a root, that root's start. Only when the caller asks
     for more are all the points settled (one chord step of a valley's 20-40 points costs ~0.5 ms a hybrid FK)
     and the other crossings and the double roots searched."""
     revolute = limits[2]
-    points, motions, closed = path
+    points, motions, _ = path
     if time.perf_counter() > deadline:
         return
     joint = np.argmax(np.abs(motions), axis=1)
-    a, b, _, _, _, _, changes = _neighbours(points, *at, closed, revolute)
+    a, b, _, _, _, _, changes = raw
     first = None
     if changes.any():
         first = min(np.flatnonzero(changes), key=lambda k: np.linalg.norm(points[a[k]] - near))
         ends = np.array([a[first], b[first]])
-        Q2, e2, J2 = settle(model, target, points[ends], joint[ends], limits, POINT_STEPS, deadline, _at_rows(at, ends))
+        at_ends = (at[0][ends], at[1][ends])
+        Q2, e2, J2 = settle(model, target, points[ends], joint[ends], limits, POINT_STEPS, deadline, at_ends)
         pair = _neighbours(Q2, e2, J2, False, revolute)
         if (along(e2, J2, joint[ends])[1] < SETTLED).all() and pair[-1][0]:
             _, _, qb, jb, ra, rb, _ = pair
@@ -426,11 +430,6 @@ def _starts_along(
         else:
             first = None  # settled, the pair brackets nothing: the whole valley's search may find it again
     yield from _all_starts(model, target, path, joint, near, limits, deadline, tol, at, first)
-
-
-def _at_rows(at: tuple[np.ndarray, np.ndarray], rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The errors and Jacobians ``at`` of some of a valley's points."""
-    return at[0][rows], at[1][rows]
 
 
 def _all_starts(

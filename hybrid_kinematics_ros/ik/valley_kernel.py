@@ -111,15 +111,10 @@ def settle_step(target, T, q, j, lower, upper, generators, revolute, post, axes)
     out = q.copy()
     if not lm_kernel.solve(a, b):
         return out
-    two_pi = 2.0 * math.pi
     for i in range(m):
-        c = cols[i]
-        v = q[c] + b[i]
-        if revolute[c] and v > upper[c] and v - two_pi >= lower[c]:
-            v -= two_pi
-        if revolute[c] and v < lower[c] and v + two_pi <= upper[c]:
-            v += two_pi
-        out[c] = min(max(v, lower[c]), upper[c])
+        out[cols[i]] += b[i]
+    lm_kernel._project(out, lower, upper, revolute)
+    out[j] = q[j]  # held, as it was (a bracket across a seam lies on its first end's turn)
     return out
 
 
