@@ -17,7 +17,7 @@ from bench.report import table, write_section
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.fit import fit
 from hybrid_kinematics_ros.ik.baselines import scipy_refine_solver, wang_baseline
-from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, freeze_heap
+from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, freeze_heap, one_blas_thread
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
@@ -37,6 +37,7 @@ def paper_protocol(model: HybridModel, n: int, options: IKOptions) -> tuple[list
     solver = IKSolver(model, options)
     patient = IKSolver(model, replace(options, timeout_s=LONG_BUDGET_S))
     freeze_heap()  # as the node does: no full collection of the loaded models inside a timed solve
+    one_blas_thread()  # and BLAS on this thread only (no pool's stall)
     q = np.random.default_rng(11).uniform(model.chain.lower, model.chain.upper, (n, model.chain.dof))
     targets = model.fk(q)
     rows = []

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.report import table, write_section
-from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, freeze_heap
+from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, freeze_heap, one_blas_thread
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -51,6 +51,7 @@ def measure(chain: Chain, n: int) -> dict:
     model = HybridModel.analytic_only(chain)
     solver = IKSolver(model, IKOptions())
     freeze_heap()  # as the node does: no full collection of the loaded models inside a timed solve
+    one_blas_thread()  # and BLAS on this thread only (no pool's stall)
     lower = np.where(np.isfinite(chain.lower), chain.lower, -np.pi)
     upper = np.where(np.isfinite(chain.upper), chain.upper, np.pi)
     targets = model.fk(np.random.default_rng(11).uniform(lower, upper, (n, chain.dof)))

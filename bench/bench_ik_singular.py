@@ -23,7 +23,7 @@ from scipy.optimize import minimize_scalar
 
 from bench.bench_ik import trained_model
 from bench.report import table, write_section
-from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, freeze_heap
+from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, freeze_heap, one_blas_thread
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -129,6 +129,8 @@ def main() -> None:
             model = trained_model(robot, models, args.train_minutes)
             urdf = HybridModel.analytic_only(model.chain)
             freeze_heap()  # as the node does: no full collection of the loaded models inside a timed solve
+            one_blas_thread()  # and BLAS on this thread only (no pool's stall)
+    one_blas_thread()  # and BLAS on this thread only (no pool's stall)
             family = IKSolver(urdf, options).path
             for label, q in cases(model.chain, args.targets, rng).items():
                 for kind, m, analytic in (("hybrid", model, False), ("URDF", urdf, True)):

@@ -75,6 +75,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from hybrid_kinematics_ros.ik import round_kernel
 from hybrid_kinematics_ros.ik import seeds as seeding
@@ -150,6 +151,16 @@ def freeze_heap() -> None:
     gc.unfreeze()
     gc.collect()
     gc.freeze()
+
+
+def one_blas_thread() -> None:
+    """Run BLAS (numpy's, and scipy's, which the compiled nets' batches call) on the calling thread only, for the
+    rest of the process: call it where answers must come in time, as :func:`freeze_heap`. Their pools of one
+    thread per core spin after each call, and on a two-core machine a pool's thread waiting for the other core
+    stalled the next small product by 10-65 ms: three to five UR10 near-singular targets in 8 x 3,600 missed
+    their 50 ms budget that way (the valley search's batched FK, 1-2 ms otherwise), none with one thread. The
+    IK's products are at most 64 x 256 x 256, where a second thread gains next to nothing."""
+    threadpool_limits(limits=1, user_api="blas")
 
 
 def _same_start(q: np.ndarray, starts: list[np.ndarray]) -> bool:

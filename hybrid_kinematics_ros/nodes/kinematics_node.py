@@ -32,7 +32,7 @@ from std_srvs.srv import Trigger
 from hybrid_kinematics_interfaces.srv import CompensateTrajectory, ComputeFK, ComputeIK
 from hybrid_kinematics_ros.ik.compensate import MAX_JOINT_CORRECTION_RAD, compensate
 from hybrid_kinematics_ros.ik.errors import IKError
-from hybrid_kinematics_ros.ik.solver import OTHER_BRANCH, IKOptions, IKSolver, freeze_heap
+from hybrid_kinematics_ros.ik.solver import OTHER_BRANCH, IKOptions, IKSolver, freeze_heap, one_blas_thread
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
@@ -181,6 +181,7 @@ class KinematicsNode(Node):
         for warning in m.chain.inertial_warnings:
             self.get_logger().warn(f"URDF: {warning}")
         freeze_heap()  # no full collection of the loaded model inside a request (a 140 ms stall)
+        one_blas_thread()  # no BLAS pool spinning on the other core while a request waits for it (10-65 ms)
 
     # ------------------------------------------------------------------ loading
     def _urdf(self) -> str | None:
