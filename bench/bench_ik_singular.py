@@ -130,7 +130,6 @@ def main() -> None:
             urdf = HybridModel.analytic_only(model.chain)
             freeze_heap()  # as the node does: no full collection of the loaded models inside a timed solve
             one_blas_thread()  # and BLAS on this thread only (no pool's stall)
-    one_blas_thread()  # and BLAS on this thread only (no pool's stall)
             family = IKSolver(urdf, options).path
             for label, q in cases(model.chain, args.targets, rng).items():
                 for kind, m, analytic in (("hybrid", model, False), ("URDF", urdf, True)):
