@@ -510,8 +510,10 @@ class IKSolver:
                 if ep > seeding.NEAR_M or er > seeding.NEAR_RAD or not seeding.is_new_branch(q0, tried):
                     continue
                 tried.append(q0)
-                result = self._other_branch(target, q0, analytic, start, deadline, stats, origin, copy)
-                if not analytic:
+                result = self._other_branch(
+                    target, q0, analytic, start, deadline, stats, origin, copy, valley_first=True
+                )
+                if not analytic and not result.success:
                     valley = seeding.valley_seeds(self.model, result.q, result.position_error_mm, self.limits)
             if result.position_error_mm < best.position_error_mm:
                 best = result
@@ -799,11 +801,16 @@ class IKSolver:
         stats: dict,
         origin: np.ndarray | None = None,
         lm_beyond: bool = False,
+        valley_first: bool = False,
     ) -> IKResult:
         """A cheaper :meth:`_from_branch` for the fallback branches: unbounded LM with the chord Jacobian
         (one hybrid FK per step), then with the hybrid one. At an exact singularity the error only halves
         per step; the floor and stall rules stop the runs that make no progress. ``lm_beyond``: LM follows a
-        fixed point that stalled beyond the branch's reach too."""
+        fixed point that stalled beyond the branch's reach too. ``valley_first``: the valley through a fixed
+        point that missed is searched before LM (:meth:`_valley_rows`; nothing to search where the point is not
+        near a singularity). A restart's URDF answer with the wrist straight next to two limits stalled LM in the
+        wrist's valley (an 8 ms crawl to 0.017 mm, and its weak-direction restarts solved it after 35-49 ms of a
+        50 ms budget); the valley through it held the solution (21-24 ms, bench UR10 models)."""
         if analytic or not self.model.is_corrected:
             return self.result(q0, target, analytic, start, dict(stats))
         with self.model.approaching(self._arrival(origin, q0)):
@@ -811,6 +818,10 @@ class IKSolver:
             result = self.result(q0, target, analytic, start, dict(stats), errors)
             if result.success or (beyond and not lm_beyond):
                 return result
+            if valley_first:
+                found = self._valley_rows(target, q0[None], start, deadline, stats)
+                if found is not None:
+                    return found
             q, *_ = self.refiner.unbounded(target, q0, deadline, chord_first=True)
             return self.result(q, target, analytic, start, dict(stats))
 
@@ -1038,8 +1049,8 @@ class IKSolver:
         has no branch, and its least-squares answers take their place), nearest ``nearest`` (else ``q0``) first
         (:mod:`~hybrid_kinematics_ros.ik.valley`); None when none is near a singularity or no root of the
         valleys reaches the target."""
-        if not self.options.valley or deadline - time.perf_counter() < VALLEY_SHARE * self.options.timeout_s:
-            return None  # tracing the valleys and settling their points take a few batched hybrid FKs: too late
+        if not self._valley_time(deadline):
+            return None
         # the valleys of every closed-form branch, one by one: at a shoulder singularity the solution can lie on
         # another branch's valley (the shoulder flipped), and the seed's wanders across the wrist's
         others = self.branches(target, q0) if near is None else near
@@ -1047,7 +1058,20 @@ class IKSolver:
         # the hybrid solution can lie (a UR10 with its wrist straight next to q3 = -2.8)
         past = [] if self.closed_form is None else self.closed_form.past_limits(target, q0)
         near = np.vstack([*([] if nearest is None else [nearest]), q0, *others, *past])
-        starts = valley_starts(self.model, target, near, self.limits, deadline, self.inner_tol[0])
+        return self._valley_rows(target, near, start, deadline, stats)
+
+    def _valley_time(self, deadline: float) -> bool:
+        """The valley search is on, and VALLEY_SHARE of the budget is left for it: tracing the valleys and
+        settling their points take a few batched hybrid FKs."""
+        return self.options.valley and deadline - time.perf_counter() >= VALLEY_SHARE * self.options.timeout_s
+
+    def _valley_rows(
+        self, target: np.ndarray, rows: np.ndarray, start: float, deadline: float, stats: dict
+    ) -> IKResult | None:
+        """The search of :meth:`_valley` along the valleys through ``rows`` ``(B, n)`` alone, the first's first."""
+        if not self._valley_time(deadline):
+            return None
+        starts = valley_starts(self.model, target, rows, self.limits, deadline, self.inner_tol[0])
         if starts is None:
             return None
         stats["valley"] = 0

@@ -10,8 +10,9 @@ import time
 import numpy as np
 import pytest
 
+from hybrid_kinematics_ros.ik import seeds as seeding
 from hybrid_kinematics_ros.ik import valley as valley_module
-from hybrid_kinematics_ros.ik.lm import error6, joint_limits
+from hybrid_kinematics_ros.ik.lm import error6, joint_limits, lm_solve
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.ik.valley import (
     NEAR_SINGULAR,
@@ -372,3 +373,39 @@ def test_the_wrist_continuum_is_traced_across_the_seam_of_a_whole_turn_joint(ur1
         assert points[:, 3].min() < -2.0 and points[:, 3].max() > 2.0  # both sides of the seam
         closed += whole
     assert closed >= 4, closed  # measured 5 of 6; before: 0, each way ending at ±π
+
+
+def test_a_fallback_near_answer_has_its_valley_searched_before_lm(trained):
+    """Wrist straight, q2 and q3 next to their upper limits: the closed forms give no branch within the limits,
+    and the fallback's restarts end on URDF answers a few millimetres from the hybrid target. LM from such an
+    answer stalls in the wrist's valley (a bench UR10 target: an 8 ms crawl to 0.017 mm, then the weak-direction
+    restarts, solved after 35-49 ms of a 50 ms budget); the valley through it holds the solution (21-24 ms)."""
+    _, model, _, _ = trained
+    solver = IKSolver(model, GENEROUS)
+    rng = np.random.default_rng(6)
+    q = rng.uniform(0.8 * model.chain.lower, 0.8 * model.chain.upper, (600, 6))
+    q[:, 1], q[:, 2], q[:, 4] = rng.uniform(-0.3, 0.0, 600), rng.uniform(2.5, 2.8, 600), rng.choice([0.0, 1e-4], 600)
+    seed = model.chain.mid_limits()
+    solved = {False: 0, True: 0}
+    near = 0
+    for target in model.fk(q):
+        if len(solver.branches(target, seed)) or near == 20:
+            continue
+        for start in solver.seeds.nearest(target, 8):  # as the fallback loop's restarts
+            q0, ep, er, _ = lm_solve(
+                solver.analytic_fk_jac, target, start, solver.limits, *solver.inner_tol, 100, np.inf
+            )
+            if ep < seeding.NEAR_M and er < seeding.NEAR_RAD:
+                break
+        else:
+            continue
+        near += 1
+        for valley_first in (False, True):
+            now = time.perf_counter()
+            result = solver._other_branch(target, q0, False, now, now + 5.0, {}, valley_first=valley_first)
+            solved[valley_first] += result.success
+            if valley_first and result.success:
+                assert hybrid_errors(model, result.q, target)[0] < 1e-4
+    assert near == 20
+    # measured 2 and 19 of 23
+    assert solved[False] <= 8 and solved[True] >= 15, solved
