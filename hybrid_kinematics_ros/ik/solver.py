@@ -293,13 +293,15 @@ class IKSolver:
         restarts: int = seeding.TABLE_RESTARTS,
         branches: np.ndarray | None = None,
         continuum: bool = True,
+        table_only: bool = False,
     ) -> tuple[np.ndarray, float, float, int]:
         """Stage 1: the joints, the errors (m, rad), the attempts. With closed forms, the branch nearest the seed
         (``branches``, when the caller has them); where the target has a branch at a singularity, LM from the
         seed too, and the nearer of the two. Otherwise, or when the closed forms give nothing, LM from the
         seed, then restarts while time remains, from the ``restarts`` table configurations nearest the
         target, then random ones. ``continuum``: False where the hybrid stages follow, whose valley search
-        walks the continuum itself (LM crawls there: it took half the budget)."""
+        walks the continuum itself (LM crawls there: it took half the budget). ``table_only``: no random
+        restarts after the table's (where none can succeed: the best answer of a few is as good)."""
         tol_m, tol_rad = self.inner_tol
         branches = self.branches(target, seed) if branches is None else branches
         for q in branches[:1]:  # nearest the seed; exact, or polished on our FK in a step
@@ -349,6 +351,8 @@ class IKSolver:
                 break
             attempt_seed = next(nearest, None)
             if attempt_seed is None:
+                if table_only:
+                    break
                 attempt_seed = self.seeds.random()
         return best[0], best[1], best[2], attempts
 
@@ -412,9 +416,10 @@ class IKSolver:
             # closed forms that give no branch within the limits are complete: no restart of the URDF model's LM
             # finds one, and its nearest point within them comes from the first few (a UR10 wrist straight next
             # to its q3 limit: 86 restarts took the half budget the valley search needed)
-            share = CLASSICAL_SHARE if self.closed_form is None or len(closed) else NO_BRANCH_SHARE
+            complete = self.closed_form is not None and not len(closed)
+            share = NO_BRANCH_SHARE if complete else CLASSICAL_SHARE
             q0, _, _, attempts = self.classical(
-                target, seed, start + share * o.timeout_s, branches=closed, continuum=False
+                target, seed, start + share * o.timeout_s, branches=closed, continuum=False, table_only=complete
             )
             stats["attempts"] += attempts
         reserve = None
