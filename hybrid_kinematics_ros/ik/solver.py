@@ -488,7 +488,18 @@ class IKSolver:
         # (start, whether LM on the hybrid model follows a fixed point that stalls beyond the branch's reach: on
         # a copy, the nets' reach is what differs, and the hybrid Jacobian is what finds it)
         starts = iter([(q, False) for q in closed] + [(q, True) for q in copies] + [(q, False) for q in table])
-        valley = [] if analytic else seeding.valley_seeds(self.model, best.q, best.position_error_mm, self.limits)
+        seeded: list[np.ndarray] = []  # the near misses whose weak-direction restarts are queued or run
+
+        def restarts_of(result: IKResult) -> list[np.ndarray]:
+            """The restarts along ``result``'s weak direction, none twice from one near miss: on a UR10 with its
+            wrist centre near axis 1, every fallback start's fixed point ended on one of two near misses, and
+            their restarts ran again after each (8 times in 29 ms)."""
+            if analytic or not seeding.is_new_branch(result.q, seeded):
+                return []
+            seeded.append(result.q)
+            return seeding.valley_seeds(self.model, result.q, result.position_error_mm, self.limits)
+
+        valley = restarts_of(best)
         # beyond the URDF model's reach, the nearest miss's restarts ran before the valley search, and the
         # refinement since then ends next to it: the same restarts again took 4-7 ms (RX160, elbow stretched);
         # those cut short by their share run again here, with the time left
@@ -504,7 +515,7 @@ class IKSolver:
                 q0 = others.pop(0)
                 tried.append(q0)
                 result = self._other_branch(target, q0, analytic, start, deadline, stats, origin)
-                valley = seeding.valley_seeds(self.model, result.q, result.position_error_mm, self.limits)
+                valley = restarts_of(result)
             else:
                 s, copy = next(starts, (None, False))
                 s = self.seeds.random() if s is None else s
@@ -518,8 +529,8 @@ class IKSolver:
                 result = self._other_branch(
                     target, q0, analytic, start, deadline, stats, origin, copy, valley_first=True
                 )
-                if not analytic and not result.success:
-                    valley = seeding.valley_seeds(self.model, result.q, result.position_error_mm, self.limits)
+                if not result.success:
+                    valley = restarts_of(result)
             if result.position_error_mm < best.position_error_mm:
                 best = result
             if result.success:
