@@ -5,11 +5,13 @@ FK."""
 
 from __future__ import annotations
 
+import itertools
 import time
 
 import numpy as np
 import pytest
 
+from bench.bench_ik_singular import cases
 from hybrid_kinematics_ros.ik import seeds as seeding
 from hybrid_kinematics_ros.ik import valley as valley_module
 from hybrid_kinematics_ros.ik.lm import error6, joint_limits, lm_solve
@@ -428,3 +430,39 @@ def test_where_no_branch_lies_within_the_limits_the_classical_stage_takes_the_ta
     attempts = [solver.solve(t).stats["attempts"] for t in targets]
     # measured 0-40, median 17; before: some 17,000 in the classical stage's 0.5 s
     assert np.median(attempts) <= seeding.TABLE_RESTARTS + 1, attempts
+
+
+def test_a_solve_runs_no_near_misses_restarts_twice(trained, monkeypatch):
+    """The fallback loop's starts can end, one after another, on the same near miss: with a UR10's wrist centre
+    near axis 1 every start's fixed point ended on one of two, and their weak-direction restarts ran again after
+    each (8 times in 29 ms). They run once per near miss."""
+    _, model, _, _ = trained
+    solver = IKSolver(model, IKOptions(timeout_s=0.05))
+    seeded: list[np.ndarray] = []
+    restarts, weak = seeding.valley_seeds, solver._weak_restarts
+    before_search = []  # beyond the URDF model's reach, the nearest miss's restarts run before the valley search
+
+    def recorded(model, q, position_error_mm, limits):
+        if not before_search:
+            seeded.append(np.array(q, dtype=float))
+        return restarts(model, q, position_error_mm, limits)
+
+    def first(*args, **kwargs):
+        before_search.append(True)
+        try:
+            return weak(*args, **kwargs)
+        finally:
+            before_search.pop()
+
+    monkeypatch.setattr(seeding, "valley_seeds", recorded)
+    monkeypatch.setattr(solver, "_weak_restarts", first)
+    calls = repeated = 0
+    for label in ("wrist centre on axis 1 + 0.0001 rad", "q5 = 1e-4 rad"):
+        q = cases(model.chain, 60, np.random.default_rng(3))[label]
+        for target in model.fk(q):
+            seeded.clear()
+            solver.solve(target)
+            calls += len(seeded)
+            repeated += sum(np.abs(a - b).max() < seeding.BRANCH_RAD for a, b in itertools.combinations(seeded, 2))
+    # measured 1 and 0; before: 10 calls, 45 pairs of them from one near miss
+    assert calls >= 1 and repeated == 0, (calls, repeated)
