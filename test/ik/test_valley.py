@@ -377,6 +377,17 @@ def test_the_wrist_continuum_is_traced_across_the_seam_of_a_whole_turn_joint(ur1
     assert closed >= 4, closed  # measured 5 of 6; before: 0, each way ending at ±π
 
 
+def next_to_two_limits(solver: IKSolver, n: int, seed: int) -> list[np.ndarray]:
+    """Hybrid targets with the wrist straight (q5 = 0 or 1e-4 rad) and q2 and q3 within 0.3 rad of their upper
+    limits where the closed forms give no branch within the limits (of ``n`` drawn)."""
+    model = solver.model
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(0.8 * model.chain.lower, 0.8 * model.chain.upper, (n, 6))
+    q[:, 1], q[:, 2], q[:, 4] = rng.uniform(-0.3, 0.0, n), rng.uniform(2.5, 2.8, n), rng.choice([0.0, 1e-4], n)
+    mid = model.chain.mid_limits()
+    return [t for t in model.fk(q) if not len(solver.branches(t, mid))]
+
+
 def test_a_fallback_near_answer_has_its_valley_searched_before_lm(trained):
     """Wrist straight, q2 and q3 next to their upper limits: the closed forms give no branch within the limits,
     and the fallback's restarts end on URDF answers a few millimetres from the hybrid target. LM from such an
@@ -384,15 +395,11 @@ def test_a_fallback_near_answer_has_its_valley_searched_before_lm(trained):
     restarts, solved after 35-49 ms of a 50 ms budget); the valley through it holds the solution (21-24 ms)."""
     _, model, _, _ = trained
     solver = IKSolver(model, GENEROUS)
-    rng = np.random.default_rng(6)
-    q = rng.uniform(0.8 * model.chain.lower, 0.8 * model.chain.upper, (600, 6))
-    q[:, 1], q[:, 2], q[:, 4] = rng.uniform(-0.3, 0.0, 600), rng.uniform(2.5, 2.8, 600), rng.choice([0.0, 1e-4], 600)
-    seed = model.chain.mid_limits()
     solved = {False: 0, True: 0}
     near = 0
-    for target in model.fk(q):
-        if len(solver.branches(target, seed)) or near == 20:
-            continue
+    for target in next_to_two_limits(solver, 600, seed=6):
+        if near == 20:
+            break
         for start in solver.seeds.nearest(target, 8):  # as the fallback loop's restarts
             q0, ep, er, _ = lm_solve(
                 solver.analytic_fk_jac, target, start, solver.limits, *solver.inner_tol, 100, np.inf
@@ -421,11 +428,7 @@ def test_where_no_branch_lies_within_the_limits_the_classical_stage_takes_the_ta
     the budget."""
     _, model, _, _ = trained
     solver = IKSolver(model, GENEROUS)
-    rng = np.random.default_rng(7)
-    q = rng.uniform(0.8 * model.chain.lower, 0.8 * model.chain.upper, (200, 6))
-    q[:, 1], q[:, 2], q[:, 4] = rng.uniform(-0.3, 0.0, 200), rng.uniform(2.5, 2.8, 200), rng.choice([0.0, 1e-4], 200)
-    seed = model.chain.mid_limits()
-    targets = [t for t in model.fk(q) if not len(solver.branches(t, seed))][:12]
+    targets = next_to_two_limits(solver, 200, seed=7)[:12]
     assert len(targets) == 12
     attempts = [solver.solve(t).stats["attempts"] for t in targets]
     # measured 0-40, median 17; before: some 17,000 in the classical stage's 0.5 s
