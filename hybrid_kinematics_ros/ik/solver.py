@@ -35,19 +35,20 @@ composes the parts, with ``solve``, ``solve_many`` and ``solve_trajectory``.
    40-65 ms; 5-6 misses in 200 at 50 ms to 1-2), and
    where the URDF model reaches it only past a joint limit, from its answers clipped into the limits and
    polished there; no exact branch within the limits means no restart of the URDF model's LM finds one, so
-   that stage gets a tenth of the budget instead of half. What they leave goes to bounded LM through the
-   hybrid FK in a box (:mod:`~hybrid_kinematics_ros.ik.refine`).
+   that stage gets a tenth of the budget instead of half, and the table's restarts alone, none random. What
+   they leave goes to bounded LM through the hybrid FK in a box (:mod:`~hybrid_kinematics_ros.ik.refine`).
 3. When the seed's branch has no hybrid solution near it (near a singularity the nets' tenths of a
    millimetre move the solution by tenths of a radian, or the target lies just beyond the URDF model's
    reach), the other analytic branches follow: the closed forms' other branches, nearest the seed first,
    then classical answers from the table's nearest configurations, each finished by unbounded LM on the
-   hybrid model, until one reaches the target or the budget ends. A near miss at a near-singular
-   configuration first restarts along the Jacobian's weak direction, where the hybrid near-solutions form a
-   valley with local minima. Before the seed's branch goes past its fixed point, the other closed-form
-   branches get a few fixed-point rounds each (near a wrist singularity the seed's fixed point wanders among
-   the members of a continuum, where the others converge in three): one that solves waits in reserve, and
-   is the answer, said so, if the seed's branch finds nothing within the budget (UR10, q5 = 0: 71-88 % to
-   96 % of 100 targets at 50 ms).
+   hybrid model, until one reaches the target or the budget ends; the first of those whose fixed point misses
+   next to a singularity has the valley through it searched before its LM. A near miss at a near-singular
+   configuration first restarts along the Jacobian's weak direction (once per near miss), where the hybrid
+   near-solutions form a valley with local minima. Before the seed's branch goes past its fixed point, the
+   other closed-form branches get a few fixed-point rounds each (near a wrist singularity the seed's fixed
+   point wanders among the members of a continuum, where the others converge in three): one that solves
+   waits in reserve, and is the answer, said so, if the seed's branch finds nothing within the budget (UR10,
+   q5 = 0: 71-88 % to 96 % of 100 targets at 50 ms).
 4. A model whose nets take the joints' approach directions (:mod:`~hybrid_kinematics_ros.model.approach`)
    is refined with the directions the robot arrives in when it moves from the seed (where it is) to the
    solution, not with the last ones it moved in: the sign of each joint's move, the current direction for
@@ -154,13 +155,14 @@ def freeze_heap() -> None:
 
 
 def one_blas_thread() -> None:
-    """Run BLAS (numpy's, and scipy's, which the compiled nets' batches call) on the calling thread only, for the
-    rest of the process: call it where answers must come in time, as :func:`freeze_heap`. Their pools of one
-    thread per core spin after each call, and on a two-core machine a pool's thread waiting for the other core
-    stalled the next small product by 10-65 ms: three to five UR10 near-singular targets in 8 x 3,600 missed
-    their 50 ms budget that way (the valley search's batched FK, 1-2 ms otherwise), none with one thread. The
-    IK's products are at most 64 x 256 x 256: one thread costs 0.05-0.2 ms more on a 16-64-row batch of two
-    256x3 nets, on an idle machine."""
+    """Set the thread pools of the process's BLAS libraries loaded by now (numpy's, and scipy's, which the compiled
+    nets' batches call) to one thread, for the rest of the process: call it where answers must come in time, as
+    :func:`freeze_heap` (``make`` and the tests set OPENBLAS_NUM_THREADS=1 for the same reason; a node started by
+    ``ros2 run`` or a launch file does not). Their pools of one thread per core spin after each call, and on a
+    two-core machine a pool's thread waiting for the other core stalled the next small product by 10-65 ms:
+    three to five UR10 near-singular targets in 8 x 3,600 missed their 50 ms budget that way (the valley search's
+    batched FK, 1-2 ms otherwise), none with one thread. The IK's products are at most 64 x 256 x 256: one thread
+    costs 0.05-0.2 ms more on a 16-64-row batch of two 256x3 nets, on an idle machine."""
     threadpool_limits(limits=1, user_api="blas")
 
 
@@ -490,6 +492,7 @@ class IKSolver:
         # a copy, the nets' reach is what differs, and the hybrid Jacobian is what finds it)
         starts = iter([(q, False) for q in closed] + [(q, True) for q in copies] + [(q, False) for q in table])
         seeded: list[np.ndarray] = []  # the near misses whose weak-direction restarts are queued or run
+        valleys: list[np.ndarray] = []  # the fallback point whose valley was searched (_other_branch)
 
         def restarts_of(result: IKResult) -> list[np.ndarray]:
             """The restarts along ``result``'s weak direction, none twice from one near miss: on a UR10 with its
@@ -497,8 +500,10 @@ class IKSolver:
             their restarts ran again after each (8 times in 29 ms)."""
             if analytic or not seeding.is_new_branch(result.q, seeded):
                 return []
-            seeded.append(result.q)
-            return seeding.valley_seeds(self.model, result.q, result.position_error_mm, self.limits)
+            restarts = seeding.valley_seeds(self.model, result.q, result.position_error_mm, self.limits)
+            if restarts:
+                seeded.append(result.q)
+            return restarts
 
         valley = restarts_of(best)
         # beyond the URDF model's reach, the nearest miss's restarts ran before the valley search, and the
@@ -527,9 +532,7 @@ class IKSolver:
                 if ep > seeding.NEAR_M or er > seeding.NEAR_RAD or not seeding.is_new_branch(q0, tried):
                     continue
                 tried.append(q0)
-                result = self._other_branch(
-                    target, q0, analytic, start, deadline, stats, origin, copy, valley_first=True
-                )
+                result = self._other_branch(target, q0, analytic, start, deadline, stats, origin, copy, valleys)
                 if not result.success:
                     valley = restarts_of(result)
             if result.position_error_mm < best.position_error_mm:
@@ -818,16 +821,19 @@ class IKSolver:
         stats: dict,
         origin: np.ndarray | None = None,
         lm_beyond: bool = False,
-        valley_first: bool = False,
+        valleys: list[np.ndarray] | None = None,
     ) -> IKResult:
-        """A cheaper :meth:`_from_branch` for the fallback branches: unbounded LM with the chord Jacobian
-        (one hybrid FK per step), then with the hybrid one. At an exact singularity the error only halves
-        per step; the floor and stall rules stop the runs that make no progress. ``lm_beyond``: LM follows a
-        fixed point that stalled beyond the branch's reach too. ``valley_first``: the valley through a fixed
-        point that missed is searched before LM (:meth:`_valley_rows`; nothing to search where the point is not
-        near a singularity). A restart's URDF answer with the wrist straight next to two limits stalled LM in the
-        wrist's valley (an 8 ms crawl to 0.017 mm, and its weak-direction restarts solved it after 35-49 ms of a
-        50 ms budget); the valley through it held the solution (21-24 ms, bench UR10 models)."""
+        """A cheaper :meth:`_from_branch` for the fallback branches: unbounded LM with the chord Jacobian (one hybrid FK
+        per step), then with the hybrid one. At an exact singularity the error only halves per step; the
+        floor and stall rules stop the runs that make no progress. ``lm_beyond``: LM follows a fixed point
+        that stalled beyond the branch's reach too. ``valleys``: the solve's fallback points whose valley was
+        searched (appended to); while it is empty, the valley through a fixed point that missed is searched
+        before LM (:meth:`_valley_rows`; nothing to search where the point is not near a singularity, or
+        without closed forms, whose iterative solver never searched them). Once a solve: the restarts of a
+        continuum land on one valley, and each search traces it again. A restart's URDF answer with the wrist
+        straight next to two limits stalled LM in the wrist's valley (an 8 ms crawl to 0.017 mm, and its
+        weak-direction restarts solved it after 35-49 ms of a 50 ms budget); the valley through it held the
+        solution (21-24 ms, bench UR10 models)."""
         if analytic or not self.model.is_corrected:
             return self.result(q0, target, analytic, start, dict(stats))
         with self.model.approaching(self._arrival(origin, q0)):
@@ -835,8 +841,12 @@ class IKSolver:
             result = self.result(q0, target, analytic, start, dict(stats), errors)
             if result.success or (beyond and not lm_beyond):
                 return result
-            if valley_first:
-                found = self._valley_rows(target, q0[None], start, deadline, stats)
+            if valleys is not None and not valleys and self.closed_form is not None:
+                searched = {k: v for k, v in stats.items() if k != "valley"}  # the search sets "valley"
+                found = self._valley_rows(target, q0[None], start, deadline, searched)
+                if "valley" in searched:
+                    valleys.append(q0)
+                    stats.update(searched)
                 if found is not None:
                     return found
             q, *_ = self.refiner.unbounded(target, q0, deadline, chord_first=True)
