@@ -41,8 +41,8 @@ composes the parts, with ``solve``, ``solve_many`` and ``solve_trajectory``.
    millimetre move the solution by tenths of a radian, or the target lies just beyond the URDF model's
    reach), the other analytic branches follow: the closed forms' other branches, nearest the seed first,
    then classical answers from the table's nearest configurations, each finished by unbounded LM on the
-   hybrid model, until one reaches the target or the budget ends; the first of those whose fixed point misses
-   next to a singularity has the valley through it searched before its LM. A near miss at a near-singular
+   hybrid model, until one reaches the target or the budget ends; one whose fixed point misses next to a
+   singularity has the valley through it searched before its LM (once per point). A near miss at a near-singular
    configuration first restarts along the Jacobian's weak direction (once per near miss), where the hybrid
    near-solutions form a valley with local minima. Before the seed's branch goes past its fixed point, the
    other closed-form branches get a few fixed-point rounds each (near a wrist singularity the seed's fixed
@@ -492,7 +492,7 @@ class IKSolver:
         # a copy, the nets' reach is what differs, and the hybrid Jacobian is what finds it)
         starts = iter([(q, False) for q in closed] + [(q, True) for q in copies] + [(q, False) for q in table])
         seeded: list[np.ndarray] = []  # the near misses whose weak-direction restarts are queued or run
-        valleys: list[np.ndarray] = []  # the fallback point whose valley was searched (_other_branch)
+        valleys: list[np.ndarray] = []  # the fallback points whose valleys were searched (_other_branch)
 
         def restarts_of(result: IKResult) -> list[np.ndarray]:
             """The restarts along ``result``'s weak direction, none twice from one near miss: on a UR10 with its
@@ -826,14 +826,14 @@ class IKSolver:
         """A cheaper :meth:`_from_branch` for the fallback branches: unbounded LM with the chord Jacobian (one hybrid FK
         per step), then with the hybrid one. At an exact singularity the error only halves per step; the
         floor and stall rules stop the runs that make no progress. ``lm_beyond``: LM follows a fixed point
-        that stalled beyond the branch's reach too. ``valleys``: the solve's fallback points whose valley was
-        searched (appended to); while it is empty, the valley through a fixed point that missed is searched
+        that stalled beyond the branch's reach too. ``valleys``: the solve's fallback points whose valleys
+        were searched (appended to); the valley through a fixed point that missed, none of them, is searched
         before LM (:meth:`_valley_rows`; nothing to search where the point is not near a singularity, or
-        without closed forms, whose iterative solver never searched them). Once a solve: the restarts of a
-        continuum land on one valley, and each search traces it again. A restart's URDF answer with the wrist
-        straight next to two limits stalled LM in the wrist's valley (an 8 ms crawl to 0.017 mm, and its
-        weak-direction restarts solved it after 35-49 ms of a 50 ms budget); the valley through it held the
-        solution (21-24 ms, bench UR10 models)."""
+        without closed forms, whose iterative solver never searched them). Once per point: restarts that end
+        on one fixed point would trace its valley again. A restart's URDF answer with the wrist straight next
+        to two limits stalled LM in the wrist's valley (an 8 ms crawl to 0.017 mm, and its weak-direction
+        restarts solved it after 35-49 ms of a 50 ms budget); the valley through it held the solution (21-24
+        ms, bench UR10 models)."""
         if analytic or not self.model.is_corrected:
             return self.result(q0, target, analytic, start, dict(stats))
         with self.model.approaching(self._arrival(origin, q0)):
@@ -841,7 +841,7 @@ class IKSolver:
             result = self.result(q0, target, analytic, start, dict(stats), errors)
             if result.success or (beyond and not lm_beyond):
                 return result
-            if valleys is not None and not valleys and self.closed_form is not None:
+            if valleys is not None and seeding.is_new_branch(q0, valleys) and self.closed_form is not None:
                 searched = {k: v for k, v in stats.items() if k != "valley"}  # the search sets "valley"
                 found = self._valley_rows(target, q0[None], start, deadline, searched)
                 if "valley" in searched:
