@@ -453,9 +453,10 @@ def test_a_solve_runs_no_near_misses_restarts_twice(trained, monkeypatch):
     before_search = []  # beyond the URDF model's reach, the nearest miss's restarts run before the valley search
 
     def recorded(model, q, position_error_mm, limits):
-        if not before_search:
+        out = restarts(model, q, position_error_mm, limits)
+        if out and not before_search:  # restarts came: a near miss next to a singularity
             seeded.append(np.array(q, dtype=float))
-        return restarts(model, q, position_error_mm, limits)
+        return out
 
     def first(*args, **kwargs):
         before_search.append(True)
