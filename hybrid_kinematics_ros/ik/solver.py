@@ -823,17 +823,17 @@ class IKSolver:
         lm_beyond: bool = False,
         valleys: list[np.ndarray] | None = None,
     ) -> IKResult:
-        """A cheaper :meth:`_from_branch` for the fallback branches: unbounded LM with the chord Jacobian (one hybrid FK
-        per step), then with the hybrid one. At an exact singularity the error only halves per step; the
+        """A cheaper :meth:`_from_branch` for the fallback branches: unbounded LM with the chord Jacobian (one
+        hybrid FK per step), then with the hybrid one. At an exact singularity the error only halves per step; the
         floor and stall rules stop the runs that make no progress. ``lm_beyond``: LM follows a fixed point
         that stalled beyond the branch's reach too. ``valleys``: the solve's fallback points whose valleys
-        were searched (appended to); the valley through a fixed point that missed, none of them, is searched
+        were tried (appended to); the valley through a fixed point that missed, none of them, is searched
         before LM (:meth:`_valley_rows`; nothing to search where the point is not near a singularity, or
         without closed forms, whose iterative solver never searched them). Once per point: restarts that end
         on one fixed point would trace its valley again. A restart's URDF answer with the wrist straight next
         to two limits stalled LM in the wrist's valley (an 8 ms crawl to 0.017 mm, and its weak-direction
-        restarts solved it after 35-49 ms of a 50 ms budget); the valley through it held the solution (21-24
-        ms, bench UR10 models)."""
+        restarts solved it after 35-49 ms of a 50 ms budget); the valley through it held the solution
+        (21-24 ms, bench UR10 models)."""
         if analytic or not self.model.is_corrected:
             return self.result(q0, target, analytic, start, dict(stats))
         with self.model.approaching(self._arrival(origin, q0)):
@@ -842,11 +842,8 @@ class IKSolver:
             if result.success or (beyond and not lm_beyond):
                 return result
             if valleys is not None and seeding.is_new_branch(q0, valleys) and self.closed_form is not None:
-                searched = {k: v for k, v in stats.items() if k != "valley"}  # the search sets "valley"
-                found = self._valley_rows(target, q0[None], start, deadline, searched)
-                if "valley" in searched:
-                    valleys.append(q0)
-                    stats.update(searched)
+                valleys.append(q0)  # where nothing was searched (not singular, too late), it would not be again
+                found = self._valley_rows(target, q0[None], start, deadline, stats)
                 if found is not None:
                     return found
             q, *_ = self.refiner.unbounded(target, q0, deadline, chord_first=True)
