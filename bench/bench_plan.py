@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from typing import Any
 
 import numpy as np
 
@@ -54,13 +55,20 @@ def stage_errors(cfg, train: Pairs, test: Pairs) -> tuple[float, float]:
 
 def stage_fit(cfg, train: Pairs, test: Pairs) -> tuple[float, float, CyclicPrior | None]:
     """:func:`stage_errors`, and the cyclic joint errors the stage found (what ``plan --prior-model`` reads)."""
+    position, orientation, result = stage_result(cfg, train, test)
+    return position, orientation, cyclic_of(result)
+
+
+def stage_result(cfg, train: Pairs, test: Pairs, capacity: dict | None = None) -> tuple[float, float, Any]:
+    """Mean position (mm) and orientation (deg) errors on ``test`` of the stage identified on ``train``, and
+    the stage (``ParametricResult``); ``capacity``: settings given instead of chosen."""
     payload = (cfg.payload_mass, cfg.payload_com)
     refs = reference_all(cfg.chain, [train])
-    refs, result = identify_stations(cfg.chain, [train], refs, payload, gravity=cfg.gravity)
+    refs, result = identify_stations(cfg.chain, [train], refs, payload, capacity=capacity, gravity=cfg.gravity)
     base = to_base_frame([test], cfg.chain, refs)
     tip = result.model.fk(result.model.approached(base.q, approach_of(base)))
     position, orientation = target_errors(base, tip)
-    return float(np.mean(position)), float(np.mean(orientation)), cyclic_of(result)
+    return float(np.mean(position)), float(np.mean(orientation)), result
 
 
 def cyclic_of(result) -> CyclicPrior | None:

@@ -33,7 +33,7 @@ import math
 import numpy as np
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.calibration.parametric import ORIENTATION_LENGTH, Linearisation
+from hybrid_kinematics_ros.calibration.parametric import Linearisation
 from hybrid_kinematics_ros.model.bounds import Bounds, ErrorBound, Scale, excess, features
 
 LEVEL = 0.95  # the share of errors meant to lie under their bounds
@@ -89,7 +89,7 @@ def extrapolation_errors(
     fitted = res + jac @ -solve(whole, gradient)
 
     def norms(after: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        rot = np.linalg.norm(after[:, 3:], axis=1) / ORIENTATION_LENGTH if after.shape[1] == 6 else None
+        rot = np.linalg.norm(after[:, 3:], axis=1) / lin.orientation_length if after.shape[1] == 6 else None
         return np.linalg.norm(after[:, :3], axis=1), rot
 
     on_data = norms(fitted)

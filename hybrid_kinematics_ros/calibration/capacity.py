@@ -21,7 +21,16 @@ made one after the other, each on top of the ones before:
    which is what those blocks measure. A held-out fifth of the recording asks it about angles no pair near
    them pinned, where every knot spacing falls back to its smoothness, and the coarser one wins by default
    (the real UR10's A: 0.02 rad chosen that way, 0.01 between blocks; the hybrid on A's held-out blocks
-   0.0616 mm against 0.0575).
+   0.0616 mm against 0.0575);
+5. the weight of the orientation residuals against the position ones (``orientation_length``, m per rad),
+   then 1 to 4 again with it. Least squares weighs each kind of residual best by the inverse of its own
+   spread, so the weight is the ratio of the two kinds' held-out errors that 1 to 4 leave (their medians,
+   position in m over orientation in rad), repeated until it changes by less than :data:`WEIGHT_TOLERANCE`.
+   A fixed 1 m per rad suits a tracker that measures orientation about as well as position at a metre
+   (the virtual cells: 0.015 mm and 0.001° per axis, 0.86 m per rad) and over-weighs orientation where it
+   is measured, or modelled, worse: on the real UR10 the ratio is about 0.4, and the stage alone on A's
+   250 planned poses gives 0.095 mm with it against 0.110 with 1. A fixed smaller weight is no answer
+   either: 0.3 costs a virtual RX160 cell of 300 poses 1.7x in position, where the data choose 5.
 
 Each candidate is solved on the problem linearised at the nominal model (:class:`Linearisation`; its
 error is about a micrometre for milliradian parameters), so a candidate on a fold costs one small solve
@@ -75,6 +84,9 @@ RESOLUTION = 1e-6
 # The joint error map's folds: every fifth of this many blocks (fit.SPLIT_BLOCKS, the split's own unit).
 MAP_BLOCKS = 100
 ROUNDS = 3  # turns of choosing the elastic terms and the cyclic errors, each given the other
+WEIGHT_ROUNDS = 3  # at most this many selections with the orientation weight from the one before
+WEIGHT_TOLERANCE = 0.1  # the weight is settled when a selection changes it by less than this share
+WEIGHT_FACTORS = (1 / 9, 1 / 3, 3.0, 9.0)  # the weights tried about the data's ratio, as its multiples
 
 
 @dataclass
@@ -88,6 +100,7 @@ class Capacity:
     map_smoothness: float
     decisions: list[dict[str, Any]] = field(default_factory=list)  # one per setting, with every candidate's figures
     approach: bool = False  # the nets take the joints' approach directions
+    orientation_length: float = ORIENTATION_LENGTH  # m per rad: the orientation residuals' weight in the fit
 
     @property
     def kinds(self) -> tuple[str, ...]:
@@ -101,6 +114,7 @@ class Capacity:
             "harmonic_prior": self.harmonic_prior,
             "map_step": self.map_step,
             "map_smoothness": self.map_smoothness,
+            "orientation_length": self.orientation_length,
         }
 
     def manifest(self) -> dict[str, Any]:
@@ -115,6 +129,7 @@ class Capacity:
                 "map_step": self.map_step,
                 "map_smoothness": self.map_smoothness,
                 "approach": self.approach,
+                "orientation_length": self.orientation_length,
             },
             "decisions": self.decisions,
         }
@@ -130,7 +145,8 @@ def summary(section: dict[str, Any]) -> str:
 def options_from(given: dict[str, Any]) -> dict[str, Any]:
     """:func:`~calibration.parametric.identify`'s options for the settings ``given`` (the others left to
     its defaults), without a selection."""
-    out = {k: given[k] for k in ("harmonics", "harmonic_prior", "map_step", "map_smoothness") if k in given}
+    names = ("harmonics", "harmonic_prior", "map_step", "map_smoothness", "orientation_length")
+    out = {k: given[k] for k in names if k in given}
     elastic = _elastic_kinds(given["elastic"]) if "elastic" in given else ELASTIC["bending"]
     out["kinds"] = (*elastic, "harmonic", *(("backlash",) if given.get("approach") else ()))
     return out
@@ -249,20 +265,24 @@ def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _scores(res: np.ndarray, block: np.ndarray) -> dict[int, float]:
-    """Mean held-out error per block, m (orientation weighed in at 1 m per rad, as in the fit)."""
+    """Mean held-out error per block, m (orientation weighed in as in the fit)."""
     err = np.linalg.norm(res, axis=1)
     return {int(b): float(np.mean(err[block == b])) for b in np.unique(block)}
 
 
-def _figures(res: np.ndarray) -> dict[str, float]:
+def _figures(res: np.ndarray, orientation_length: float) -> dict[str, float]:
     out = {"val_position_mm": float(1e3 * np.mean(np.linalg.norm(res[:, :3], axis=1)))}
     if res.shape[1] == 6:
-        out["val_orientation_deg"] = float(np.degrees(np.mean(np.linalg.norm(res[:, 3:], axis=1))) / ORIENTATION_LENGTH)
+        out["val_orientation_deg"] = float(np.degrees(np.mean(np.linalg.norm(res[:, 3:], axis=1))) / orientation_length)
     return out
 
 
 def _choose(
-    setting: str, labels: Sequence[Any], residuals: Sequence[np.ndarray], block: np.ndarray
+    setting: str,
+    labels: Sequence[Any],
+    residuals: Sequence[np.ndarray],
+    block: np.ndarray,
+    orientation_length: float = ORIENTATION_LENGTH,
 ) -> tuple[int, dict]:
     """The simplest candidate (``labels`` come simplest first) whose per-block held-out error is within one
     standard error of the best's, or within :data:`RESOLUTION`; the decision with every candidate's figures."""
@@ -275,7 +295,7 @@ def _choose(
     rows = [
         {
             "candidate": label,
-            **_figures(r),
+            **_figures(r, orientation_length),
             "val_score_mm": float(1e3 * m),
             "worse_than_best_mm": float(1e3 * (m - mean[best])),
             "noise_mm": float(1e3 * se),
@@ -283,6 +303,9 @@ def _choose(
         for label, r, m, se in zip(labels, residuals, mean, noise, strict=True)
     ]
     return chosen, {"setting": setting, "chosen": labels[chosen], "best": labels[best], "candidates": rows}
+
+
+SETTINGS = ("elastic", "harmonics", "harmonic_prior", "map_step", "map_smoothness", "approach", "orientation_length")
 
 
 def select_capacity(
@@ -294,17 +317,69 @@ def select_capacity(
     """Choose the stage's capacity by cross-validation on ``lin`` (linearised with every elastic term and
     the most harmonics of :data:`HARMONICS`), drawn from ``total`` training pairs in recording order.
 
-    ``fixed``: settings the user gave (``elastic``, ``harmonics``, ``harmonic_prior``, ``map_step``,
-    ``map_smoothness``, ``approach``); they are not chosen, only recorded.
+    ``fixed``: settings the user gave (:data:`SETTINGS`); they are not chosen, only recorded.
 
     When ``lin`` holds backlash columns (linearised with the pairs' approach directions), ``approach`` is
     chosen too: whether the stage's backlash terms, and the directions as the nets' inputs, earn their place.
+    With orientation rows, the orientation residuals' weight is chosen last (the module text, item 5).
     """
     fixed = {k: v for k, v in (fixed or {}).items() if v is not None}
-    unknown = set(fixed) - {"elastic", "harmonics", "harmonic_prior", "map_step", "map_smoothness", "approach"}
+    unknown = set(fixed) - set(SETTINGS)
     if unknown:
         raise CalibrationError(f"unknown capacity settings {sorted(unknown)}")
     _elastic_kinds(fixed.get("elastic", "geometry"))
+    if lin.residual.shape[1] != 6:
+        return _select(lin, total, fixed, map_ridge)[0]
+    if "orientation_length" in fixed:
+        length = float(fixed["orientation_length"])
+        if not np.isfinite(length) or length <= 0:
+            raise CalibrationError(f"orientation_length {length:g}: give a positive weight in m per rad")
+        chosen = _select(lin.reweighted(length), total, fixed, map_ridge)[0]
+        chosen.decisions.append({"setting": "orientation_length", "chosen": length, "given": True})
+        return chosen
+    # the data's own ratio of the two kinds' errors: the maximum-likelihood weight, to a fixed point
+    ratios = []
+    chosen, left, held = _select(lin, total, fixed, map_ridge)
+    for _ in range(WEIGHT_ROUNDS + 1):
+        pos, rot = (np.median(np.linalg.norm(left[:, k], axis=1)) for k in (slice(0, 3), slice(3, 6)))
+        ratio = float(f"{pos / max(rot / lin.orientation_length, 1e-12):.3g}")
+        ratios.append({"weight": lin.orientation_length, "ratio": ratio})
+        if len(ratios) > WEIGHT_ROUNDS or abs(np.log(ratio / lin.orientation_length)) < np.log1p(WEIGHT_TOLERANCE):
+            break
+        lin = lin.reweighted(ratio)
+        chosen, left, held = _select(lin, total, fixed, map_ridge)
+    # then the weights about it, each with the capacity chosen at it, judged on held-out errors in the same
+    # units (orientation at the data's ratio); the data's ratio stays unless another is better beyond the noise
+    data = lin.orientation_length
+    labels, options, residuals = [data], [chosen], [held]
+    for factor in WEIGHT_FACTORS:
+        weight = float(f"{data * factor:.3g}")
+        other, _, other_held = _select(lin.reweighted(weight), total, fixed, map_ridge)
+        labels.append(weight)
+        options.append(other)
+        residuals.append(other_held * np.r_[np.ones(3), np.full(3, data / weight)])
+    block = _blocks(lin, total, min(BLOCKS, len(lin.pick)))
+    best, decision = _choose("orientation_length", labels, residuals, block, data)
+    chosen = options[best]
+    chosen.decisions.append(
+        {
+            **decision,
+            "method": "the data's ratio (m per rad): the median position error (m) over orientation error (rad) "
+            "that the stage chosen at the ratio before leaves on every pair, until it settles (ratios); then that and "
+            f"{len(WEIGHT_FACTORS)} weights about it, each with its own capacity, on held-out blocks with "
+            "orientation weighed at the data's ratio",
+            "ratios": ratios,
+        }
+    )
+    return chosen
+
+
+def _select(
+    lin: Linearisation, total: int, fixed: dict[str, Any], map_ridge: float | None
+) -> tuple[Capacity, np.ndarray, np.ndarray]:
+    """The capacity chosen at ``lin``'s orientation weight; the residuals ``(N, width)`` that the chosen stage
+    and joint error map, fitted on every pair, leave of them; the chosen stage's held-out residuals (each a
+    contiguous fifth of the recording, as the elastic terms and the cyclic errors are judged)."""
     base = _normal(lin)
     folds = _Folds.build(lin, total, base=base)
     params = [lin.params[c] for c in folds.columns]
@@ -337,7 +412,7 @@ def select_capacity(
             made[setting] = {"setting": setting, "chosen": fixed[setting], "given": True}
             return fixed[setting]
         residuals = [evaluate(label) for label in labels]
-        chosen, decision = _choose(setting, labels, residuals, folds.block)
+        chosen, decision = _choose(setting, labels, residuals, folds.block, lin.orientation_length)
         made[setting] = {**decision, "round": round_}
         return labels[chosen]
 
@@ -380,6 +455,7 @@ def select_capacity(
         if (elastic, harmonics, settings["harmonic_prior"], backlash) == before:
             break
 
+    held = stage_residuals(elastic, harmonics, settings["harmonic_prior"], backlash)
     # The joint error map, fitted per fold on what that fold's stage leaves of its training pairs (and, with
     # approach directions, of the backlash they explain: the nets will carry that part).
     folds = _Folds.build(lin, total, interleaved=True, base=base, blocks=MAP_BLOCKS)
@@ -389,36 +465,33 @@ def select_capacity(
     left = [(folds.residual(f, stage[f]), folds.residual(f, stage[f], ~folds.held_out(f))) for f in range(FOLDS)]
     ridge = {} if map_ridge is None else {"ridge": map_ridge}
 
+    def map_left(train: np.ndarray, res_train: np.ndarray, rows: np.ndarray, res_rows: np.ndarray, step, smoothness):
+        """What a joint error map of knot spacing ``step`` (0: none), fitted on the pairs ``train`` (bool)
+        from their residuals ``res_train``, leaves of the residuals ``res_rows`` of the pairs ``rows``."""
+        if step <= 0:
+            return res_rows
+        q = lin.q[train]
+        lower = q.min(axis=0) - step
+        knots = int(np.floor((q.max(axis=0) - lower) / step).max()) + 2
+        empty = JointMap(lower, step, np.zeros((q.shape[1], knots)))
+        design = map_design(empty, q, lin.joint_rows[train])
+        values = solve_joint_map(design, res_train.ravel(), len(q), q.shape[1], knots, smoothness, **ridge)
+        design = map_design(empty, lin.q[rows], lin.joint_rows[rows])
+        return res_rows - (design @ values.ravel()).reshape(res_rows.shape)
+
     def mapped(step: float, smoothness: float) -> np.ndarray:
         out = np.zeros_like(lin.residual)
         for f in range(FOLDS):
             held = folds.held_out(f)
             res_val, res_train = left[f]
-            if step > 0:
-                train = ~held
-                q = lin.q[train]
-                lower = q.min(axis=0) - step
-                knots = int(np.floor((q.max(axis=0) - lower) / step).max()) + 2
-                empty = JointMap(lower, step, np.zeros((q.shape[1], knots)))
-                values = solve_joint_map(
-                    map_design(empty, q, lin.joint_rows[train]),
-                    res_train.ravel(),
-                    len(q),
-                    q.shape[1],
-                    knots,
-                    smoothness,
-                    **ridge,
-                )
-                design = map_design(empty, lin.q[held], lin.joint_rows[held])
-                res_val = res_val - (design @ values.ravel()).reshape(res_val.shape)
-            out[held] = res_val
+            out[held] = map_left(~held, res_train, held, res_val, step, smoothness)
         return out
 
     map_step = decide("map_step", list(MAP_STEPS), lambda s: mapped(s, settings["map_smoothness"]))
     if map_step > 0:
         settings["map_smoothness"] = decide("map_smoothness", list(MAP_SMOOTHNESS), lambda m: mapped(map_step, m))
     decisions = list(made.values())
-    return Capacity(
+    chosen = Capacity(
         elastic,
         int(harmonics),
         float(settings["harmonic_prior"]),
@@ -426,4 +499,12 @@ def select_capacity(
         float(settings["map_smoothness"]),
         decisions,
         backlash,
+        lin.orientation_length,
     )
+    # what the chosen stage and map, fitted on every pair, leave of them
+    idx = np.flatnonzero(use)
+    z = np.zeros(len(base.columns))
+    z[idx] = _solve(base.normal[np.ix_(idx, idx)] + np.diag(prior(settings["harmonic_prior"])[idx]), base.gradient[idx])
+    fitted = lin.residual + base.jacobian @ z
+    every = np.ones(len(fitted), dtype=bool)
+    return chosen, map_left(every, fitted, every, fitted, map_step, settings["map_smoothness"]), held

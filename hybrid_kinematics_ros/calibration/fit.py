@@ -411,7 +411,8 @@ def calibrate_bounds(
     the stage, linearised over the base-frame training pairs with the options it was identified with, its
     scale from the stage's errors on them, and its size inside from ``model``'s errors on the validation
     pairs."""
-    options = {k: v for k, v in stage_options.items() if k in ("kinds", "harmonics", "harmonic_prior")}
+    kept = ("kinds", "harmonics", "harmonic_prior", "orientation_length")
+    options = {k: v for k, v in stage_options.items() if k in kept}
     lin = linearise(
         chain,
         train_pairs.q,

@@ -42,6 +42,7 @@ half a minute).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -57,7 +58,7 @@ from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain, JointMap
 from hybrid_kinematics_ros.model.parametric import Parameter, build_model
 
-ORIENTATION_LENGTH = 1.0  # m per rad: weighs orientation residuals against position residuals
+ORIENTATION_LENGTH = 1.0  # m per rad: weighs orientation residuals against position ones, unless chosen (capacity)
 RANK_TOLERANCE = 1e-6  # pivots below this fraction of the largest are unidentifiable
 ROBUST_SCALE = 1e-3  # m: residuals well above this are down-weighted (soft L1)
 # Scaled unit of each kind of parameter, in SI: what one unit of the optimiser's variable means.
@@ -383,11 +384,26 @@ class Linearisation:
     pick: np.ndarray  # (N,) indices of the drawn pairs in the caller's order
     q: np.ndarray  # (N, n) their joints
     params: list[Parameter]  # every column: the chain's, the stations', then the harmonics
-    residual: np.ndarray  # (N, width): measured minus nominal, position m then orientation rad × 1 m
+    residual: np.ndarray  # (N, width): measured minus nominal, position m then orientation rad × orientation_length
     jacobian: np.ndarray  # (N, width, P) per scaled unit
     identifiable: np.ndarray  # (P,) bool
     scale: np.ndarray  # (P,) SI per scaled unit
     joint_rows: np.ndarray  # (N, width, n): the residuals' change per radian of each joint (the joint map's)
+    orientation_length: float = ORIENTATION_LENGTH  # m per rad: the orientation rows' weight
+
+    def reweighted(self, orientation_length: float) -> Linearisation:
+        """The same problem with the orientation rows weighed at ``orientation_length`` m per rad: the rows
+        are linear in the weight, so this is exact (the problem as :func:`linearise` would give it)."""
+        if self.residual.shape[1] != 6:
+            return self
+        factor = np.r_[np.ones(3), np.full(3, orientation_length / self.orientation_length)]
+        return dataclasses.replace(
+            self,
+            residual=self.residual * factor,
+            jacobian=self.jacobian * factor[:, None],
+            joint_rows=self.joint_rows * factor[:, None],
+            orientation_length=float(orientation_length),
+        )
 
 
 def linearise(chain: Chain, q: np.ndarray, T: np.ndarray, **options: Any) -> Linearisation:
@@ -579,6 +595,7 @@ def _identify(
             joint_rows=_joint_rows(
                 chain_model(nothing), q_fit, position_only, measurements(nothing)[1], orientation_length
             ),
+            orientation_length=float(orientation_length),
         )
 
     def solve(

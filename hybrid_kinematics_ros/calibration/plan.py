@@ -14,10 +14,11 @@ Measuring is what a calibration costs, so the poses are chosen for what the mode
   candidates at each step and added, the coverage term weighted by ``coverage_weight``.
 
 The predicted accuracy comes from the same linearisation: the parameters' covariance for the stage's own
-estimator (every row weighted alike) propagated to the tip at configurations drawn from the working range, plus
-what the stage cannot learn (``floor_mm``, ``floor_deg``: e.g. a previous calibration's held-out figures; 0:
-nothing) and the test measurement's own noise. The noise that identification sees is the tracker's plus the
-floor, in position and in orientation.
+estimator (orientation rows weighed by the ratio of the two kinds' noise, as the stage weighs them)
+propagated to the tip at configurations drawn from the working range, plus what the stage cannot learn
+(``floor_mm``, ``floor_deg``: e.g. a previous calibration's held-out figures; 0: nothing) and the test
+measurement's own noise. The noise that identification sees is the tracker's plus the floor, in position and
+in orientation.
 
 The cyclic joint errors (gear harmonics) weigh most where poses are few: on the real UR10 a stage without them
 is 0.37 mm off, with them 0.08. Their coefficients are many (80 a joint for 40 harmonics) and held towards zero
@@ -282,8 +283,12 @@ def _information(chain: Chain, q: np.ndarray, options: PlanOptions) -> _Problem:
     prior = (size / lin.scale) ** 2
     per_axis = MEAN_OVER_RMS * np.sqrt(3.0)  # a mean error norm over the per-axis standard deviation
     sigma = np.full(lin.jacobian.shape[1], np.hypot(options.position_noise_m, 1e-3 * options.floor_mm / per_axis))
-    if not position_only:  # orientation rows are rad × 1 m (ORIENTATION_LENGTH)
-        sigma[3:] = np.hypot(options.orientation_noise_rad, np.radians(options.floor_deg) / per_axis)
+    if not position_only:
+        # the stage weighs orientation rows by the ratio of the two kinds' errors (calibration.capacity, item 5):
+        # with these noises, every row's noise is then the same
+        rotation = np.hypot(options.orientation_noise_rad, np.radians(options.floor_deg) / per_axis)
+        lin = lin.reweighted(sigma[0] / rotation)
+        sigma[3:] = sigma[0]
     return _Problem(lin.jacobian[rows][:, :, columns], sigma, order[columns], lin.scale[columns], prior[columns])
 
 
@@ -297,7 +302,7 @@ def _normal(jac: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 def _covariance(a: np.ndarray, b: np.ndarray, ridge: np.ndarray | None = None, prior: np.ndarray | None = None):
     """The parameters' error covariance (scaled units) for the stage's own estimator from the normal matrices
     ``a = Σ JᵀJ`` and ``b = Σ Jᵀ diag(σ²) J`` (:func:`_normal`): least squares with every row weighted alike
-    (position in m, orientation in rad × 1 m), whatever noise each carries, and a ridge on the cyclic
+    (position in m, orientation in rad × the stage's weight), whatever noise each carries, and a ridge on the cyclic
     coefficients: ``A⁻¹ (b + R T R) A⁻¹`` with ``A = a + R``, the ridge ``R`` and the coefficients' prior
     variance ``T`` (the ridge's bias: the coefficients are drawn from the prior)."""
     if ridge is not None:

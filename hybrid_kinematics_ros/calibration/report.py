@@ -255,8 +255,8 @@ def _capacity_section(capacity: dict[str, Any] | None, nets: dict[str, Any]) -> 
                     "chosen" if c["candidate"] == d["chosen"] else ("best" if c["candidate"] == d["best"] else ""),
                     c["val_position_mm"],
                     c.get("val_orientation_deg", ""),
-                    c["worse_than_best_mm"],
-                    c["noise_mm"],
+                    c.get("worse_than_best_mm", ""),
+                    c.get("noise_mm", ""),
                 ]
             )
     for kind, net in nets.items():

@@ -76,6 +76,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     stage.add_argument("--harmonic-prior", type=float, help="ridge prior of each cyclic coefficient, in pairs")
     stage.add_argument("--map-step", type=float, help="rad between the joint error map's knots (0: no map)")
     stage.add_argument("--map-smoothness", type=float, help="weight of the joint error map's curvature")
+    stage.add_argument(
+        "--orientation-length",
+        type=float,
+        metavar="M_PER_RAD",
+        help="weight of the orientation residuals against the position ones, m per rad (default: the ratio of the "
+        "two kinds' held-out errors; smaller favours position)",
+    )
     add_payload_args(p)
     p.add_argument("--val-bag", nargs="+", help="separate validation bag(s); default: 10%% of --bag")
     p.add_argument("--test-bag", nargs="+", help="separate test bag(s); default: 10%% of --bag")
@@ -246,6 +253,7 @@ def run(args: argparse.Namespace) -> int:
                 "harmonic_prior": args.harmonic_prior,
                 "map_step": args.map_step,
                 "map_smoothness": args.map_smoothness,
+                "orientation_length": args.orientation_length,
                 "approach": args.approach,
             },
             payload=payload_from_args(args),
