@@ -86,7 +86,7 @@ MAP_BLOCKS = 100
 ROUNDS = 3  # turns of choosing the elastic terms and the cyclic errors, each given the other
 WEIGHT_ROUNDS = 3  # at most this many selections with the orientation weight from the one before
 WEIGHT_TOLERANCE = 0.1  # the weight is settled when a selection changes it by less than this share
-WEIGHT_FACTORS = (1 / 9, 1 / 3, 3.0, 9.0)  # the weights tried about the data's ratio, as its multiples
+WEIGHT_FACTORS = (1 / 3, 3.0, 1 / 9, 9.0)  # the weights tried about the data's ratio, nearest first (the simpler)
 
 
 @dataclass
@@ -349,7 +349,8 @@ def select_capacity(
         lin = lin.reweighted(ratio)
         chosen, left, held = _select(lin, total, fixed, map_ridge)
     # then the weights about it, each with the capacity chosen at it, judged on held-out errors in the same
-    # units (orientation at the data's ratio); the data's ratio stays unless another is better beyond the noise
+    # units (orientation at the data's ratio); the data's ratio stays unless another is better beyond the noise,
+    # and of the others within the noise of the best, the nearest to it wins
     data = lin.orientation_length
     labels, options, residuals = [data], [chosen], [held]
     for factor in WEIGHT_FACTORS:
