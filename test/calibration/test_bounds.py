@@ -142,7 +142,7 @@ def test_the_bound_policy_serves_each_net_where_its_bound_beats_the_stage(should
     """``out_of_range_policy: bound``: inside the trained range the nets serve; beyond it each net serves
     where its bound (grown by its unchecked change there) is below the stage's alone, every answer carries
     the bound of what served it, and far beyond, where the nets extrapolate worse than the stage, it beats
-    ``warn``."""
+    ``warn`` and is as good as the stage alone."""
     out, _, inside, _ = shoulder_model
     model = HybridModel.load(out)  # its own copy: the policy changes below stay here
     far = VirtualCell.from_config(ur10, noise=False).pairs(shoulder_configurations(300, (1.0, 2.5), seed=3), seed=3)
@@ -169,7 +169,9 @@ def test_the_bound_policy_serves_each_net_where_its_bound_beats_the_stage(should
     )[0]
     np.testing.assert_allclose(answers["bound"]["far"][1][0][~use[:, 0]], stage_bound[~use[:, 0]])
     pos_mm = {policy: answers[policy]["far"][2][0] for policy in answers}
-    assert pos_mm["bound"].mean() < 0.9 * pos_mm["warn"].mean()
+    # it beats the nets everywhere (warn), and is within a few per cent of the stage everywhere
+    assert pos_mm["bound"].mean() < 0.97 * pos_mm["warn"].mean()
+    assert pos_mm["bound"].mean() < 1.03 * pose_errors_of(model, far)["parametric"][0].mean()
     assert np.mean(pos_mm["bound"] <= 1e3 * answers["bound"]["far"][1][0]) >= 0.9
     # another payload than the nets were trained with: their bound does not know it, so the stage serves
     heavy = model.with_payload(12.0, np.array([0.0, 0.0, 0.1]))

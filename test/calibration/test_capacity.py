@@ -1,12 +1,15 @@
 """The capacity selection's folds: which pairs each holds out, and normal equations equal to those of the
-pairs it keeps (each fold's are formed as every pair's less its held-out ones')."""
+pairs it keeps (each fold's are formed as every pair's less its held-out ones'); the orientation residuals'
+weight, chosen from the noise each kind carries."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.calibration.capacity import FOLDS, MAP_BLOCKS, _Folds, _normal, select_capacity
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.parametric import linearise
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.simulation.truth import TrueRobot
@@ -61,3 +64,53 @@ def test_a_few_pairs_still_get_every_fold():
     assert [d["setting"] for d in chosen.decisions][-2:] == ["map_step", "orientation_length"]
     folds = _Folds.build(few, len(q), interleaved=True, base=_normal(few), blocks=MAP_BLOCKS)
     assert all(0 < h.sum() < len(q) for h in folds.held)
+
+
+def test_reweighting_is_the_problem_linearised_at_that_weight():
+    cfg = load_robot_config("ur10")
+    q = np.random.default_rng(5).uniform(cfg.chain.lower, cfg.chain.upper, (60, cfg.chain.dof))
+    T = TrueRobot.from_config(cfg).fk(q)
+    options = {"payload_mass": cfg.payload_mass, "payload_com": cfg.payload_com, "harmonics": 2}
+    at_one = linearise(cfg.chain, q, T, **options)
+    direct = linearise(cfg.chain, q, T, orientation_length=0.25, **options)
+    moved = at_one.reweighted(0.25)
+    assert moved.orientation_length == direct.orientation_length == 0.25
+    for name in ("residual", "jacobian", "joint_rows"):
+        np.testing.assert_allclose(getattr(moved, name), getattr(direct, name), rtol=1e-9, atol=1e-15)
+    assert not np.allclose(at_one.residual[:, 3:], direct.residual[:, 3:])
+
+
+def _noisy(position_noise: float, orientation_noise: float, count: int = 400):
+    """A UR10 cell measured with the given noise per axis (m, rad), linearised for the selection."""
+    cfg = load_robot_config("ur10")
+    rng = np.random.default_rng(6)
+    q = rng.uniform(cfg.chain.lower, cfg.chain.upper, (count, cfg.chain.dof))
+    T = TrueRobot.from_config(cfg).fk(q)
+    T[:, :3, :3] = T[:, :3, :3] @ Rotation.from_rotvec(rng.normal(0.0, orientation_noise, (count, 3))).as_matrix()
+    T[:, :3, 3] += rng.normal(0.0, position_noise, (count, 3))
+    return linearise(cfg.chain, q, T, payload_mass=cfg.payload_mass, payload_com=cfg.payload_com, harmonics=2)
+
+
+@pytest.mark.parametrize("orientation_noise", [2e-4, 2e-6])
+def test_the_orientation_weight_follows_the_noise_of_each_kind(orientation_noise):
+    """20 µm per axis in position: 200 µrad in orientation makes the data's ratio about 0.1 m per rad, 2 µrad
+    about 10 (less what the stage cannot fit of the truth, which adds to the position residuals); a fixed
+    weight of 1 would be 10x off either way."""
+    lin = _noisy(2e-5, orientation_noise)
+    chosen = select_capacity(lin, len(lin.pick))
+    decision = chosen.decisions[-1]
+    assert decision["setting"] == "orientation_length"
+    expected = 2e-5 / orientation_noise
+    settled = decision["ratios"][-1]["weight"]
+    assert expected / 2 < settled < expected * 2
+    # the kept weight is one of those tried, and the stage is identified with it
+    assert chosen.orientation_length == decision["chosen"] in [c["candidate"] for c in decision["candidates"]]
+    assert chosen.identify_options()["orientation_length"] == chosen.orientation_length
+
+
+def test_a_given_orientation_weight_is_kept_and_a_bad_one_refused(lin):
+    chosen = select_capacity(lin, len(lin.pick), {"orientation_length": 0.3})
+    assert chosen.orientation_length == 0.3
+    assert chosen.decisions[-1] == {"setting": "orientation_length", "chosen": 0.3, "given": True}
+    with pytest.raises(CalibrationError, match="orientation_length -1: give a positive weight"):
+        select_capacity(lin, len(lin.pick), {"orientation_length": -1.0})
