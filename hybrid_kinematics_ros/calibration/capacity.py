@@ -22,19 +22,27 @@ made one after the other, each on top of the ones before:
    them pinned, where every knot spacing falls back to its smoothness, and the coarser one wins by default
    (the real UR10's A: 0.02 rad chosen that way, 0.01 between blocks; the hybrid on A's held-out blocks
    0.0616 mm against 0.0575);
-5. the weight of the orientation residuals against the position ones (``orientation_length``, m per rad),
-   then 1 to 4 again with it. Least squares weighs each kind of residual best by the inverse of its own
-   spread, so the weight is the ratio of the two kinds' held-out errors that 1 to 4 leave (their medians,
-   position in m over orientation in rad), repeated until it changes by less than :data:`WEIGHT_TOLERANCE`.
-   A fixed 1 m per rad suits a tracker that measures orientation about as well as position at a metre
-   (the virtual cells: 0.015 mm and 0.001° per axis, 0.86 m per rad) and over-weighs orientation where it
-   is measured, or modelled, worse: on the real UR10 the ratio is about 0.4, and the stage alone on A's
-   250 planned poses gives 0.095 mm with it against 0.110 with 1. A fixed smaller weight is no answer
-   either: 0.3 costs a virtual RX160 cell of 300 poses 1.7x in position, where the data choose 5.
+5. the weight of the orientation residuals against the position ones (``orientation_length``, m per rad).
+   Least squares weighs each kind of residual best by the inverse of its spread, so the weight starts as
+   the data's own ratio: the median position residual (m) over the median orientation residual (rad) that
+   the stage chosen by 1 to 4 leaves on every pair, 1 to 4 chosen again at it until it changes by less
+   than :data:`WEIGHT_TOLERANCE`. Then the weights :data:`WEIGHT_FACTORS` times it get their own
+   capacity, and the held-out errors decide, with orientation weighed at the data's ratio in every
+   candidate's score: the data's ratio stays unless another weight is better beyond the noise. The
+   residuals on the fitted pairs, not held-out ones, give the ratio: held-out errors carry the parameters'
+   estimation error, which the weight itself shapes (on a 300-pose virtual RX160 their ratio, 0.72, tips
+   the elastic terms' choice from bending to the signed compliance and costs 1.4x in position).
+   A fixed 1 m per rad over-weighs orientation on the real UR10, whose ratio is 0.28-0.40: with the data's
+   weight the stage alone on A's 250 planned poses gives 0.092 mm instead of 0.110, and the hybrid on C
+   0.067 instead of 0.079, for 1-8 % more orientation error. On the 300-pose virtual walks the held-out
+   errors choose 9x the ratio (the largest offered: orientation pins the bending down), 0.80-0.83x the
+   position error and 0.6-0.7x the orientation error of a weight of 1; every other virtual cell is within
+   1.5 % (BENCHMARKS.md, "The orientation residuals' weight").
 
 Each candidate is solved on the problem linearised at the nominal model (:class:`Linearisation`; its
 error is about a micrometre for milliradian parameters), so a candidate on a fold costs one small solve
-instead of an identification: the whole selection takes seconds. The test pairs never enter it.
+instead of an identification: one selection takes seconds, and the orientation weight's 5-8 of them up to
+about a minute on 5,000 pairs. The test pairs never enter it.
 """
 
 from __future__ import annotations

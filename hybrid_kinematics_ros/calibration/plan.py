@@ -55,13 +55,13 @@ from hybrid_kinematics_ros.kinematics.fk import fk
 PREDICTION_CAVEAT = (
     "what the parameters' covariance gives if what the stage cannot learn behaves as noise, without the cyclic "
     "joint errors (no --prior-model): a lower bound below a few hundred poses (on the real UR10 the error of "
-    "60-120 poses was about twice this; see BENCHMARKS.md, Planning the measurement)"
+    "60-120 poses was two to three times this; see BENCHMARKS.md, Planning the measurement)"
 )
 PREDICTION_WITH_PRIOR = (
     "what the parameters' covariance gives if what the stage cannot learn behaves as noise, with the cyclic joint "
-    "errors the prior model found, each joint's and order's size (on the real UR10 2-20 % below the measured "
-    "error from 60 to 1,000 poses, on a virtual one from 2 % below to 19 % above; see BENCHMARKS.md, Planning "
-    "the measurement)"
+    "errors the prior model found, each joint's and order's size (on the real UR10 3-35 % below the measured "
+    "error from 60 to 1,000 poses, most below 250; on a virtual one from 0 to 53 % above; see BENCHMARKS.md, "
+    "Planning the measurement)"
 )
 # mean over RMS of the norm of an isotropic 3-D Gaussian error (chi distribution with 3 degrees of freedom)
 MEAN_OVER_RMS = float(np.sqrt(8.0 / (3.0 * np.pi)))
