@@ -113,7 +113,8 @@ def main() -> None:
         urdf = chain_from_urdf(cfg.urdf_path, cfg.base_link, cfg.tip_link)
         noise_mm, noise_deg, _ = noise_floor(series["A"], cfg.chain)
         per_axis = MEAN_OVER_RMS * np.sqrt(3.0)
-        # bench_plan's options for A: the tracker's noise, and what the stage on the whole pool leaves
+        # one plan for both weights: bench_plan's options for A as they were with a weight of 1 (the tracker's
+        # noise, and 0.0712 mm that the stage on the whole pool left at that weight)
         planned = plan(
             cfg.chain.with_limits(urdf.lower, urdf.upper),
             pool.q,
@@ -130,11 +131,14 @@ def main() -> None:
     body = (
         "Each row fits one cell twice, side by side in one run: the orientation residuals weighed at a fixed 1 m "
         "per rad (the former default, given as `--orientation-length 1`) and at the weight chosen from the "
-        "cell's training pairs (`train`'s default: the ratio of the two kinds' held-out errors, repeated until "
-        "it settles). Errors are held-out means at the target. Virtual cells (`simulation/portfolio.py`): the "
-        "stage alone, its capacity chosen from the training walk, tested on a separate walk. Real UR10: A and C "
-        "on block splits (the held-out fifth in blocks, as `bench_real`); A's 250 planned poses as `bench_plan` "
-        "plans them from A's training part; random subsets of it; for A and C also the stage and hybrid model "
+        "cell's training pairs (`train`'s default: the ratio of the two kinds' residuals that the chosen stage "
+        "leaves, repeated until it settles, then 1/9, 1/3, 3 and 9 times it, judged on held-out blocks). Errors "
+        "are held-out means at the target. Virtual cells (`simulation/portfolio.py`): the stage alone, its "
+        "capacity chosen from the training walk, tested on a separate walk. Real UR10: A and C on block splits "
+        "(the held-out fifth in blocks, as `bench_real`); 250 poses that `plan` chooses from A's training part "
+        "with `bench_plan`'s options as they were at a weight of 1 (with the chosen weight the whole pool leaves "
+        "less, and `bench_plan` plans other poses); random subsets of it; for A and C also the stage and hybrid "
+        "model "
         f"as `train` fits them (`fast`, {args.steps:,} steps a net, a tenth of the training part validating). "
         "*fit s*: the stage's identification with its capacity selection (the real hybrid rows: the whole fit)."
         "\n\n" + table(HEAD, rows)
