@@ -3,7 +3,8 @@ the weight chosen from each cell's data (``calibration.capacity``, item 5), side
 
 Every virtual cell of ``simulation.portfolio`` (the stage alone, its capacity chosen from the training walk,
 errors against the test walk at the target), and the real UR10 (ipa-robot-accuracy): A and C on block splits,
-A's 250 poses planned by ``plan`` (as ``bench_plan``) and 250 and 1,000 random ones; for A and C the hybrid
+250 poses of A planned by ``plan`` (with ``bench_plan``'s options at a weight of 1) and 250 and 1,000
+random ones; for A and C the hybrid
 model too (``fast``, ``--steps`` a net), whose nets carry what the stage leaves.
 
 Usage: python -m bench.bench_orientation_weight [--steps 2000] [--only SUBSTRING]
