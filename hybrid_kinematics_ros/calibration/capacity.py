@@ -32,7 +32,7 @@ made one after the other, each on top of the ones before:
    residuals on the fitted pairs, not held-out ones, give the ratio: held-out errors carry the parameters'
    estimation error, which the weight itself shapes (on a 300-pose virtual RX160 their ratio, 0.72, tips
    the elastic terms' choice from bending to the signed compliance and costs 1.4x in position).
-   A fixed 1 m per rad over-weighs orientation on the real UR10, whose ratio is 0.28-0.40: with the data's
+   A fixed 1 m per rad over-weighs orientation on the real UR10, whose ratio is 0.27-0.40: with the data's
    weight the stage alone on A's 250 planned poses gives 0.092 mm instead of 0.110, and the hybrid on C
    0.067 instead of 0.079, for 1-8 % more orientation error. On the 300-pose virtual walks the held-out
    errors choose 9x the ratio (the largest offered: orientation pins the bending down), 0.80-0.83x the
