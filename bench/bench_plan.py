@@ -6,7 +6,8 @@ test its held-out blocks. For each N, ``plan`` chooses N poses from the pool and
 those alone, its capacity chosen from them by cross-validation (as ``train`` does); the same for N random
 poses of the pool, the mean over ``--draws`` draws. Errors are at the probe, in the tracker frame. The
 prediction takes the tracker's noise from A's noise floor and what the stage cannot learn from the stage
-fitted on the whole pool (its held-out error, less the noise): both are properties of the cell, measured
+fitted on the whole pool without a joint error map or backlash (its held-out error, less the noise): the
+stage the prediction models, whose linearisation has neither. Both are properties of the cell, measured
 once, and the prediction for each N adds what the parameters' covariance gives.
 
 Virtual UR10 cell (config/ur10.yaml's truth: geometry, compliance, bending, gear ripple; the tracker's
@@ -53,10 +54,16 @@ def stage_errors(cfg, train: Pairs, test: Pairs) -> tuple[float, float]:
     return stage_fit(cfg, train, test)[:2]
 
 
-def stage_fit(cfg, train: Pairs, test: Pairs) -> tuple[float, float, CyclicPrior | None]:
-    """:func:`stage_errors`, and the cyclic joint errors the stage found (what ``plan --prior-model`` reads)."""
-    position, orientation, result = stage_result(cfg, train, test)
+def stage_fit(cfg, train: Pairs, test: Pairs, capacity: dict | None = None) -> tuple[float, float, CyclicPrior | None]:
+    """:func:`stage_errors`, and the cyclic joint errors the stage found (what ``plan --prior-model`` reads);
+    ``capacity``: settings given instead of chosen."""
+    position, orientation, result = stage_result(cfg, train, test, capacity)
     return position, orientation, cyclic_of(result)
+
+
+# The stage the prediction models (``plan``'s linearisation has neither a joint error map nor backlash), as
+# ``train --map-step 0 --no-approach`` fits it; the rest of its capacity is chosen.
+MODELLED = {"map_step": 0.0, "approach": False}
 
 
 def stage_result(cfg, train: Pairs, test: Pairs, capacity: dict | None = None) -> tuple[float, float, Any]:
@@ -181,12 +188,13 @@ def main() -> None:
     pool, _, test = split(series, 0, (0.0, 0.2))
     noise_mm, noise_deg, _ = noise_floor(series, cfg.chain)
     per_axis = MEAN_OVER_RMS * np.sqrt(3.0)
-    *whole, cyclic = stage_fit(cfg, pool, test)
+    whole = stage_errors(cfg, pool, test)
+    *modelled, cyclic = stage_fit(cfg, pool, test, MODELLED)
     floor = (
-        float(np.sqrt(max(whole[0] ** 2 - noise_mm**2, 0.0))),
-        float(np.sqrt(max(whole[1] ** 2 - noise_deg**2, 0.0))),
+        float(np.sqrt(max(modelled[0] ** 2 - noise_mm**2, 0.0))),
+        float(np.sqrt(max(modelled[1] ** 2 - noise_deg**2, 0.0))),
     )
-    print(f"A: pool {len(pool)}, test {len(test)}, noise floor {noise_mm:.4f} mm {noise_deg:.4f} deg, whole {whole}")
+    print(f"A: pool {len(pool)}, test {len(test)}, noise {noise_mm:.4f} mm {noise_deg:.4f} deg, {whole} {modelled}")
     # the robot measured A within its URDF's joint limits; config/ur10.yaml's narrower working range (for
     # sampling virtual cells: the shoulder lift at most 0) would leave out the rows it measured beyond
     urdf = chain_from_urdf(cfg.urdf_path, cfg.base_link, cfg.tip_link)
@@ -213,11 +221,11 @@ def main() -> None:
     test_T = cell.robot.fk(test_q)
     stamps = 10**9 + 10**7 * np.arange(len(pool_q))
 
-    def virtual_fit(rows: np.ndarray) -> tuple[float, CyclicPrior | None]:
+    def virtual_fit(rows: np.ndarray, capacity: dict | None = None) -> tuple[float, CyclicPrior | None]:
         train = Pairs(pool_q[rows], pool_T[rows], stamps[rows], cfg.chain.joint_names, "base_link")
         refs = reference_all(cfg.chain, [train])
         _, result = identify_stations(
-            cfg.chain, [train], refs, (cfg.payload_mass, cfg.payload_com), gravity=cfg.gravity
+            cfg.chain, [train], refs, (cfg.payload_mass, cfg.payload_com), capacity=capacity, gravity=cfg.gravity
         )
         return float(np.mean(se3.pose_errors(result.model.fk(test_q), test_T)[0])), cyclic_of(result)
 
@@ -225,7 +233,7 @@ def main() -> None:
         float(cfg.tracker.get("position_noise_mm", 0.015)),
         float(cfg.tracker.get("orientation_noise_deg", 0.001)),
     )
-    virtual_whole, virtual_cyclic = virtual_fit(np.arange(len(pool_q)))
+    virtual_whole, virtual_cyclic = virtual_fit(np.arange(len(pool_q)), MODELLED)
     virtual = compare(
         cfg,
         cfg.chain,
@@ -242,15 +250,18 @@ def main() -> None:
         f"Stage alone, capacity chosen from each subset. Real A: pool {len(pool)} poses (the block-split training "
         f"part; planned within the URDF's joint limits, where the robot measured it: config/ur10.yaml's working "
         f"range would leave out {outside} of its rows), test {len(test)} held-out poses; noise floor "
-        f"{noise_mm:.4f} mm / {noise_deg:.4f} deg; the stage on "
-        f"the whole pool {whole[0]:.4f} mm / {whole[1]:.4f} deg, so {floor[0]:.4f} mm / {floor[1]:.4f} deg it cannot "
-        f"learn. The prediction uses those two figures, the "
-        f"parameters' covariance of each plan, and the cyclic joint errors of the stage on the whole pool "
+        f"{noise_mm:.4f} mm / {noise_deg:.4f} deg. The stage on the whole pool, as `train` fits it: "
+        f"{whole[0]:.4f} mm / {whole[1]:.4f} deg. Without a joint error map or backlash, the stage the prediction "
+        f"models (`train --map-step 0 --no-approach`): {modelled[0]:.4f} mm / {modelled[1]:.4f} deg, so "
+        f"{floor[0]:.4f} mm / {floor[1]:.4f} deg it cannot learn (the floor). The prediction uses those two "
+        f"figures, the parameters' covariance of each plan at the orientation weight and harmonics that leave the "
+        f"least, and the cyclic joint errors of that stage on the whole pool "
         f"({describe(cyclic)}: what `plan --prior-model` reads from a previous calibration's model.json); without "
         f"them, what `plan` predicts without a prior model.\n\n{table(HEADERS, real)}\n\n"
         f"Virtual UR10 (config/ur10.yaml's truth, {virtual_noise[0]} mm tracker noise per axis): pool of 5,000 "
         f"random configurations within 95 % of the limits, errors against the truth at 1,000 others; the stage "
-        f"on the whole pool {virtual_whole:.4f} mm (the prediction's floor; the test has no noise), its cyclic "
+        f"on the whole pool, without a map or backlash, {virtual_whole:.4f} mm (the prediction's floor; the test "
+        f"has no noise), its cyclic "
         f"errors {describe(virtual_cyclic)}.\n\n"
         f"{table(HEADERS, virtual)}"
     )

@@ -14,11 +14,15 @@ Measuring is what a calibration costs, so the poses are chosen for what the mode
   candidates at each step and added, the coverage term weighted by ``coverage_weight``.
 
 The predicted accuracy comes from the same linearisation: the parameters' covariance for the stage's own
-estimator (orientation rows weighed by the ratio of the two kinds' noise, as the stage weighs them)
-propagated to the tip at configurations drawn from the working range, plus what the stage cannot learn
-(``floor_mm``, ``floor_deg``: e.g. a previous calibration's held-out figures; 0: nothing) and the test
+estimator (orientation rows weighed as the capacity selection will weigh them: the ratio of the two kinds'
+noise or a factor about it, whichever leaves the least) propagated to the tip at configurations drawn from the
+working range, plus what the stage cannot learn (``floor_mm``, ``floor_deg``; 0: nothing) and the test
 measurement's own noise. The noise that identification sees is the tracker's plus the floor, in position and
-in orientation.
+in orientation. The floor is that of the stage the linearisation models, which has no joint error map and no
+backlash: a previous calibration's held-out error with neither (``train --map-step 0 --no-approach``), less
+the tracker's noise. Those two terms need dense data, and the selection takes them only from a few hundred
+poses on (on the real UR10 a map from 120 poses, a fine one from 250); with the whole data set's floor, which
+has them, the prediction fell a third below the measured error at 60-250 poses.
 
 The cyclic joint errors (gear harmonics) weigh most where poses are few: on the real UR10 a stage without them
 is 0.37 mm off, with them 0.08. Their coefficients are many (80 a joint for 40 harmonics) and held towards zero
@@ -45,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from hybrid_kinematics_ros.calibration.capacity import HARMONIC_PRIORS, HARMONICS
+from hybrid_kinematics_ros.calibration.capacity import HARMONIC_PRIORS, HARMONICS, WEIGHT_FACTORS
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.parametric import linearise
 from hybrid_kinematics_ros.kinematics import se3
@@ -54,14 +58,14 @@ from hybrid_kinematics_ros.kinematics.fk import fk
 
 PREDICTION_CAVEAT = (
     "what the parameters' covariance gives if what the stage cannot learn behaves as noise, without the cyclic "
-    "joint errors (no --prior-model): a lower bound below a few hundred poses (on the real UR10 the error of "
-    "60-120 poses was two to three times this; see BENCHMARKS.md, Planning the measurement)"
+    "joint errors (no --prior-model): a lower bound below a few hundred poses (BENCHMARKS.md, Planning the "
+    "measurement, shows how far below on the real UR10)"
 )
 PREDICTION_WITH_PRIOR = (
     "what the parameters' covariance gives if what the stage cannot learn behaves as noise, with the cyclic joint "
-    "errors the prior model found, each joint's and order's size (on the real UR10 3-35 % below the measured "
-    "error from 60 to 1,000 poses, most below 250; on a virtual one from 0 to 53 % above; see BENCHMARKS.md, "
-    "Planning the measurement)"
+    "errors the prior model found, each joint's and order's size; the stage without a joint error map or "
+    "backlash, which dense data add (BENCHMARKS.md, Planning the measurement, shows how far it fell from the "
+    "measured error on the real UR10 and on a virtual one)"
 )
 # mean over RMS of the norm of an isotropic 3-D Gaussian error (chi distribution with 3 degrees of freedom)
 MEAN_OVER_RMS = float(np.sqrt(8.0 / (3.0 * np.pi)))
@@ -240,13 +244,16 @@ class _Problem:
     orientation rows) on the identifiable parameters and the cyclic coefficients, the noise each row will carry
     ``sigma (w,)``, and per column its harmonic order ``order (P,)`` (0: not cyclic), its SI value per scaled
     unit ``scale (P,)`` and the prior variance of a cyclic coefficient ``prior (P,)``. ``design (P,)``: the
-    columns the design maximises the information on (the stage every capacity includes)."""
+    columns the design maximises the information on (the stage every capacity includes). ``weight``: the
+    orientation rows' weight (m per rad) the problem is at, the ratio of the two kinds' noise (0: position
+    only)."""
 
     jacobian: np.ndarray
     sigma: np.ndarray
     order: np.ndarray
     scale: np.ndarray
     prior: np.ndarray
+    weight: float = 0.0
 
     @property
     def design(self) -> np.ndarray:
@@ -283,13 +290,16 @@ def _information(chain: Chain, q: np.ndarray, options: PlanOptions) -> _Problem:
     prior = (size / lin.scale) ** 2
     per_axis = MEAN_OVER_RMS * np.sqrt(3.0)  # a mean error norm over the per-axis standard deviation
     sigma = np.full(lin.jacobian.shape[1], np.hypot(options.position_noise_m, 1e-3 * options.floor_mm / per_axis))
+    weight = 0.0
     if not position_only:
-        # the stage weighs orientation rows by the ratio of the two kinds' errors (calibration.capacity, item 5):
-        # with these noises, every row's noise is then the same
-        rotation = np.hypot(options.orientation_noise_rad, np.radians(options.floor_deg) / per_axis)
-        lin = lin.reweighted(sigma[0] / rotation)
+        # the stage weighs orientation rows starting from the ratio of the two kinds' errors
+        # (calibration.capacity, item 5): with these noises, every row's noise is then the same
+        weight = float(sigma[0] / np.hypot(options.orientation_noise_rad, np.radians(options.floor_deg) / per_axis))
+        lin = lin.reweighted(weight)
         sigma[3:] = sigma[0]
-    return _Problem(lin.jacobian[rows][:, :, columns], sigma, order[columns], lin.scale[columns], prior[columns])
+    return _Problem(
+        lin.jacobian[rows][:, :, columns], sigma, order[columns], lin.scale[columns], prior[columns], weight
+    )
 
 
 def _normal(jac: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -299,41 +309,86 @@ def _normal(jac: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return flat.T @ flat, weighted.T @ flat
 
 
-def _covariance(a: np.ndarray, b: np.ndarray, ridge: np.ndarray | None = None, prior: np.ndarray | None = None):
-    """The parameters' error covariance (scaled units) for the stage's own estimator from the normal matrices
-    ``a = Σ JᵀJ`` and ``b = Σ Jᵀ diag(σ²) J`` (:func:`_normal`): least squares with every row weighted alike
-    (position in m, orientation in rad × the stage's weight), whatever noise each carries, and a ridge on the cyclic
-    coefficients: ``A⁻¹ (b + R T R) A⁻¹`` with ``A = a + R``, the ridge ``R`` and the coefficients' prior
-    variance ``T`` (the ridge's bias: the coefficients are drawn from the prior)."""
-    if ridge is not None:
-        a = a + np.diag(ridge)
-        b = b + np.diag(ridge**2 * prior)
-    a_inv = np.linalg.pinv(a, rcond=1e-12, hermitian=True)
-    return a_inv @ b @ a_inv
+def _weighted_normals(problem: _Problem, rows: np.ndarray):
+    """:func:`_normal` of the poses ``rows`` at each orientation weight the capacity selection tries (the data's
+    ratio, then :data:`~calibration.capacity.WEIGHT_FACTORS` times it): ``(weight, a, b)``. Scaling the
+    orientation rows by ``f`` scales their ``JᵀJ`` by ``f²`` and, their noise scaled alike, ``Jᵀ diag(σ²) J``
+    by ``f⁴``."""
+    jac = problem.jacobian[rows]
+    if problem.weight == 0.0:
+        return [(0.0, *_normal(jac, problem.sigma))]
+    a_pos, b_pos = _normal(jac[:, :3], problem.sigma[:3])
+    a_ori, b_ori = _normal(jac[:, 3:], problem.sigma[3:])
+    return [(problem.weight * f, a_pos + f**2 * a_ori, b_pos + f**4 * b_ori) for f in (1.0, *WEIGHT_FACTORS)]
+
+
+def _error_variance(
+    a: np.ndarray,
+    b: np.ndarray,
+    metric: np.ndarray,
+    kept: np.ndarray | None = None,
+    ridge: np.ndarray | None = None,
+    prior: np.ndarray | None = None,
+) -> float:
+    """The mean squared error ``tr(metric · C)`` that the stage's own estimator leaves, ``C`` the covariance of
+    every parameter's error (scaled units), from the normal matrices ``a = Σ JᵀJ`` and ``b = Σ Jᵀ diag(σ²) J``
+    (:func:`_normal`): least squares on the columns ``kept`` (default: all) with every row weighted alike
+    (position in m, orientation in rad × the stage's weight), whatever noise each carries, and a ``ridge`` on the
+    cyclic coefficients, whose values are drawn from their prior variance ``prior`` (scaled units).
+
+    The kept columns' error is ``A⁻¹ (Jᵀε - R θ_K + a_KE θ_E)`` with ``A = a_KK + R``: the noise, the ridge's
+    bias, and the share of the left-out columns' values ``θ_E`` that the kept ones absorb; a left-out column
+    errs by its whole value. Absorbing is not free: at few poses the kept columns take up what they cannot
+    tell from the left-out ones as if it were signal."""
+    p = a.shape[0]
+    kept = np.ones(p, dtype=bool) if kept is None else kept
+    out = ~kept
+    ridge = np.zeros(int(kept.sum())) if ridge is None else ridge
+    prior = np.zeros(p) if prior is None else prior
+    inside = np.ix_(kept, kept)
+    a_inv = np.linalg.pinv(a[inside] + np.diag(ridge), rcond=1e-12, hermitian=True)
+    absorbed = a[np.ix_(kept, out)] * prior[out]  # a_KE T_E
+    inner = b[inside] + np.diag(ridge**2 * prior[kept]) + absorbed @ a[np.ix_(out, kept)]
+    cross = -a_inv @ absorbed  # the kept columns' errors against the left-out ones'
+    return float(
+        np.sum((a_inv @ inner @ a_inv) * metric[inside])
+        + 2.0 * np.sum(cross * metric[np.ix_(kept, out)])
+        + np.sum(np.diag(metric)[out] * prior[out])
+    )
 
 
 def _stage_variance(problem: _Problem, rows: np.ndarray, metric: np.ndarray) -> tuple[float, dict[str, float]]:
     """The mean squared position error (m², over the evaluation poses, ``metric``: the mean of their position
     rows' ``JᵀJ``) that the parameters leave after the poses ``rows``, for the capacity the selection will
-    choose: without a prior on the cyclic errors, the stage every capacity includes; with one, the candidate
-    (harmonics and their ridge, as :mod:`calibration.capacity` offers them) that leaves the least. The
-    harmonics a candidate leaves out are errors of their prior's size."""
-    a, b = _normal(problem.jacobian[rows], problem.sigma)
+    choose, the one that leaves the least of those it offers:
+
+    - the orientation rows' weight (with 6-DoF measurements): the ratio of the two kinds' noise, and the
+      factors about it that the selection tries. The ratio is the best weight for least squares alone, not
+      with a ridge on the cyclic coefficients, whose strength the weight changes. On the virtual UR10 of
+      ``bench_plan`` the selection chose 2.6-2.9x the ratio from 60 to 250 poses; at 60 planned poses the
+      prediction at that weight was 12 % above the stage's error, and the prediction at the ratio 54 % above
+      it (and 11 % above what the stage fitted at the ratio gave);
+    - with a prior on the cyclic errors, the harmonics and their ridge, as :mod:`calibration.capacity` offers
+      them. The harmonics a candidate leaves out are errors of their prior's size, which the kept columns
+      absorb in part.
+
+    Without a prior, the stage every capacity includes."""
     cyclic = problem.order > 0
-    if not cyclic.any():
-        return float(np.trace(_covariance(a, b) @ metric)), {}
+    top = int(problem.order.max()) if cyclic.any() else 0
     best: tuple[float, dict[str, float]] = (np.inf, {})
-    top = int(problem.order.max())
-    for harmonics in sorted({h for h in HARMONICS if h < top} | {top}):
-        kept = ~cyclic | (problem.order <= harmonics)
-        left = float(np.sum(np.diag(metric)[~kept] * problem.prior[~kept]))
-        inside = np.ix_(kept, kept)
-        for ridge_pairs in HARMONIC_PRIORS if harmonics else (0.0,):
-            ridge = np.where(cyclic[kept], ridge_pairs * problem.scale[kept] ** 2, 0.0)
-            cov = _covariance(a[inside], b[inside], ridge, problem.prior[kept])
-            variance = float(np.sum(cov * metric[inside])) + left  # tr(cov · metric), both symmetric
-            if variance < best[0]:
-                best = (variance, {"harmonics": harmonics, "harmonic_prior": ridge_pairs})
+    for weight, a, b in _weighted_normals(problem, rows):
+        chosen = {"orientation_length": round(weight, 3)} if weight else {}
+        if not cyclic.any():
+            variance = _error_variance(a, b, metric)
+            best = min(best, (variance, chosen), key=lambda c: c[0])
+            continue
+        for harmonics in sorted({h for h in HARMONICS if h < top} | {top}):
+            kept = ~cyclic | (problem.order <= harmonics)
+            for ridge_pairs in HARMONIC_PRIORS if harmonics else (0.0,):
+                ridge = np.where(cyclic[kept], ridge_pairs * problem.scale[kept] ** 2, 0.0)
+                variance = _error_variance(a, b, metric, kept, ridge, problem.prior)
+                if variance < best[0]:
+                    best = (variance, {"harmonics": harmonics, "harmonic_prior": ridge_pairs, **chosen})
     return best
 
 

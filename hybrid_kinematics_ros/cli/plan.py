@@ -64,7 +64,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--noise-mm", type=float, default=0.015, help="tracker position noise per axis (mm)")
     p.add_argument("--noise-deg", type=float, default=0.001, help="tracker orientation noise per axis (deg)")
-    p.add_argument("--floor-mm", type=float, default=0.0, help="mean error the stage cannot learn (mm), if known")
+    p.add_argument(
+        "--floor-mm",
+        type=float,
+        default=0.0,
+        help="mean error the stage cannot learn (mm), if known: a previous calibration's held-out error of its "
+        "stage without a joint error map or backlash (train --map-step 0 --no-approach), less the tracker's noise",
+    )
     p.add_argument("--floor-deg", type=float, default=0.0, help="mean orientation error it cannot learn (deg)")
     p.add_argument(
         "--prior-model",
@@ -193,10 +199,14 @@ def run(args: argparse.Namespace) -> int:
     )
     if "capacity" in predicted:
         chosen = predicted["capacity"]
-        print(
-            f"predicted for the capacity that leaves the least: {chosen['harmonics']} harmonics, "
-            f"ridge {chosen['harmonic_prior']:g} pairs"
+        parts = (
+            [f"{chosen['harmonics']} harmonics, ridge {chosen['harmonic_prior']:g} pairs"]
+            if "harmonics" in chosen
+            else []
         )
+        if "orientation_length" in chosen:
+            parts.append(f"orientation weighed at {chosen['orientation_length']:g} m per rad")
+        print("predicted for the capacity that leaves the least: " + ", ".join(parts))
     print(f"the prediction is {result.caveat}")
     print("checked: " + ("; ".join(result.checks["checked"]) or "nothing about the tracker"))
     print("not checked: " + "; ".join(result.checks["not_checked"]))

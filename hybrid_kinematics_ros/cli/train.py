@@ -80,8 +80,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--orientation-length",
         type=float,
         metavar="M_PER_RAD",
-        help="weight of the orientation residuals against the position ones, m per rad (default: the ratio of the "
-        "two kinds' held-out errors; smaller favours position)",
+        help="weight of the orientation residuals against the position ones, m per rad (default: chosen from the "
+        "ratio of the two kinds' residuals, on held-out blocks; smaller favours position)",
     )
     add_payload_args(p)
     p.add_argument("--val-bag", nargs="+", help="separate validation bag(s); default: 10%% of --bag")
