@@ -240,7 +240,7 @@ def visible(chain: Chain, q: np.ndarray, view: TrackerView, target: np.ndarray |
 
 @dataclass(frozen=True)
 class _Problem:
-    """The stage's problem at the candidates, in scaled units: ``jacobian (N, w, P)`` (m, or rad × 1 m for
+    """The stage's problem at the candidates, in scaled units: ``jacobian (N, w, P)`` (m, or rad × ``weight`` for
     orientation rows) on the identifiable parameters and the cyclic coefficients, the noise each row will carry
     ``sigma (w,)``, and per column its harmonic order ``order (P,)`` (0: not cyclic), its SI value per scaled
     unit ``scale (P,)`` and the prior variance of a cyclic coefficient ``prior (P,)``. ``design (P,)``: the
@@ -360,7 +360,9 @@ def _error_variance(
 def _stage_variance(problem: _Problem, rows: np.ndarray, metric: np.ndarray) -> tuple[float, dict[str, float]]:
     """The mean squared position error (m², over the evaluation poses, ``metric``: the mean of their position
     rows' ``JᵀJ``) that the parameters leave after the poses ``rows``, for the capacity the selection will
-    choose, the one that leaves the least of those it offers:
+    choose, taken as the one of those it offers that leaves the least position error. The selection itself
+    judges on held-out blocks, orientation included, and keeps the simpler candidate unless another is better
+    beyond the noise: the prediction takes the optimist's choice. Offered:
 
     - the orientation rows' weight (with 6-DoF measurements): the ratio of the two kinds' noise, and the
       factors about it that the selection tries. The ratio is the best weight for least squares alone, not
@@ -377,7 +379,7 @@ def _stage_variance(problem: _Problem, rows: np.ndarray, metric: np.ndarray) -> 
     top = int(problem.order.max()) if cyclic.any() else 0
     best: tuple[float, dict[str, float]] = (np.inf, {})
     for weight, a, b in _weighted_normals(problem, rows):
-        chosen = {"orientation_length": round(weight, 3)} if weight else {}
+        chosen = {"orientation_length": float(f"{weight:.3g}")} if weight else {}  # as the selection rounds it
         if not cyclic.any():
             variance = _error_variance(a, b, metric)
             best = min(best, (variance, chosen), key=lambda c: c[0])
