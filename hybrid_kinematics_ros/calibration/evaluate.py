@@ -57,15 +57,18 @@ def measured_targets(pairs: Pairs) -> np.ndarray:
 def pose_errors_of(model: HybridModel, pairs: Pairs) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Errors of the URDF model (``analytic``), the parametric stage alone if any, and the hybrid model,
     at the measured target (:func:`target_errors`). Pairs in the tracker frame the model was referenced
-    to are moved into the base frame first.
+    to are moved into the base frame first: for the URDF model with its own referencing (the tracker and
+    the target fitted to it alone, :attr:`HybridModel.rigid_referencings`), so that "before" is the best
+    the nominal model does, never one inflated by the stage's base and tool corrections.
     """
+    nominal = to_base_frame([pairs], model.chain, model.rigid_referencings)
+    out = {"analytic": target_errors(nominal, model.fk(nominal.q, analytic=True))}
     pairs = in_base_frame(model, pairs)
-    models = {"analytic": model.fk(pairs.q, analytic=True)}
     conditions = model.conditions_of(pairs.conditions, len(pairs))
     if model.has_parametric:
-        models["parametric"] = model.fk(pairs.q, nets=False, conditions=conditions)
-    models["hybrid"] = model.fk(pairs.q, conditions=conditions)
-    return {name: target_errors(pairs, T) for name, T in models.items()}
+        out["parametric"] = target_errors(pairs, model.fk(pairs.q, nets=False, conditions=conditions))
+    out["hybrid"] = target_errors(pairs, model.fk(pairs.q, conditions=conditions))
+    return out
 
 
 def evaluate(

@@ -9,13 +9,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
 from hybrid_kinematics_ros.calibration import bounds as bounds_module
 from hybrid_kinematics_ros.calibration import capacity as capacity_module
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.alignment import align_raw
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.calibration.evaluate import evaluate, target_errors
+from hybrid_kinematics_ros.calibration.evaluate import evaluate, pose_errors_of, target_errors
 from hybrid_kinematics_ros.calibration.parametric import HARMONIC_PRIOR, ParametricResult, identify, linearise
 from hybrid_kinematics_ros.calibration.referencing import (
     anchor_stations,
@@ -244,12 +245,26 @@ def fit(
     refs = reference_all(chain, raw[0], shared_targets, seed)
     for ref in refs.values():
         log(f"referenced frame '{ref.frame_id}': rms {ref.rms_position_mm:.4f} mm ({ref.outliers} outliers)")
+        for note in ref.undetermined:
+            log(f"frame '{ref.frame_id}': {note}")
+    rigid_refs = refs  # the rigid-only candidate: the URDF model with the tracker and target fitted to it
+    if refs:
+        manifest["rigid_referencing"] = [ref.manifest() for ref in refs.values()]
     train_pairs, val_pairs, test_pairs = (to_base_frame(p, chain, refs) for p in raw)
     position_only = train_pairs.position_only
     base = ElasticChain.rigid(chain)
     if parametric:
         start = time.perf_counter()
         refs, result = identify_stations(chain, raw[0], refs, payload, seed, capacity, choose_capacity, gravity)
+        verdict = rigid_verdict(chain, raw[1], (result.model, refs), rigid_refs)
+        if verdict is not None and not verdict["better"]:
+            log(
+                "parametric stage: not served, worse on the validation pairs than the URDF model with only the "
+                f"tracker and target fitted ({verdict['candidate_mm']:.4f} mm against {verdict['rigid_mm']:.4f} mm)"
+            )
+            manifest["stage_not_served"] = verdict
+            parametric, refs = False, rigid_refs
+    if parametric:
         if result.capacity is not None:
             manifest["capacity"] = result.capacity
             log("parametric stage capacity (cross-validated): " + capacity_module.summary(result.capacity))
@@ -375,7 +390,13 @@ def fit(
             f"growing beyond it by up to {1e3 * bounds.position.rates[steepest]:.3g} mm per rad "
             f"({chain.joint_names[steepest]})"
         )
-    metrics = evaluate(model, test_pairs)  # eager nets here; the saved TorchScript is checked against them
+    # eager nets here; the saved TorchScript is checked against them. "analytic": the rigid-only candidate
+    errors = [pose_errors_of(model, p) for p in raw[2] if len(p)]
+    errors = (
+        {k: tuple(np.concatenate([e[k][i] for e in errors]) for i in (0, 1)) for k in errors[0]} if errors else None
+    )
+    metrics = evaluate(model, test_pairs, errors) if errors else evaluate(model, test_pairs)
+    guard = None if errors is None else worse_than_rigid(errors["hybrid"][0], errors["analytic"][0])
     manifest.update(
         {
             "nets": {kind: {"epochs": len(histories[kind]), **_best(histories[kind])} for kind in jobs},
@@ -394,8 +415,56 @@ def fit(
     )
     if position_only:
         manifest["note"] = "position-only data: orientation is not corrected (no orientation net)"
+    if guard is not None:
+        manifest["rigid_candidate"] = guard
     save_model_dir(out, manifest, chain.urdf_text, nets, coverage=coverage)
+    if guard is not None and guard["worse"]:
+        raise CalibrationError(
+            f"{out}: the model is worse on the test pairs than the URDF model with only the tracker and target "
+            f"fitted ({guard['served_mm']:.4f} mm against {guard['rigid_mm']:.4f} mm, p = {guard['p_value']:.2g}); "
+            "do not serve it: check the referencing notes in its report and measure more varied poses"
+        )
     return HybridModel.load(out), manifest
+
+
+def rigid_verdict(
+    chain: Chain,
+    stations: Sequence[Pairs],
+    candidate: tuple[ElasticChain, Mapping[str, Referencing]],
+    rigid_refs: Mapping[str, Referencing],
+) -> dict[str, Any] | None:
+    """Whether a stage with its referencings (``candidate``) beats the rigid-only model, the URDF model with
+    ``rigid_refs``, on held-out ``stations``: mean position errors at the target (mm); None without pairs."""
+    stations = [p for p in stations if len(p)]
+    if not stations:
+        return None
+    stage, refs = candidate
+    moved = to_base_frame(stations, chain, refs)
+    nominal = to_base_frame(stations, chain, rigid_refs)
+    stage_mm = target_errors(moved, stage.fk(stage.approached(moved.q, approach_of(moved))))[0]
+    rigid_mm = target_errors(nominal, ElasticChain.rigid(chain).fk(nominal.q))[0]
+    mean, rigid_mean = float(np.mean(stage_mm)), float(np.mean(rigid_mm))
+    return {"candidate_mm": mean, "rigid_mm": rigid_mean, "better": mean <= rigid_mean}
+
+
+GUARD_P_VALUE = 0.01  # the served model fails when it is worse than the rigid-only one at this significance
+
+
+def worse_than_rigid(served_mm: np.ndarray, rigid_mm: np.ndarray) -> dict[str, Any]:
+    """The served model against the rigid-only one on the same held-out pairs (position errors, mm): worse
+    when its mean is higher and a one-sided Wilcoxon signed-rank test of the pairs' differences says so at
+    ``GUARD_P_VALUE``, so that test noise alone does not fail a model that ties a good rigid one."""
+    served, rigid = float(np.mean(served_mm)), float(np.mean(rigid_mm))
+    differences = served_mm - rigid_mm
+    p_value = 1.0
+    if np.any(differences != 0):
+        p_value = float(stats.wilcoxon(served_mm, rigid_mm, alternative="greater").pvalue)
+    return {
+        "served_mm": served,
+        "rigid_mm": rigid,
+        "p_value": p_value,
+        "worse": served > rigid and p_value < GUARD_P_VALUE,
+    }
 
 
 def calibrate_bounds(

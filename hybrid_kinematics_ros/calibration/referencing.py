@@ -18,10 +18,11 @@ point less ``R_model · t`` (the orientation stays the parametric model's).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.optimize import least_squares
+import scipy.linalg
+from scipy.optimize import OptimizeResult, least_squares
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
@@ -161,69 +162,196 @@ def reference_stations(
     """One tracker placement per station (each in its own frame) and ONE target transform shared by all:
     the target stayed on the flange while the tracker moved. Fitted together by robust least squares,
     each station's base from a closed-form start; see :func:`reference`.
+
+    Poses that keep one tool orientation cannot tell the target's offset from a shift of the tracker:
+    the offset's directions the poses do not determine (:func:`undetermined_offsets`) stay at the prior,
+    the robot config's tool (the target at the chain's tip), and the referencing says so.
     """
     position_only = stations[0].position_only
     if any(p.position_only != position_only for p in stations):
         raise CalibrationError("stations sharing a target must all be 6-DoF or all position-only")
-    rng = np.random.default_rng(seed)
-    per_station = max(10, max_pairs // len(stations))
-    parts = []  # (q, measured, modelled tip, start of base_to_tracker) per station
-    for k, pairs in enumerate(stations):
-        if len(pairs) < 10:
-            raise CalibrationError(f"frame '{pairs.frame_id}': only {len(pairs)} pairs; referencing needs at least 10")
-        pick = rng.permutation(len(pairs))[:per_station]
-        model = fk.fk(chain, pairs.q[pick]) if tips is None else tips[k][pick]
-        p_tip = model[:, :3, 3]
-        if np.linalg.matrix_rank(p_tip - p_tip.mean(axis=0), tol=1e-3) < 3:
-            raise CalibrationError(
-                f"frame '{pairs.frame_id}': the tip positions span less than 3 dimensions; referencing needs "
-                "varied poses"
-            )
-        meas = pairs.T[pick]
-        parts.append((meas, model, se3.fit_rigid(meas[:, :3, 3], p_tip[None])[0][0]))
-    # Start: the target near the flange, each tracker from its point clouds; then the target offset.
-    in_tip = np.concatenate([se3.inverse(model) @ b @ meas for meas, model, b in parts])
-    start_target = np.eye(4)
-    start_target[:3, 3] = np.median(in_tip[:, :3, 3], axis=0)
-    if not position_only:
-        start_target[:3, :3] = Rotation.from_matrix(in_tip[:, :3, :3]).mean().as_matrix()
-    width = 3 if position_only else 6
-    n_target = 3 if position_only else 6
+    problem = _Problem.build(chain, stations, tips, max_pairs, seed)
+    fit = problem.solve()
+    weak = undetermined_offsets(fit.jac, problem, fit.fun)
+    notes: tuple[str, ...] = ()
+    if weak.directions.size:
+        problem = problem.holding(weak.directions)
+        fit = problem.solve()
+        notes = (weak.message(),)
+    return problem.referencings(stations, fit.x, fit.fun, notes)
 
-    def unpack(x: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
-        t = start_target.copy()
-        t[:3, 3] += x[:3]
-        if not position_only:
-            t = t @ _transform(np.r_[0.0, 0.0, 0.0, x[3:6]])
-        bases = [b @ _transform(x[n_target + 6 * k : n_target + 6 * k + 6]) for k, (_, _, b) in enumerate(parts)]
+
+TURN_MARGIN = 10.0  # a direction is determined when the tool turns along it this many times the model's error
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """The referencing's least squares: per station its measured poses, the modelled tip poses and a start
+    for ``base_to_tracker``; the target's start, and the basis of its offset's free directions (tip frame)."""
+
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
+    start_target: np.ndarray
+    position_only: bool
+    free: np.ndarray = field(default_factory=lambda: np.eye(3))  # (3, m): the offset's free directions
+
+    @classmethod
+    def build(
+        cls, chain: Chain, stations: Sequence[Pairs], tips: Sequence[np.ndarray] | None, max_pairs: int, seed: int
+    ) -> _Problem:
+        rng = np.random.default_rng(seed)
+        per_station = max(10, max_pairs // len(stations))
+        parts = []
+        for k, pairs in enumerate(stations):
+            if len(pairs) < 10:
+                raise CalibrationError(
+                    f"frame '{pairs.frame_id}': only {len(pairs)} pairs; referencing needs at least 10"
+                )
+            pick = rng.permutation(len(pairs))[:per_station]
+            model = fk.fk(chain, pairs.q[pick]) if tips is None else tips[k][pick]
+            p_tip = model[:, :3, 3]
+            if np.linalg.matrix_rank(p_tip - p_tip.mean(axis=0), tol=1e-3) < 3:
+                raise CalibrationError(
+                    f"frame '{pairs.frame_id}': the tip positions span less than 3 dimensions; referencing needs "
+                    "varied poses"
+                )
+            meas = pairs.T[pick]
+            parts.append((meas, model, se3.fit_rigid(meas[:, :3, 3], p_tip[None])[0][0]))
+        # Start: the target near the flange, each tracker from its point clouds; then the target offset.
+        in_tip = np.concatenate([se3.inverse(model) @ b @ meas for meas, model, b in parts])
+        start_target = np.eye(4)
+        start_target[:3, 3] = np.median(in_tip[:, :3, 3], axis=0)
+        if not stations[0].position_only:
+            start_target[:3, :3] = Rotation.from_matrix(in_tip[:, :3, :3]).mean().as_matrix()
+        return cls(parts, start_target, stations[0].position_only)
+
+    def holding(self, directions: np.ndarray) -> _Problem:
+        """The problem with the target's offset along ``directions (3, k)`` (tip frame) held at the prior."""
+        start = self.start_target.copy()
+        start[:3, 3] -= directions @ (directions.T @ start[:3, 3])
+        free = scipy.linalg.null_space(directions.T)
+        return replace(self, start_target=start, free=free)
+
+    @property
+    def n_target(self) -> int:
+        return self.free.shape[1] + (0 if self.position_only else 3)
+
+    def unpack(self, x: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+        m, n_target = self.free.shape[1], self.n_target
+        t = self.start_target.copy()
+        t[:3, 3] += self.free @ x[:m]
+        if not self.position_only:
+            t = t @ _transform(np.r_[0.0, 0.0, 0.0, x[m:n_target]])
+        bases = [b @ _transform(x[n_target + 6 * k : n_target + 6 * k + 6]) for k, (_, _, b) in enumerate(self.parts)]
         return bases, t
 
-    def residual(x: np.ndarray) -> np.ndarray:
-        bases, t = unpack(x)
+    def residual(self, x: np.ndarray) -> np.ndarray:
+        bases, t = self.unpack(x)
         out = []
-        for (meas, model, _), b in zip(parts, bases, strict=True):
+        for (meas, model, _), b in zip(self.parts, bases, strict=True):
             pred = se3.inverse(b) @ model @ t
             dp = meas[:, :3, 3] - pred[:, :3, 3]
-            if position_only:
+            if self.position_only:
                 out.append(dp.ravel())
             else:
                 dw = se3.rotvec(meas[:, :3, :3] @ np.swapaxes(pred[:, :3, :3], 1, 2))
                 out.append(np.concatenate([dp, dw], axis=1).ravel())
         return np.concatenate(out)
 
-    size = n_target + 6 * len(parts)
-    fit = least_squares(residual, np.zeros(size), loss="soft_l1", f_scale=ROBUST_SCALE, x_scale="jac")
-    bases, t = unpack(fit.x)
-    out, start = [], 0
-    for pairs, (meas, _, _), b in zip(stations, parts, bases, strict=True):
-        res = fit.fun[start : start + width * len(meas)].reshape(len(meas), width)
-        start += width * len(meas)
-        inlier = np.linalg.norm(res[:, :3], axis=1) < OUTLIER_M
-        res = res[inlier]
-        rms_deg = float("nan") if position_only else float(np.degrees(np.sqrt(np.mean(np.sum(res[:, 3:] ** 2, 1)))))
-        rms_mm = float(1e3 * np.sqrt(np.mean(np.sum(res[:, :3] ** 2, axis=1))))
-        out.append(Referencing(pairs.frame_id, b, t, position_only, rms_mm, rms_deg, outliers=int(np.sum(~inlier))))
-    return out
+    def solve(self) -> OptimizeResult:
+        size = self.n_target + 6 * len(self.parts)
+        return least_squares(self.residual, np.zeros(size), loss="soft_l1", f_scale=ROBUST_SCALE, x_scale="jac")
+
+    def referencings(
+        self, stations: Sequence[Pairs], x: np.ndarray, fun: np.ndarray, notes: tuple[str, ...]
+    ) -> list[Referencing]:
+        bases, t = self.unpack(x)
+        width = 3 if self.position_only else 6
+        out, start = [], 0
+        for pairs, (meas, _, _), b in zip(stations, self.parts, bases, strict=True):
+            res = fun[start : start + width * len(meas)].reshape(len(meas), width)
+            start += width * len(meas)
+            inlier = np.linalg.norm(res[:, :3], axis=1) < OUTLIER_M
+            res = res[inlier]
+            rms_deg = (
+                float("nan") if self.position_only else float(np.degrees(np.sqrt(np.mean(np.sum(res[:, 3:] ** 2, 1)))))
+            )
+            rms_mm = float(1e3 * np.sqrt(np.mean(np.sum(res[:, :3] ** 2, axis=1))))
+            out.append(
+                Referencing(
+                    pairs.frame_id,
+                    b,
+                    t,
+                    self.position_only,
+                    rms_mm,
+                    rms_deg,
+                    outliers=int(np.sum(~inlier)),
+                    undetermined=notes,
+                )
+            )
+        return out
+
+
+@dataclass(frozen=True)
+class Undetermined:
+    """Directions of the target's offset from the flange (tip frame, unit columns) that the poses do not
+    determine, how far the tool turns along each (rad, rms over the poses) and the model's own orientation
+    error it is judged against (rad)."""
+
+    directions: np.ndarray  # (3, k)
+    turns: np.ndarray  # (k,)
+    model_error: float
+
+    def message(self) -> str:
+        if self.directions.shape[1] == 3:
+            names = "every direction"
+        else:
+            names = " and ".join(_direction_name(d) for d in self.directions.T)
+        turned = ", ".join(f"{np.degrees(t):.3f}" for t in self.turns)
+        return (
+            f"the target's offset from the flange ({names}) is not determined by these poses: the tool turns "
+            f"by {turned} deg (rms) about the axes that would determine it, against the model's own "
+            f"{np.degrees(self.model_error):.3f} deg orientation error. It is held at the robot config's tool and "
+            "the tracker's placement absorbs the rest; to determine it, turn the tool by at least 30 deg about "
+            "two different axes in a few poses"
+        )
+
+
+def undetermined_offsets(jac: np.ndarray, problem: _Problem, fun: np.ndarray) -> Undetermined:
+    """The target offset's directions the fit does not determine, from its Jacobian ``jac`` at the solution.
+
+    The offset moves each measured point by ``R_tip · δt``; a shift of the tracker moves them all alike. What
+    tells the two apart is the part of the offset's columns that no other parameter's columns explain: per
+    pose, its singular values are how far the tool turns along each direction (rad). Where that turn is
+    less than ``TURN_MARGIN`` times the model's own orientation error, the robot's errors move the offset
+    along it freely (a lever of metres fits a few hundredths of a degree), so the direction is held.
+    The model's orientation error is the fit's orientation rms; position-only, its position rms over the
+    reach of the poses.
+    """
+    m = problem.free.shape[1]
+    offset, others = jac[:, :m] @ problem.free.T, jac[:, m:]
+    q, _ = np.linalg.qr(others)
+    apart = offset - q @ (q.T @ offset)
+    _, sing, vt = np.linalg.svd(apart, full_matrices=False)
+    poses = sum(len(meas) for meas, _, _ in problem.parts)
+    turns = sing / np.sqrt(poses)
+    width = 3 if problem.position_only else 6
+    res = fun.reshape(-1, width)
+    inlier = np.linalg.norm(res[:, :3], axis=1) < OUTLIER_M
+    if problem.position_only:
+        reach = np.sqrt(np.mean(np.sum(np.concatenate([model[:, :3, 3] for _, model, _ in problem.parts]) ** 2, 1)))
+        model_error = float(np.sqrt(np.mean(np.sum(res[inlier] ** 2, 1)))) / reach
+    else:
+        model_error = float(np.sqrt(np.mean(np.sum(res[inlier, 3:] ** 2, 1))))
+    weak = turns < TURN_MARGIN * model_error
+    return Undetermined(vt[weak].T, turns[weak], model_error)
+
+
+def _direction_name(direction: np.ndarray) -> str:
+    """``the tip's z axis`` for a direction within a degree of an axis, else its components."""
+    axis = int(np.argmax(np.abs(direction)))
+    if abs(direction[axis]) > np.cos(np.radians(1.0)):
+        return f"the tip's {'xyz'[axis]} axis"
+    return "(" + ", ".join(f"{c:+.2f}" for c in direction) + ") in the tip frame"
 
 
 def fit_circle(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:

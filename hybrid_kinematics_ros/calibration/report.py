@@ -505,7 +505,13 @@ def write_report(
             f"<p>Method: {html.escape(ref.method)}; frame '{html.escape(ref.frame_id)}'; residual rms "
             f"{ref.rms_position_mm:.4f} mm; {ref.outliers} outliers left out.</p>",
             _table(head, rows),
+            *(f"<p><strong>Not determined by the data:</strong> {html.escape(note)}.</p>" for note in ref.undetermined),
         ]
+    if refs:
+        parts.append(
+            '<p>The URDF model ("before") is judged with its own referencing: the tracker and the target fitted '
+            "to the nominal model alone.</p>"
+        )
     if not refs:
         parts.append("<p>The training data was in the base frame: no referencing was needed.</p>")
     par = m.get("parametric")

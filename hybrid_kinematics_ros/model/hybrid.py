@@ -116,6 +116,12 @@ class HybridModel:
         refs = [Referencing.from_manifest(r) for r in ([section] if isinstance(section, dict) else section)]
         self.referencings = {r.frame_id: r for r in refs}  # one per tracker station
         self.referencing = refs[0] if refs else None  # the first station's
+        # the nominal model's own referencing (the tracker and the target fitted to the URDF model alone):
+        # the "before" every report compares with; models without one compare with the served referencing
+        rigid = self.manifest.get("rigid_referencing")
+        self.rigid_referencings = (
+            {r.frame_id: r for r in map(Referencing.from_manifest, rigid)} if rigid else self.referencings
+        )
         conditions = self.manifest.get("conditions") or {}
         self.condition_names = tuple(conditions)  # condition channels the nets take after the joints
         self._shared = np.array([float(conditions[c]["default"]) for c in self.condition_names])

@@ -26,6 +26,7 @@ class Referencing:
     rms_orientation_deg: float = float("nan")
     method: str = "least squares"
     outliers: int = 0  # pairs more than calibration.referencing.OUTLIER_M off after the fit, left out of the rms
+    undetermined: tuple[str, ...] = ()  # what the poses left undetermined and held at the prior, and how to fix it
 
     def to_base(self, pairs: Pairs, base_link: str) -> Pairs:
         """The pairs in the base frame: tip poses for a 6-DoF target, the target points for a position-only one.
@@ -55,6 +56,7 @@ class Referencing:
             "rms_position_mm": self.rms_position_mm,
             "rms_orientation_deg": self.rms_orientation_deg,
             "outliers": self.outliers,
+            "undetermined": list(self.undetermined),
         }
 
     @classmethod
@@ -69,6 +71,7 @@ class Referencing:
                 float(section.get("rms_orientation_deg", float("nan"))),
                 str(section.get("method", "least squares")),
                 int(section.get("outliers", 0)),
+                tuple(str(note) for note in section.get("undetermined", ())),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelError(f"model.json: the referencing section is malformed ({exc!r})") from exc

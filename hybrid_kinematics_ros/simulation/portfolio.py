@@ -13,7 +13,10 @@ does not:
 - thermal drift of the arm: its reach grows by ``thermal_ppm`` (10⁻⁶) over the session as it warms,
   ``1 − exp(−t / 1 h)``; no joint angle explains it;
 - a tracker frame with a target off the flange, and broken-beam outliers in the training pairs;
-- a plain reflector: position only.
+- a plain reflector: position only;
+- a task path: the tool held at one orientation while the arm moves over a surface (``path="surface"``),
+  as cells calibrated along drilling or inspection paths are, optionally with a few poses turned by 30°
+  (``turned``) to determine the target's offset from the flange.
 
 The **floor** of a cell is what a perfect model of the joints (and approach sides) would still score: the
 error of the noise-free, drift-free truth against the test measurements.
@@ -25,11 +28,13 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.io.pairs import Pairs
-from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.robot_config import RobotConfig, load_robot_config
 from hybrid_kinematics_ros.simulation.backlash import play
+from hybrid_kinematics_ros.simulation.errors import SimulationError
 from hybrid_kinematics_ros.simulation.sampling import joint_range
 from hybrid_kinematics_ros.simulation.tracker import Tracker
 from hybrid_kinematics_ros.simulation.truth import TrueRobot
@@ -57,6 +62,8 @@ class CellSpec:
     outliers: float = 0.0  # fraction of the training pairs
     seconds_per_pose: float = 6.0
     step_rad: float = 0.4  # the walk's largest move of a joint between poses
+    path: str = "walk"  # "walk": every joint wanders; "surface": the tool keeps one orientation
+    turned: int = 0  # surface: training poses whose tool is turned by TURN_RAD about its x or y axis
     seed: int = 0
 
     @property
@@ -80,6 +87,39 @@ def _walk(config: RobotConfig, count: int, rng: np.random.Generator, step: float
     q[0] = rng.uniform(lower, upper)
     for i in range(1, count):
         q[i] = np.clip(q[i - 1] + rng.uniform(-step, step, config.chain.dof), lower, upper)
+    return q
+
+
+SURFACE_SPAN_RAD = 0.5  # surface: the first three joints stay this close to the home configuration
+TURN_RAD = np.radians(30.0)
+SURFACE_JITTER_RAD = np.radians(0.02)  # surface: the commanded orientation's scatter about each axis (a taught path)
+
+
+def _surface(spec: CellSpec, config: RobotConfig, count: int, rng: np.random.Generator, turned: int) -> np.ndarray:
+    """A walk over a surface with the tool at one orientation: the first three joints wander about a home
+    configuration, the wrist joints hold the nominal tool orientation it has there, within a taught path's
+    scatter (``SURFACE_JITTER_RAD``). ``turned`` poses,
+    spread over the walk, hold it turned by ``TURN_RAD`` about the tool's x or y axis, alternately."""
+    chain = config.chain
+    lower, upper = joint_range(chain, 0.8)
+    home = np.random.default_rng([spec.seed, 0]).uniform(lower, upper)  # every walk of the cell shares it
+    home[4] = 0.5 * (lower[4] + upper[4]) + 1.2  # the wrist well away from its singularity
+    jitter = Rotation.from_rotvec(rng.normal(0.0, SURFACE_JITTER_RAD, (count, 3))).as_matrix()
+    goal = fk.fk(chain, home[None])[0, :3, :3] @ jitter
+    for k, i in enumerate(np.linspace(0, count - 1, turned).astype(int) if turned else ()):
+        axis = np.eye(3)[k % 2]
+        goal[i] = goal[i] @ Rotation.from_rotvec(TURN_RAD * axis).as_matrix()
+    q = np.tile(home, (count, 1))
+    for i in range(1, count):
+        moved = q[i - 1, :3] + rng.uniform(-spec.step_rad, spec.step_rad, 3)
+        q[i, :3] = np.clip(moved, home[:3] - SURFACE_SPAN_RAD, home[:3] + SURFACE_SPAN_RAD)
+    for _ in range(50):  # Newton on the wrist joints: the orientation error, turned into joint steps
+        tip, jac = fk.fk_and_jacobian(chain, q)
+        miss = Rotation.from_matrix(goal @ np.swapaxes(tip[:, :3, :3], 1, 2)).as_rotvec()
+        q[:, 3:] += np.linalg.solve(jac[:, 3:, 3:], miss[..., None])[..., 0]
+    miss = se3.rotation_angle(goal @ np.swapaxes(fk.fk(chain, q)[:, :3, :3], 1, 2))
+    if np.max(miss) > 1e-9:
+        raise SimulationError(f"surface path: the wrist cannot hold the tool orientation ({np.max(miss):.2g} rad off)")
     return q
 
 
@@ -123,7 +163,10 @@ def build_cell(spec: CellSpec) -> Cell:
 
     def walk(count: int, seed: int, outliers: float) -> tuple[Pairs, np.ndarray]:
         rng = np.random.default_rng([spec.seed, seed])
-        q = _walk(config, count, rng, spec.step_rad)
+        if spec.path == "surface":
+            q = _surface(spec, config, count, rng, spec.turned if seed == 1 else 0)
+        else:
+            q = _walk(config, count, rng, spec.step_rad)
         t = spec.seconds_per_pose * np.arange(count)
         tip = truth(q)
         T = noisy.measure(warmed(tip, t), rng)
@@ -149,6 +192,12 @@ REALISTIC = {  # every effect at once, backlash a third of the backlash cell's
     "thermal_ppm": 15.0,
     "outliers": 0.004,
 }
+SURFACE = {"path": "surface", "step_rad": 0.1, "tracker": TRACKER_FAR}  # a task path, the target off the flange
+SURFACE_CELLS = (
+    CellSpec("UR10: one tool orientation along a surface", **SURFACE),
+    CellSpec("UR10: one tool orientation along a surface, plain reflector", plain_reflector=True, **SURFACE),
+    CellSpec("UR10: one tool orientation along a surface, 10 poses turned by 30 deg", turned=10, **SURFACE),
+)
 CELLS = (
     CellSpec("UR10: geometry and compliance", effects={"gear": False, "bending": False}),
     CellSpec("UR10: + gear harmonics and bending"),
@@ -164,4 +213,5 @@ CELLS = (
     CellSpec("UR10: realistic, 1,000 poses", poses=1000, **REALISTIC),
     CellSpec("UR10: realistic, 4,800 poses", poses=4800, **REALISTIC),
     CellSpec("UR10: every effect, base frame, 20,000 poses", poses=20_000, position_noise_mm=0.01),
+    *SURFACE_CELLS,
 )
