@@ -516,6 +516,12 @@ def write_report(
         parts.append("<p>The training data was in the base frame: no referencing was needed.</p>")
     par = m.get("parametric")
     parts.append("<h2>Parametric stage</h2>")
+    dropped = m.get("stage_not_served")
+    if dropped:
+        parts.append(
+            "<p>Not served: on the validation pairs it was worse than the URDF model with only the tracker and "
+            f"target fitted ({dropped['candidate_mm']:.4f} mm against {dropped['rigid_mm']:.4f} mm).</p>"
+        )
     if par:
         fitted = [p for p in par["parameters"] if p["identifiable"]]
         free = [p for p in par["parameters"] if not p["identifiable"] and p["kind"] != "harmonic"]
