@@ -22,7 +22,7 @@ The nets' early stopping reads the validation blocks too; that choice of one epo
 quantile, and the bench (``bench/bench_bounds.py``) checks the coverage on held-out test blocks. The nets'
 own extrapolation is not measured (that would retrain them per slab): their bound grows at the stage's rates.
 On a virtual UR10 trained with its shoulder in one radian, and on the real UR10 trained on series C and
-tested on B, the hybrid stayed better than the stage beyond the trained range.
+tested on B, the hybrid stays better than the stage beyond the trained range (BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -186,5 +186,5 @@ def calibrate(
         made[kind] = ErrorBound(
             conformal_quantile(left / at, level), rates, scale, conformal_quantile(stage_left / at, level)
         )
-        figures[f"{kind}_quantile_without_scale"] = conformal_quantile(left, level)  # what it was with none
+        figures[f"{kind}_quantile_without_scale"] = conformal_quantile(left, level)  # the quantile without a scale
     return Bounds(level, made["position"], made.get("orientation"), figures)

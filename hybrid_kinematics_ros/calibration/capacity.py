@@ -1,7 +1,8 @@
 """The parametric stage's capacity, chosen from the data being calibrated.
 
 How many parameters a stage can carry depends on the robot and on how many poses pin them down: 40
-harmonics per joint and a joint error map on 0.01 rad knots suit 9,500 real UR10 poses and over-fit 600.
+harmonics per joint and a joint error map on 0.01 rad knots suit thousands of real UR10 poses and over-fit
+hundreds.
 So every size is chosen by cross-validation over **contiguous blocks** of the training pairs (neighbours
 along a recording never sit on both sides; each fold holds out a contiguous fifth of the recording), and the
 simpler candidate wins unless a richer one is better by more than the validation noise (the standard error
@@ -20,8 +21,8 @@ made one after the other, each on top of the ones before:
    local correction: it corrects a joint at the angles the pairs near it visited, between measured poses,
    which is what those blocks measure. A held-out fifth of the recording asks it about angles no pair near
    them pinned, where every knot spacing falls back to its smoothness, and the coarser one wins by default
-   (the real UR10's A: 0.02 rad chosen that way, 0.01 between blocks; the hybrid on A's held-out blocks
-   0.0616 mm against 0.0575);
+   (on the real UR10's series A, a coarser map than between blocks, and a worse hybrid on A's held-out
+   blocks);
 5. the weight of the orientation residuals against the position ones (``orientation_length``, m per rad).
    Least squares weighs each kind of residual best by the inverse of its spread, so the weight starts as
    the data's own ratio: the median position residual (m) over the median orientation residual (rad) that
@@ -30,19 +31,17 @@ made one after the other, each on top of the ones before:
    capacity, and the held-out errors decide, with orientation weighed at the data's ratio in every
    candidate's score: the data's ratio stays unless another weight is better beyond the noise. The
    residuals on the fitted pairs, not held-out ones, give the ratio: held-out errors carry the parameters'
-   estimation error, which the weight itself shapes (on a 300-pose virtual RX160 their ratio, 0.72, tips
-   the elastic terms' choice from bending to the signed compliance and costs 1.4x in position).
-   A fixed 1 m per rad over-weighs orientation on the real UR10, whose ratio is 0.27-0.40: with the data's
-   weight the stage alone on A's 250 planned poses gives 0.092 mm instead of 0.110, and the hybrid on C
-   0.067 instead of 0.079, for 1-8 % more orientation error. On the 300-pose virtual walks the held-out
-   errors choose 9x the ratio (the largest offered: orientation pins the bending down), 0.80-0.83x the
-   position error and 0.6-0.7x the orientation error of a weight of 1; every other virtual cell is within
-   1.5 % (BENCHMARKS.md, "The orientation residuals' weight").
+   estimation error, which the weight itself shapes (on a short virtual RX160 walk their ratio tips the
+   elastic terms' choice from bending to the signed compliance, at a cost in position).
+   A fixed 1 m per rad over-weighs orientation on the real UR10, whose ratio is well below 1: the data's
+   weight gives a clearly smaller position error for slightly more orientation error. On short virtual
+   walks the held-out errors choose the largest weight offered (orientation pins the bending down), smaller
+   errors of both kinds than a weight of 1 (BENCHMARKS.md, "The orientation residuals' weight").
 
 Each candidate is solved on the problem linearised at the nominal model (:class:`Linearisation`; its
 error is about a micrometre for milliradian parameters), so a candidate on a fold costs one small solve
-instead of an identification: one selection takes seconds, and the orientation weight's 5-8 of them up to
-about a minute on 5,000 pairs. The test pairs never enter it.
+instead of an identification: one selection takes seconds, and the orientation weight's several of them
+about a minute on thousands of pairs. The test pairs never enter it.
 """
 
 from __future__ import annotations
@@ -69,9 +68,8 @@ BLOCKS = 20  # contiguous blocks of the training pairs; each is validated once
 # Fold f holds out the blocks [f · BLOCKS / FOLDS, (f + 1) · BLOCKS / FOLDS): a fifth of the recording at once, not
 # every fifth block. A held-out block between two training blocks measures interpolation along the recording;
 # a held-out fifth measures how the stage carries to poses the rest did not visit, as the model is used.
-# Dense data choose alike either way (the real UR10's A, C, A+B+C+D: the same capacity); a short walk does not
-# (300 virtual UR10 poses: 5 harmonics fitted between the blocks, 2 carried, 0.054 mm against 0.047 mm on
-# another walk, whose floor is 0.024 mm).
+# Dense data choose alike either way; a short walk does not: between the blocks it takes more harmonics than
+# carry to another walk.
 FOLDS = 5
 ELASTIC = {  # each level adds to the one before
     "geometry": ("zero", "translation", "rotation"),
@@ -87,7 +85,8 @@ MAP_SMOOTHNESS = (0.3, 0.03, 0.003)  # a smoother map is the simpler model
 START = {"harmonic_prior": 30.0, "map_smoothness": 0.03}  # the value a setting has before its turn comes
 # A richer candidate must win by more than this too (m): a micrometre is about the error of the linearised
 # problem the candidates are solved on, and below a laser tracker's resolution. On noise-free data the
-# standard error alone lets 40 harmonics beat the true 2 by 0.4 µm, and the extra 38 then extrapolate wildly.
+# standard error alone lets 40 harmonics beat the true 2 by a fraction of a micrometre, and the extra 38 then
+# extrapolate wildly.
 RESOLUTION = 1e-6
 # The joint error map's folds: every fifth of this many blocks (fit.SPLIT_BLOCKS, the split's own unit).
 MAP_BLOCKS = 100

@@ -75,8 +75,8 @@ def estimate_clock(
        the nominal FK's slowly varying error) is minimised near the coarse offset.
     4. :func:`_refine_clock` solves for offset and skew jointly with a model of the FK's error; the frame
        is fitted again with the refined clock and the refinement repeated. The skew is estimated on
-       recordings of ``skew_min_span_s`` or more only: over 30 s the FK error model's misfit looked like
-       5-16 ppm and moved the offset by 0.2 ms, while a real 20 ppm moves it by ±0.3 ms there.
+       recordings of ``skew_min_span_s`` or more only: over a shorter one the FK error model's misfit looks
+       like a skew of a real clock's size, and moves the offset as much as that skew would.
 
     Tracker positions are averaged over one joint period first, against the noise.
     """
@@ -250,14 +250,14 @@ def _refine_clock(
     ``p_tracker(t + o(t)) − p_fk(t) ≈ F(q) β + v(t) (δ + σ (t − t̄))``: the model error depends on the
     configuration only, the timing error on the velocity, and vanishes while the robot stands still.
     ``β`` is fitted per window of ``window_s``: over a long recording one first-order model cannot
-    follow the error across the whole workspace, and what it misses leaks into the clock (0.12 ms after
-    10 minutes with one global fit, against 0.2 ms allowed). ``δ`` and ``σ`` are shared; they come from
+    follow the error across the whole workspace, and what it misses leaks into the clock (after ten minutes,
+    with one global fit, most of the timing error allowed). ``δ`` and ``σ`` are shared; they come from
     the velocity and mismatch residuals after each window's own fit (Frisch-Waugh-Lovell).
 
     Memory stays that of one window: the features are built per window, and only the velocity columns
     projected off each window's model are kept (:func:`_projected_velocity`), not the model's basis; the
     mismatch needs no projection of its own, ``(P r₁)ᵀ m = r₁ᵀ m`` for the projected columns ``r₁``.
-    Two minutes at 110 Hz held 80 MB of features and bases before, a 60-minute recording 2 GB.
+    (Every window's features and bases at once would take gigabytes on an hour-long recording.)
     """
     tip = frames[:, -1]
     p_fk = p_tip_all(tip, target)
@@ -306,9 +306,9 @@ def _projected_velocity(
 
     The span is the one of an SVD basis, computed once per window's samples (the factorisation is most of
     the refinement's cost). Directions down to 1e-13 of the largest singular value are kept: the weak ones
-    carry model structure, and dropping those below 1e-10 moved the offset by 0.07-0.18 ms on a 30 s
-    recording (a basis from the Gram matrix, which squares the condition number, did the same). scipy's
-    divide-and-conquer SVD: numpy's least squares was 10x slower here.
+    carry model structure, and dropping those below 1e-10 moves the offset by about a tenth of a millisecond
+    on a short recording (so does a basis from the Gram matrix, which squares the condition number). scipy's
+    divide-and-conquer SVD: numpy's least squares is many times slower here.
     """
     if key not in cache:
         # the gradient at a window's samples needs their neighbours: it is taken on the whole series, lazily

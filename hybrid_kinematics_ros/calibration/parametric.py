@@ -4,9 +4,9 @@ Parameters (all small, starting from the nominal URDF):
 
 - zero offsets of every joint;
 - joint compliances against the gravity torques computed from the URDF inertials and the payload, and a
-  cubic term of each (``c₃ τ³``): gears stiffen with load (a spring with ``1 + r (τ/τ_ref)²`` stiffening,
-  the simulator's, left 0.056 mm where a linear compliance alone fits, 0.023 mm with it, on a 0.023 mm floor),
-  and a term in ``|τ|`` (``c±``: a joint stiffer under one sign of torque than under the other);
+  cubic term of each (``c₃ τ³``): gears stiffen with load (against the simulator's spring with
+  ``1 + r (τ/τ_ref)²`` stiffening, a linear compliance alone leaves error above the noise floor, the cubic term
+  none), and a term in ``|τ|`` (``c±``: a joint stiffer under one sign of torque than under the other);
 - link bending: a rotation per Nm of joint torque about the two axes perpendicular to each joint axis;
 - a small rigid transform (x, y, z, rx, ry, rz) of every joint origin and of the flange (its rotation
   also tilts the joint's axis: axis misalignment needs no parameters of its own);
@@ -24,11 +24,11 @@ data decide (:mod:`calibration.capacity`).
 
 Pairs from several tracker stations come referenced each on its own, with the nominal model, and that
 referencing absorbs a different share of the robot's errors at each station: their base-frame poses
-disagree by a small rigid move at the base and at the target (on the real UR10, A and C fitted together:
-0.15 and 0.38 mm on held-out poses, against 0.07 and 0.08 mm alone). So every station but the first gets a
+disagree by a small rigid move at the base and at the target (on the real UR10, series A and C fitted
+together do several times worse on held-out poses than each alone). So every station but the first gets a
 correction of its placement, and every target mount but the first's a correction of the mount, identified
-with the robot's parameters (A and C together then: 0.075 and 0.092 mm); the caller folds them into the
-referencings (``calibration.referencing.refine_stations``).
+with the robot's parameters (A and C together then do about as well as each alone); the caller folds them
+into the referencings (``calibration.referencing.refine_stations``).
 
 Many of these are not identifiable from end-effector poses (a zero offset is the same as turning the joint
 origin about the joint axis; parallel axes leave some translations free). Identifiability is decided by
@@ -36,8 +36,8 @@ Gram-Schmidt on the scaled identification Jacobian's columns in a fixed order (:
 no pivoting: of two equivalent parameters the earlier is kept); the dependent ones are fixed at zero and
 reported, with the parameters each one is equivalent to. The rest is fitted with a robust loss by
 :func:`robust_gauss_newton`: the parameters are small, so the problem is nearly linear and one Jacobian
-serves several steps (5,000 pairs in a few seconds, where ``least_squares`` with a Jacobian per step took
-half a minute).
+serves several steps (thousands of pairs in seconds, many times faster than ``least_squares`` with a
+Jacobian per step).
 """
 
 from __future__ import annotations
@@ -300,9 +300,9 @@ def solve_joint_map(
     smooth = sparse.block_diag([curvature] * n)
     # The normal equations are sparse (a pair couples two knots of each joint) and the priors keep them well
     # conditioned. A pair couples every joint's knots with every other's, though: a factorisation fills in
-    # nearly completely, and a dense Cholesky is 6x faster than a sparse LU (0.85 against 5.3 s at 3,786
-    # unknowns, 4,000 pairs, 0.01 rad knots; both 1e-14 apart). Beyond DENSE_MAP_UNKNOWNS the sparse solve
-    # keeps the memory bounded.
+    # nearly completely, and a dense Cholesky is several times faster than a sparse LU at a few thousand
+    # unknowns, with the same answer to rounding. Beyond DENSE_MAP_UNKNOWNS the sparse solve keeps the memory
+    # bounded.
     normal = (design.T @ design + pairs * smoothness**2 * (smooth.T @ smooth)).tocsc()
     normal = normal + pairs * ridge**2 * sparse.identity(n * knots, format="csc")
     rhs = design.T @ res

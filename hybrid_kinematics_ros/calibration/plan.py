@@ -20,15 +20,15 @@ working range, plus what the stage cannot learn (``floor_mm``, ``floor_deg``; 0:
 measurement's own noise. The noise that identification sees is the tracker's plus the floor, in position and
 in orientation. The floor is that of the stage the linearisation models, which has no joint error map and no
 backlash: a previous calibration's held-out error with neither (``train --map-step 0 --no-approach``), less
-the tracker's noise. Those two terms need dense data, and the selection takes them only from a few hundred
-poses on (on the real UR10 a map from 120 poses, a fine one from 250); with the whole data set's floor, which
-has them, the prediction fell a third below the measured error at 60-250 poses.
+the tracker's noise. Those two terms need dense data, and the selection takes them only from a hundred poses
+or more; with the whole data set's floor, which has them, the prediction would fall well below the measured
+error at the pose counts a plan is for.
 
-The cyclic joint errors (gear harmonics) weigh most where poses are few: on the real UR10 a stage without them
-is 0.37 mm off, with them 0.08. Their coefficients are many (80 a joint for 40 harmonics) and held towards zero
-by the stage's ridge, so few poses learn them only in part. Given what a previous calibration of the robot (or of
-one of its type) found (:class:`CyclicPrior`: how many harmonics, the coefficients' size for each joint and
-order), the prediction counts what the ridge estimator leaves of them, ``A⁻¹ (Jᵀ Σ J + R T R) A⁻¹`` with
+The cyclic joint errors (gear harmonics) weigh most where poses are few: on the real UR10 a stage without them is
+several times further off than with them. Their coefficients are many (80 a joint for 40 harmonics) and held
+towards zero by the stage's ridge, so few poses learn them only in part. Given what a previous calibration of the
+robot (or of one of its type) found (:class:`CyclicPrior`: how many harmonics, the coefficients' size for each
+joint and order), the prediction counts what the ridge estimator leaves of them, ``A⁻¹ (Jᵀ Σ J + R T R) A⁻¹`` with
 ``A = JᵀJ + R``, the ridge ``R`` and the coefficients' prior variance ``T`` (a Bayesian linear model), for the
 capacity the selection will choose from that many poses: of the harmonic counts and ridges
 :mod:`calibration.capacity` offers, the one that leaves the least (fewer harmonics leave the others' prior whole).
@@ -367,9 +367,8 @@ def _stage_variance(problem: _Problem, rows: np.ndarray, metric: np.ndarray) -> 
     - the orientation rows' weight (with 6-DoF measurements): the ratio of the two kinds' noise, and the
       factors about it that the selection tries. The ratio is the best weight for least squares alone, not
       with a ridge on the cyclic coefficients, whose strength the weight changes. On the virtual UR10 of
-      ``bench_plan`` the selection chose 2.6-2.9x the ratio from 60 to 250 poses; at 60 planned poses the
-      prediction at that weight was 12 % above the stage's error, and the prediction at the ratio 54 % above
-      it (and 11 % above what the stage fitted at the ratio gave);
+      ``bench_plan`` the selection chooses a few times the ratio, and the prediction at that weight comes far
+      nearer the stage's error than the prediction at the ratio (BENCHMARKS.md);
     - with a prior on the cyclic errors, the harmonics and their ridge, as :mod:`calibration.capacity` offers
       them. The harmonics a candidate leaves out are errors of their prior's size, which the kept columns
       absorb in part.

@@ -1,4 +1,4 @@
-"""Alignment in windows while a recording goes on, in memory bounded whatever its length (issue 17).
+"""Alignment in windows while a recording goes on, in memory bounded whatever its length.
 
 The paper recorded for 8 hours; holding a whole recording costs 0.7 GB an hour at 3 kHz + 110 Hz. A
 :class:`StreamingAligner` keeps only the samples that the next window still needs and hands back pairs
@@ -106,8 +106,8 @@ def release_memory() -> None:
     """Give freed heap memory back to the system (glibc ``malloc_trim``; nothing elsewhere).
 
     A segment's alignment allocates and frees tens of MB of arrays; glibc keeps such freed memory in the
-    worker thread's arena for reuse, where it stayed as resident memory (a plateau 195 MB over the start
-    in a 60-minute recording, issue 17).
+    worker thread's arena for reuse, where it stays as resident memory (a plateau of a few hundred MB over
+    a long recording).
     """
     if _TRIM is not None:
         _TRIM(0)

@@ -95,7 +95,7 @@ def payload_from_args(args: argparse.Namespace) -> tuple[float, np.ndarray]:
 
 def bound_names(model: HybridModel, args: argparse.Namespace) -> list[str]:
     """The CSV columns of the answers' error bounds (``--bounds``); a user error when the answers carry none
-    (``--analytic``, or a model trained before bounds)."""
+    (``--analytic``, or a model without bounds)."""
     if args.analytic or model.bounds is None:
         why = "--analytic answers carry none" if args.analytic else f"model {args.model or '(none)'} carries none"
         raise DataError(f"--bounds: {why}; give a model trained with this version, without --analytic")

@@ -39,8 +39,8 @@ CHECK_M, CHECK_RAD = 1e-5, 1e-5
 POLISH = 1e-10  # (m and rad) a branch further off gets one Newton step on our FK
 TAU = 2 * np.pi
 # Up to this many branches are checked one by one on the single-configuration path: a batch's FK, errors and SVD
-# cost ~240 µs for any few rows, a row alone 30-50 µs (RX160, 2 / 4 / 5 rows: 59-97 / 156-193 / 204 against
-# 235-267 µs); a near-singular target's search asks for its branches twice.
+# cost about as much for any few rows as this many rows alone; a near-singular target's search asks for its
+# branches twice.
 SINGLE_CHECKS = 4
 
 # Families with closed forms in IK-Geo, most specific first (its search-based ones find nothing on a UR10).

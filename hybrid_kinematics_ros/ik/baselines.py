@@ -23,7 +23,7 @@ from hybrid_kinematics_ros.ik.solver import IKOptions, IKResult, IKSolver, compe
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 COSTS = ("pose6", "eq2")
-SCIPY_EVALUATIONS = 60  # scipy's budget per box: up to 60 hybrid Jacobians (e7686a5)
+SCIPY_EVALUATIONS = 60  # scipy's budget per box: up to 60 hybrid Jacobians
 _EQ2_SCALE = np.array([[1.0, 1.0, 1.0, 1e3]] * 3)  # eq. 2's rows 1-3, translation in mm
 
 

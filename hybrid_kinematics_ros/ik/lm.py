@@ -21,20 +21,18 @@ from hybrid_kinematics_ros.kinematics.chain import Chain
 FkJac = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 Limits = tuple[np.ndarray, np.ndarray, np.ndarray]  # lower, upper, revolute (bool)
 
-# Hand-set with the first solver (e7686a5): LM converges in a handful of steps from a good basin, so a run
-# still STALL_COST ((m or rad)²) away after STALL_ITERATIONS steps is stuck and another seed is cheaper.
+# Hand-set: LM converges in a handful of steps from a good basin, so a run still STALL_COST ((m or rad)²)
+# away after STALL_ITERATIONS steps is stuck and another seed is cheaper.
 STALL_ITERATIONS = 12
 STALL_COST = 1e-6
-# A floor, not a solution (650d758, with test_lm_stops_on_a_floor_beyond_reach: a target 0.3 mm beyond the
-# UR10's reach ends in < 20 steps instead of 100): FLOOR_STEPS steps in a row that each keep more than
-# FLOOR_RATIO of the cost, within STALL_COST of the target.
+# A floor, not a solution (a target just beyond the model's reach; test_lm_stops_on_a_floor_beyond_reach):
+# FLOOR_STEPS steps in a row that each keep more than FLOOR_RATIO of the cost, within STALL_COST of the target.
 FLOOR_RATIO, FLOOR_STEPS = 0.98, 3
-# A crawl (bench_ik_arms, TALOS target 762: on a wrist singularity, smallest singular value 2.5e-5, LM from
-# 13 of 16 table seeds crept from 1e-5 to 3e-6 m over 100 steps, 5.5 ms each run, and the 50 ms budget ran
-# out before seed 16, which converges): near the target (cost under STALL_COST), a window of CRAWL_WINDOW
-# steps that does not cut the cost CRAWL_GAIN times. Newton at an exact singularity halves the error per step
-# (10⁶ in cost per window). A gain of 10 or 3 also stopped the one seed that solves Panda target 210 (49 steps,
-# a slow but steady run); 2 lets it through (solved in 44 ms; 98 ms without the rule).
+# A crawl (next to a wrist singularity LM from a table seed can creep towards the target for its whole
+# iteration budget, and the restarts that would converge never run): near the target (cost under STALL_COST),
+# a window of CRAWL_WINDOW steps that does not cut the cost CRAWL_GAIN times. Newton at an exact singularity
+# halves the error per step (10⁶ in cost per window); a gain of 2 lets slow but steady runs through (chosen
+# by bench_ik_arms, BENCHMARKS.md).
 CRAWL_WINDOW, CRAWL_GAIN = 10, 2.0
 # Marquardt's damping schedule: divide on a good step, multiply on a bad one, give up past LAMBDA_MAX.
 LAMBDA_DOWN, LAMBDA_UP, LAMBDA_MIN, LAMBDA_MAX = 5.0, 8.0, 1e-12, 1e8
@@ -82,8 +80,8 @@ def error6(target: np.ndarray, T: np.ndarray) -> np.ndarray:
 
 def error6_batch(targets: np.ndarray, T: np.ndarray) -> np.ndarray:
     """``(B, 6)``: :func:`error6` of poses ``T (B, 4, 4)`` against ``targets`` ``(B, 4, 4)`` or one ``(4, 4)``.
-    The rotation vector in closed form as :func:`log_so3` (scipy's Rotation costs 100 µs for a few poses, on
-    the valley search's and the closed forms' paths), scipy's where the angle nears π."""
+    The rotation vector in closed form as :func:`log_so3` (scipy's Rotation costs more than the rest for a few
+    poses, on the valley search's and the closed forms' paths), scipy's where the angle nears π."""
     r = targets[..., :3, :3] @ T[:, :3, :3].mT
     skew = np.stack([r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0], r[:, 1, 0] - r[:, 0, 1]], axis=1)
     s = 0.5 * np.linalg.norm(skew, axis=1)

@@ -1,10 +1,10 @@
 """Levenberg-Marquardt on the URDF model, compiled: ``lm.lm_solve``'s loop, its rules and constants, in one call.
 
 The classical stage, the restarts from the seed table, the polish of least-squares answers and the URDF pass
-of a trajectory all run LM on the URDF model, often from dozens of seeds within one request's budget (a UR10
-target next to its q3 limit with the wrist straight took 280 restarts and a quarter of a second). In numpy an
-iteration costs ~30 µs of small calls; here a few. numba has no clock, so the loop runs ``steps`` iterations
-at most per call and returns its state; ``lm.lm_solve`` checks the deadline between calls.
+of a trajectory all run LM on the URDF model, often from dozens of seeds within one request's budget (hundreds
+next to a joint limit with the wrist straight). In numpy an iteration is mostly the overhead of small calls;
+compiled, a fraction of it. numba has no clock, so the loop runs ``steps`` iterations at most per call and
+returns its state; ``lm.lm_solve`` checks the deadline between calls.
 """
 
 from __future__ import annotations

@@ -4,9 +4,9 @@ The paper's stage 2 is a bounded least-squares problem with the joints in a smal
 classical answer ``q0`` and the hybrid FK in the cost. Here a projected Levenberg-Marquardt solves it with
 Newton's chord method first (the hybrid pose, the URDF Jacobian: one hybrid FK per step), then with the
 hybrid Jacobian. The two Jacobians differ by the derivative of a millimetre-sized correction, so each chord
-step still cuts the error ~1000×, and costs one hybrid FK instead of the nets' Jacobians. bench_ik's cost
-table (BENCHMARKS.md, "ik"; 3779289): 2.42 ms median against 7.87 ms for scipy's ``least_squares`` on the same
-box, both 100 % on 500 UR10 targets. (scipy's solve stays in :mod:`hybrid_kinematics_ros.ik.baselines`.)
+step still cuts the error ~1000×, and costs one hybrid FK instead of the nets' Jacobians. It is several times
+faster than scipy's ``least_squares`` on the same box (bench_ik, BENCHMARKS.md); scipy's solve stays in
+:mod:`hybrid_kinematics_ros.ik.baselines`.
 
 Near a singularity the hybrid answer can lie beyond the box; the box then moves, and damped LM on the
 hybrid model over the whole joint range finishes (:meth:`HybridRefiner.unbounded`).
@@ -23,25 +23,25 @@ from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 # From a classical answer Gauss-Newton converges in a handful of chord steps; a run that needs more than
-# CHORD_ITERATIONS is stuck (3779289). GAUSS_NEWTON_DAMPING: q0 is close, so full steps from the start.
+# CHORD_ITERATIONS is stuck. GAUSS_NEWTON_DAMPING: q0 is close, so full steps from the start.
 CHORD_ITERATIONS = 12
 GAUSS_NEWTON_DAMPING = 1e-9
-BRANCH_DAMPING = 1e-6  # the other branches' unbounded chord and hybrid LM (650d758)
-# At ~0.18 ms per hybrid Jacobian (0.27 before its reverse mode); at an exact singularity the error only halves
-# per step, and 30 steps left some fallback branches short (367d2b9 raised it from 30).
+BRANCH_DAMPING = 1e-6  # the other branches' unbounded chord and hybrid LM
+# Hybrid LM steps (each a hybrid Jacobian): at an exact singularity the error only halves per step, and the
+# fallback branches need that many to converge there.
 HYBRID_LM_ITERATIONS = 40
-BOX_BUDGET_SHARE = 0.25  # of the per-solution budget, for each LM pass inside one box (3a16967)
+BOX_BUDGET_SHARE = 0.25  # of the per-solution budget, for each LM pass inside one box
 # The box's LM aims at a thousandth of the success tolerances: its answer is then well inside them even
-# where the float32 nets evaluate a pose slightly differently in a batch (3779289).
+# where the float32 nets evaluate a pose slightly differently in a batch.
 BOX_TOLERANCE_SHARE = 1e-3
-# The solvers' own iterations stop at a tenth of the success tolerances (4934977).
+# The solvers' own iterations stop at a tenth of the success tolerances.
 INNER_TOLERANCE_SHARE = 0.1
 # The closed forms' fixed point and the trajectories' chord steps, each step ~1000x nearer, take one step more
-# where a converged answer is not yet within a tenth of that: the answers' errors then average below 1e-6 mm
-# and 1e-6° at the default tolerances (#35; one hybrid FK more for the answers that need it).
+# where a converged answer is not yet within a tenth of that, so that answers sit well inside the tolerances
+# (one hybrid FK more for the answers that need it).
 POLISH_SHARE = 0.1
-RECENTRED_BOXES = 1  # a box that ends on its edge moves to the new point once (e7686a5)
-BATCH_CHORD_STEPS = 8  # trajectories: chord steps on all poses at once before single solves take over (cb76980)
+RECENTRED_BOXES = 1  # a box that ends on its edge moves to the new point once
+BATCH_CHORD_STEPS = 8  # trajectories: chord steps on all poses at once before single solves take over
 
 
 def chord(model: HybridModel) -> FkJac:

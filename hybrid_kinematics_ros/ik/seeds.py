@@ -15,20 +15,20 @@ from hybrid_kinematics_ros.ik.lm import Limits, project, turned
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
-# The restart table (3a16967): 4,096 Halton configurations in a k-d tree over their poses; a solve restarts
-# from the TABLE_RESTARTS nearest, the branch search from twice as many. Hand-set: no sweep is recorded.
+# The restart table: Halton configurations in a k-d tree over their poses; a solve restarts from the
+# TABLE_RESTARTS nearest, the branch search from twice as many. Hand-set.
 TABLE_SIZE = 4096
 TABLE_RESTARTS = 16
 ROTATION_LENGTH = 0.3  # m: weight of the rotation matrix entries against the position in the table metric
-SPREAD_SEEDS = 64  # deterministic seeds solve_many tries after the caller's (e7686a5; the UR10 has 8 branches)
+SPREAD_SEEDS = 64  # deterministic seeds solve_many tries after the caller's: enough to reach every branch of a 6R arm
 # A URDF-model answer this close to a hybrid target starts in the hybrid solution's basin: the nets correct
-# millimetres and milliradians (cb76980, 650d758).
+# millimetres and milliradians.
 NEAR_M, NEAR_RAD = 5e-3, 1e-2
-BRANCH_RAD = 1e-2  # classical answers closer than this on every joint are one branch (650d758)
-SAME_SOLUTION_RAD = 1e-3  # solve_many's duplicates, modulo 2π on revolute joints (e7686a5)
-# The valley restarts (659db8a; bench_ik at a 300 ms budget: UR10 99.98 % -> 100 %, RX160 99.96 % -> 99.98 %,
-# commits 3f3678b and 72b75e2): a near miss (mm) at a near-singular hybrid Jacobian (smallest singular
-# value), and the steps along its weak direction, where the local minima of the hybrid near-solutions lay.
+BRANCH_RAD = 1e-2  # classical answers closer than this on every joint are one branch
+SAME_SOLUTION_RAD = 1e-3  # solve_many's duplicates, modulo 2π on revolute joints
+# The valley restarts: a near miss (mm) at a near-singular hybrid Jacobian (smallest singular value), and the
+# steps along its weak direction, where the local minima of the hybrid near-solutions lie (chosen by bench_ik,
+# BENCHMARKS.md).
 VALLEY_MM, VALLEY_SINGULAR = 0.1, 1e-2
 VALLEY_STEPS_RAD = (-0.7, 0.7, -1.2, 1.2)
 

@@ -14,29 +14,27 @@ composes the parts, with ``solve``, ``solve_many`` and ``solve_trajectory``.
    least-squares answers (the URDF model's nearest) start the hybrid stages instead, each branch first by
    the fixed point of 2., nearest the seed first.
 2. The hybrid refinement around the classical answer. With closed forms, first a fixed point on the classical
-   answer's branch: the closed forms solve the target moved by the hybrid correction at the current answer (the URDF
-   pose to the hybrid pose), until the correction stops changing; then the hybrid pose is the target (a round whose
-   moved target is beyond the URDF model's reach takes its least-squares answer; when such rounds stop cutting the
-   error, the branch's nearest point is found and the branch cannot reach the target: 3. follows at once). Each
-   closed-form round cuts the error ~100× (what it leaves out is the nets' slope), and a round within LINEAR_M is
-   Newton's chord step on the URDF Jacobian, which cuts it as much for half the cost: four hybrid FKs a solution,
-   about. One solution starts with this fixed point on the branch nearest the seed alone; only where it fails are
-   the other branches computed and checked (a UR10's solution through the hybrid model in half the time). Near a
-   singularity of the URDF model, where its chord Jacobian loses rank and the fixed point wanders along the singular
-   valley, a root search along that valley and those of the other closed-form branches follows
-   (:mod:`~hybrid_kinematics_ros.ik.valley`), right after the seed's fixed point, before the other branches' fixed
-   points (after them, and only if none solves, where the seed's fixed point stalled beyond its branch's reach;
-   skipping it there, the search before, left an RX160 target at its shoulder singularity unsolved in 2 s). A target
-   beyond the URDF model's reach (no exact branch) gets the same search from the least-squares answers, after
-   the restarts along the nearest one's weak direction that 3. would try later (a few ms of LM: an RX160's elbow
-   stretched beyond reach is solved there in 6-12 ms where the search took the budget first, and a UR10's wrist
-   centre on axis 1 misses 1 target in 200 instead of 4-7) and the fixed point, then LM, on its few copies shifted by 2π
-   (an RX160's elbow stretched: the nets reach further on another copy, where the search found nothing in
-   40-65 ms; 5-6 misses in 200 at 50 ms to 1-2), and
-   where the URDF model reaches it only past a joint limit, from its answers clipped into the limits and
-   polished there; no exact branch within the limits means no restart of the URDF model's LM finds one, so
-   that stage gets a tenth of the budget instead of half, and the table's restarts alone, none random. What
-   they leave goes to bounded LM through the hybrid FK in a box (:mod:`~hybrid_kinematics_ros.ik.refine`).
+   answer's branch: the closed forms solve the target moved by the hybrid correction at the current answer (the
+   URDF pose to the hybrid pose), until the correction stops changing; then the hybrid pose is the target. Each
+   round cuts the error ~100× (what it leaves out is the nets' slope); a round within LINEAR_M is Newton's chord
+   step on the URDF Jacobian, which cuts it as much for half the cost: about four hybrid FKs a solution. A round
+   whose moved target is beyond the URDF model's reach takes its least-squares answer; when such rounds stop
+   cutting the error, the branch cannot reach the target, and 3. follows at once. One solution starts with this
+   fixed point on the branch nearest the seed alone; only where it fails are the other branches computed and
+   checked. What the fixed point leaves goes to bounded LM through the hybrid FK in a box
+   (:mod:`~hybrid_kinematics_ros.ik.refine`).
+   Near a singularity of the URDF model its chord Jacobian loses rank and the fixed point wanders along the
+   singular valley: a root search along that valley and those of the other closed-form branches follows
+   (:mod:`~hybrid_kinematics_ros.ik.valley`), right after the seed's fixed point. Where that stalled beyond its
+   branch's reach, the search comes after the other branches' fixed points instead, and only if none solves
+   (another branch is then the likelier answer, and far cheaper to try).
+   A target beyond the URDF model's reach (no exact branch) gets the same search from the least-squares answers,
+   after cheaper tries on the nearest one: the restarts along its weak direction that 3. would try later, then
+   the fixed point, then LM, on its few copies shifted by 2π (the nets see raw joint values, and can reach
+   further on another copy). Where the URDF model reaches the target only past a joint limit, its answers
+   clipped into the limits and polished there take the least-squares answers' place; no exact branch within the
+   limits means no restart of the URDF model's LM finds one, so the classical stage gets a tenth of the budget
+   instead of half, and the table's restarts alone, none random.
 3. When the seed's branch has no hybrid solution near it (near a singularity the nets' tenths of a
    millimetre move the solution by tenths of a radian, or the target lies just beyond the URDF model's
    reach), the other analytic branches follow: the closed forms' other branches, nearest the seed first,
@@ -46,9 +44,8 @@ composes the parts, with ``solve``, ``solve_many`` and ``solve_trajectory``.
    configuration first restarts along the Jacobian's weak direction (once per near miss), where the hybrid
    near-solutions form a valley with local minima. Before the seed's branch goes past its fixed point, the
    other closed-form branches get a few fixed-point rounds each (near a wrist singularity the seed's fixed
-   point wanders among the members of a continuum, where the others converge in three): one that solves
-   waits in reserve, and is the answer, said so, if the seed's branch finds nothing within the budget (UR10,
-   q5 = 0: 71-88 % to 96 % of 100 targets at 50 ms).
+   point wanders among the members of a continuum, where the others converge in a few rounds): one that solves
+   waits in reserve, and is the answer, said so, if the seed's branch finds nothing within the budget.
 4. A model whose nets take the joints' approach directions (:mod:`~hybrid_kinematics_ros.model.approach`)
    is refined with the directions the robot arrives in when it moves from the seed (where it is) to the
    solution, not with the last ones it moved in: the sign of each joint's move, the current direction for
@@ -89,14 +86,14 @@ from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.model import approach
 from hybrid_kinematics_ros.model.hybrid import COMPILED_ROWS, HybridModel
 
-# Budget shares. CLASSICAL_SHARE (650d758): a target the URDF model cannot reach exactly (near the edge of its
+# Budget shares. CLASSICAL_SHARE: a target the URDF model cannot reach exactly (near the edge of its
 # workspace) makes every classical attempt fail, yet the hybrid stages solve it from there, so the seed's
-# classical stage gets half and the other branches the rest. SEARCH_SHARE (0a6a532): without a total budget
-# 65 seeds and the refinements of solve_many added up to seconds; the seed search gets the first half.
+# classical stage gets half and the other branches the rest. SEARCH_SHARE: solve_many's seed search gets the
+# first half of the request's time, the refinements the rest (unbounded, its seeds would add up to seconds).
 CLASSICAL_SHARE = 0.5
 SEARCH_SHARE = 0.5
 NO_BRANCH_SHARE = 0.1  # the classical stage's where the closed forms give no branch within the limits (solve)
-# Trajectories (cb76980): URDF-model LM steps per pose from the previous answer (a few suffice), and the joint
+# Trajectories: URDF-model LM steps per pose from the previous answer (a few suffice), and the joint
 # jump beyond which the path's extrapolation has gone to another branch.
 PATH_ITERATIONS = 30
 PATH_JUMP_RAD = 0.5
@@ -106,36 +103,28 @@ FIXED_POINT_ROUNDS = 12
 PROBE_ROUNDS = 4  # the other branches' rounds while the seed's branch is not solved (where they converge: 3)
 # A least-squares round (the compensated target beyond the URDF model's reach) that cuts the error by less than
 # this has stalled: the branch does not reach the target (at the fold where it does, the error halves each round).
-# The rule does not apply to exact rounds, which can rise before they fall (rx160, elbow stretched: 43 of 60
-# solved with it, 49 without).
+# The rule does not apply to exact rounds, which can rise before they fall.
 STALLED = 0.9
 # Within this of the target (m, rad) a round is a Newton step on the URDF Jacobian instead of a closed-form
 # call and a compensated target: the step is microradians, over which the URDF model's curvature errs by
 # 1e-10 m, below the polish tolerance, so both rounds converge alike and the step costs half.
 LINEAR_M = LINEAR_RAD = 1e-5
-# (Newton's steps on the hybrid Jacobian instead, from 1e-4 m, took one round fewer, but the Jacobian of two nets
-# costs more than the round: a UR10's solve 301 against 265 µs with 64x2 nets, even with 256x3 ones, interleaved.)
+# (Newton's steps on the hybrid Jacobian would save a round, but the nets' Jacobians cost more than the round.)
 COARSE, PRECISE = "coarse", "precise"  # what a fixed point's round asks for
 # Of the budget, still left, for the search along a singular valley (ik/valley.py); the search stops at the
-# deadline itself. At 0.5 it was skipped for targets it finds in 10-20 ms once the other strategies had run (a UR10
-# with the wrist centre near axis 1, or its wrist straight: solved at 36 ms with a 200 ms budget, missed with 50);
-# 200 targets per near-singular case, 50 ms, the compiled LM and fixed point, misses other than the q3-limit one
-# per run: 0.5: 2, 0, 0, 4, 0; 0.25: 0, 0; 0.1: 0, 0, 1 (UR10); RX160 0, 0 / 1 / 0.
+# deadline itself. A larger share would skip it for targets it finds quickly once the other strategies have
+# run (chosen by bench_ik_singular, BENCHMARKS.md).
 VALLEY_SHARE = 0.2
 RESTART_SHARE = 0.05  # of the budget, for each restart beyond the URDF model's reach before the valley search
 COPY_PROBES = 4  # copies of a near miss beyond the URDF model's reach tried before the valley search
 POLISH_ITERATIONS = 12  # LM steps on a least-squares answer beyond a fold (6-9 reach the URDF model's nearest point)
 # A probe's fixed point that ends this near the target (mm) has stalled at a fold of the URDF model, where its
 # rounds only halve the error, or converges slowly next to a double singularity, where they cut it by a fifth:
-# LM on the hybrid model finishes in a few steps (a UR10 with the wrist centre 1e-4 rad from axis 1: 3.5e-4 mm
-# after the probe's rounds, solved by LM in 3 ms; an RX160 with its wrist straight and its wrist centre near
-# axis 1: 0.019 mm after its branch's 16 rounds, solved by LM in 1.7 ms, where 1e-2 left it to other branches'
-# LM at 50-97 ms: 5,000 random targets, 1 miss at 50 ms to 0, the 18 near-singular cases unchanged, paired)
+# LM on the hybrid model finishes in a few steps (such stalls end up to a few hundredths of a millimetre away).
 NEAR_MISS_MM = 5e-2
 # Starts this near each other (rad, every joint) give the same fixed point and the same LM run, which a solve does
 # not repeat: the closed forms' nearest branch and its polished copy differ by 1e-8 to 2e-6 rad, and two branches
-# that merge at a fold (an RX160's elbow stretched) end their fixed points at the same point to 1e-10 rad (5,000
-# random RX160 targets: 7 of the 11 solved in 4-7 ms ran the same LM twice, 1-2 ms each).
+# that merge at a fold (an RX160's elbow stretched) end their fixed points at the same point to 1e-10 rad.
 SAME_START_RAD = 1e-5
 SINGULAR = 1e-6  # the URDF Jacobian's smallest singular value (m or rad per rad) at a singular target's answer
 OTHER_BRANCH = "on another branch than the seed's, which found no solution within the budget"  # said with it
@@ -144,11 +133,10 @@ OTHER_BRANCH = "on another branch than the seed's, which found no solution withi
 def freeze_heap() -> None:
     """Exempt what the process holds now from the garbage collector's full collections: call it once the model
     and its solver are loaded, and again after a reload (what was frozen before is collected first). torch and
-    a model leave some 330,000 objects on the heap, and a full collection walks every one: 140 ms, inside
-    whichever request's allocations trigger it (an RX160 solve answered after 141 ms of its 50 ms budget, about
-    one request in 2,500). Frozen, they are never walked again; what requests allocate is collected as before.
-    A reload pays one such collection (holding the interpreter lock, so the node's other services wait for it)
-    instead of a request."""
+    a model leave hundreds of thousands of objects on the heap, and a full collection walks every one, for
+    longer than a request's budget, inside whichever request's allocations trigger it. Frozen, they are never
+    walked again; what requests allocate is collected as usual. A reload pays one such collection (holding the
+    interpreter lock, so the node's other services wait for it) instead of a request."""
     gc.unfreeze()
     gc.collect()
     gc.freeze()
@@ -159,10 +147,9 @@ def one_blas_thread() -> None:
     nets' batches call) to one thread, for the rest of the process: call it where answers must come in time, as
     :func:`freeze_heap` (``make`` and the tests set OPENBLAS_NUM_THREADS=1 for the same reason; a node started by
     ``ros2 run`` or a launch file does not). Their pools of one thread per core spin after each call, and on a
-    two-core machine a pool's thread waiting for the other core stalled the next small product by 10-65 ms:
-    three to five UR10 near-singular targets in 8 x 3,600 missed their 50 ms budget that way (the valley search's
-    batched FK, 1-2 ms otherwise), none with one thread. The IK's products are at most 64 x 256 x 256: one thread
-    costs 0.05-0.2 ms more on a 16-64-row batch of two 256x3 nets, on an idle machine."""
+    two-core machine a pool's thread waiting for the other core can stall the next small product by tens of
+    milliseconds, past a request's budget. The IK's products are at most 64 x 256 x 256, where one thread costs
+    a small fraction of a millisecond."""
     threadpool_limits(limits=1, user_api="blas")
 
 
@@ -173,7 +160,7 @@ def _same_start(q: np.ndarray, starts: list[np.ndarray]) -> bool:
 
 def pose_problem(target: np.ndarray) -> str | None:
     """What is wrong with a target pose ``(4, 4)``, or None: it must be finite, and its rotation orthonormal
-    (to 1e-6) with determinant +1. In Python floats: numpy's checks cost 5 µs of a request's 100."""
+    (to 1e-6) with determinant +1. In Python floats: numpy's checks would cost a noticeable share of a request."""
     finite = "the target must be a finite 4x4 homogeneous matrix"
     if target.shape != (4, 4):
         return finite
@@ -208,7 +195,7 @@ class IKOptions:
     timeout_s: float = 0.05  # per solution, restarts included
     require_calibrated_range: bool = False  # True: a solution outside the trained range fails
     arrive_from_seed: bool = True  # approach-direction models: the directions of the move from the seed (4.)
-    closed_form: bool = True  # False: the iterative solver alone, as before the closed forms (baselines, benches)
+    closed_form: bool = True  # False: the iterative solver alone, without the closed forms (baselines, benches)
     valley: bool = True  # False: no root search along a singular valley (ik/valley.py; benches compare)
 
 
@@ -250,12 +237,12 @@ class IKSolver:
         # the compiled kernels (LM, the fixed point's round, the URDF model's pose) load here, or on a fresh
         # checkout compile (a few seconds, once), not in a first request: an LM step, one solve off the middle of
         # the limits, a chord step. The URDF pose is what a near-singular request checks its branches with, and
-        # no regular solve calls it: loaded there, it took 20-25 ms of the 50 ms budget (a first q5 = 0 target)
+        # no regular solve calls it: loaded there, it would take half a first such request's budget
         target = model.fk_single(self._mid + 0.025 * (self.upper - self.lower))  # finite: ±2π where unlimited
         model.fk_single(self._mid, analytic=True)
         # and the batched hybrid FK's two paths (compiled up to COMPILED_ROWS rows, TorchScript beyond), which the
-        # valley search and the side-by-side fixed points take: the first call of each took 11-18 ms, in a first
-        # valley search's first settle (RX160, wrist centre on axis 1: answers 4-8 ms after a 50 ms budget)
+        # valley search and the side-by-side fixed points take: the first call of each is slow enough to make a
+        # first valley search's answer late
         for rows in (2, COMPILED_ROWS + 1):
             model.fk(np.tile(self._mid, (rows, 1)))
         lm_solve(self.analytic_fk_jac, target, self._mid, self.limits, *self.inner_tol, 1, float("inf"))
@@ -303,7 +290,7 @@ class IKSolver:
         seed too, and the nearer of the two. Otherwise, or when the closed forms give nothing, LM from the
         seed, then restarts while time remains, from the ``restarts`` table configurations nearest the
         target, then random ones. ``continuum``: False where the hybrid stages follow, whose valley search
-        walks the continuum itself (LM crawls there: it took half the budget). ``table_only``: no random
+        walks the continuum itself (LM crawls there, for half the budget). ``table_only``: no random
         restarts after the table's (where none can succeed: the best answer of a few is as good)."""
         tol_m, tol_rad = self.inner_tol
         branches = self.branches(target, seed) if branches is None else branches
@@ -400,12 +387,8 @@ class IKSolver:
                 if nearest_miss is None or result.position_error_mm < nearest_miss.position_error_mm:
                     nearest_miss = result
             q0 = nearest_miss.q  # the refinements go on from the branch that came nearest
-            # its weak-direction restarts before the valley search: four LM runs, 1-2 ms each. Measured side by
-            # side, two runs at 50 ms, misses per 200 targets (+0, 1e-6, 1e-4 rad): UR10 wrist centre on axis 1
-            # 6-7, 4, 5 -> 1, 1, 1; RX160 elbow stretched 5-6, 4-5, 6-7 -> 4, 4, 5; UR10 q5 = 0 and 1e-4 rad
-            # 7 / 6 and 3 / 7 -> 8 / 7 and 6 / 4 (the same within this machine's noise). Moving the search after
-            # the branches' 2π copies instead solved all but 0-3 of the RX160's, but left the UR10's q5 targets
-            # beyond reach, which the search solves: 9-10 misses there.
+            # the cheaper tries before the valley search: its weak-direction restarts (four short LM runs), then
+            # its copies shifted by 2π (the order chosen by bench_ik_singular, BENCHMARKS.md)
             found = self._weak_restarts(target, nearest_miss, analytic, start, deadline, stats, origin, restarted)
             if found is not None:
                 return self._singular(found)
@@ -417,8 +400,8 @@ class IKSolver:
                 return self._singular(found)
         else:
             # closed forms that give no branch within the limits are complete: no restart of the URDF model's LM
-            # finds one, and its nearest point within them comes from the first few (a UR10 wrist straight next
-            # to its q3 limit: 86 restarts took the half budget the valley search needed)
+            # finds one, and its nearest point within them comes from the first few (more would take the time
+            # the valley search needs)
             complete = self.closed_form is not None and not len(closed)
             share = NO_BRANCH_SHARE if complete else CLASSICAL_SHARE
             q0, _, _, attempts = self.classical(
@@ -428,7 +411,7 @@ class IKSolver:
         reserve = None
         refine = None
         if len(closed) > 1:  # the seed's fixed point first: if it fails, the other branches' wait in reserve
-            if missed is not None and _same_start(missed[0], [q0]):  # the same fixed point: its miss, not 1-3 ms more
+            if missed is not None and _same_start(missed[0], [q0]):  # the same fixed point: its miss, not a second run
                 first = missed[1]
             else:
                 first = self._from_branch(target, q0, analytic, start, deadline, stats, origin, self._fixed_point_only)
@@ -438,10 +421,9 @@ class IKSolver:
             # the rest of the seed's branch goes on from the fixed point's answer, which it does not repeat
             closed_q, q0 = q0, first.q
             # the valley search next, then the other branches' fixed points. Where the seed's fixed point stalled
-            # beyond its branch's reach, those first, and the valleys only if they found nothing (a UR10 with
-            # the wrist centre near axis 1: the valleys took the budget, and the other branch a fixed point
-            # solves in 1 ms had none left; an RX160's there: no other branch reaches, the solution lies on a
-            # valley)
+            # beyond its branch's reach, those first, and the valleys only if they found nothing: another branch's
+            # cheap fixed point is then the likelier answer, and the valleys could take the whole budget (where no
+            # other branch reaches, the solution lies on a valley)
             beyond = first.stats.get("beyond_branch_reach")
             if beyond:
                 reserve = self._reserve(
@@ -476,8 +458,8 @@ class IKSolver:
         copies = copies[np.argsort(np.linalg.norm(copies - seed, axis=1), kind="stable")]
         if nearest_miss is not None:
             # beyond the URDF model's reach, the copies of the branch that came nearest first: where no copy of
-            # the seed's reaches, the nets' reach on another copy of that branch is what differs (RX160, elbow
-            # stretched: its solution was the 11th copy nearest the seed, 30 ms later)
+            # the seed's reaches, the nets' reach on another copy of that branch is what differs (an RX160's
+            # stretched elbow)
             mine = turns(nearest_miss.q[None], self.lower, self.upper)
             copies = np.vstack([mine[np.argsort(np.linalg.norm(mine - seed, axis=1), kind="stable")], copies])
         unique: list[np.ndarray] = [*branches, *restarted]  # the copies tried before the valley search too
@@ -495,9 +477,8 @@ class IKSolver:
         valleys: list[np.ndarray] = []  # the fallback points whose valleys were searched (_other_branch)
 
         def restarts_of(result: IKResult) -> list[np.ndarray]:
-            """The restarts along ``result``'s weak direction, none twice from one near miss: on a UR10 with its
-            wrist centre near axis 1, every fallback start's fixed point ended on one of two near misses, and
-            their restarts ran again after each (8 times in 29 ms)."""
+            """The restarts along ``result``'s weak direction, none twice from one near miss: near a singularity
+            many fallback starts' fixed points end on the same few near misses."""
             if analytic or not seeding.is_new_branch(result.q, seeded):
                 return []
             restarts = seeding.valley_seeds(self.model, result.q, result.position_error_mm, self.limits)
@@ -507,8 +488,8 @@ class IKSolver:
 
         valley = restarts_of(best)
         # beyond the URDF model's reach, the nearest miss's restarts ran before the valley search, and the
-        # refinement since then ends next to it: the same restarts again took 4-7 ms (RX160, elbow stretched);
-        # those cut short by their share run again here, with the time left
+        # refinement since then ends next to it: those that finished are not run again; those cut short by their
+        # share run again here, with the time left
         valley = [q for q in valley if seeding.is_new_branch(q, restarted)]
         others = [q for q in near[1:] if seeding.is_new_branch(q, tried)]
         while True:
@@ -567,8 +548,8 @@ class IKSolver:
             now = time.perf_counter()
             if now > deadline:
                 break
-            # each a slice of the budget: those that solve take 1-2 ms; at a UR10's q5 = 0 the others crawl along
-            # its continuum, 28 ms each, where the valley search after them solves in 17
+            # each a slice of the budget: those that solve do so quickly, and the others can crawl along a
+            # continuum (a wrist straight) for longer than the valley search after them needs
             until = min(deadline, now + RESTART_SHARE * self.options.timeout_s)
             result = self._other_branch(target, q, analytic, start, until, stats, origin, lm_beyond)
             if time.perf_counter() < until:
@@ -632,17 +613,15 @@ class IKSolver:
         """The seed's branch ``q0`` was not solved by its fixed point (``first``; near a wrist singularity it
         wanders among the members of a continuum): the other closed-form branches' fixed points, PROBE_ROUNDS
         each, nearest the seed first, and the whole fixed point of a branch its probe leaves undecided (neither
-        converged nor stalled: its copies were skipped, and an RX160 target with the elbow stretched, solved on
-        such a copy in 3 ms, was missed at 50 ms; 200 targets a case, paired: 6 misses to 0 over the three
-        offsets). Once every branch's fixed point has run, LM from the near misses among them that did not stall
-        (:meth:`_near_miss_lm`, in the same order): at an RX160's stretched elbow the nearer branches' LM failed at
-        1-2 ms each where a further branch's fixed point solved in 0.6 ms. Then, where fixed points stalled
-        beyond their branch's reach (an elbow stretched to the URDF model's reach), the copies of those branches
-        shifted by 2π, the nearest miss's first: the nets see raw joint values, so another copy can reach
-        micrometres further (an RX160 target: a copy solved in 0.7 ms where LM from two stalled misses failed in
-        2.6 ms). Last, LM from the stalled near misses (on the bench's UR10 cases 22 of 31 such runs solved, on
-        its RX160 cases 7 of 124). The first that solves waits in reserve while the seed's branch gets the budget.
-        ``lm_starts``: :meth:`_near_miss_lm`'s."""
+        converged nor stalled: otherwise its copies would be skipped, where an RX160's stretched elbow can have
+        its solution). Once every branch's fixed point has run, LM from the near misses among them that did not
+        stall (:meth:`_near_miss_lm`, in the same order): a further branch's fixed point is cheaper than the nearer
+        branches' LM, and often solves where that fails. Then, where fixed points stalled beyond their branch's
+        reach (an elbow stretched to the URDF model's reach), the copies of those branches shifted by 2π, the
+        nearest miss's first: the nets see raw joint values, so another copy can reach micrometres further, where
+        LM from the stalled misses fails. Last, LM from the stalled near misses, which solves less often. The
+        first that solves waits in reserve while the seed's branch gets the budget. ``lm_starts``:
+        :meth:`_near_miss_lm`'s."""
         tried = [q0]
         misses: list[IKResult] = []  # the branches' fixed points that missed, for _near_miss_lm in their order
         stalled = [(first.position_error_mm, q0)] if first.stats.get("beyond_branch_reach") else []
@@ -692,9 +671,9 @@ class IKSolver:
     ) -> IKResult:
         """A fixed point's ``result`` that missed by less than NEAR_MISS_MM has stalled at a fold of the URDF model
         (or where its Jacobian loses rank, next to the solution), where its rounds only halve the error: LM on the
-        hybrid model from there, which finishes in a few steps. The seed's own fixed point gets it too: a UR10
-        target with the wrist centre on axis 1 stalled 4e-4 mm away, 7 µrad from the solution, which LM reached
-        in 1.4 ms, and the search went on to the other branches' copies and valleys (solved at 50-110 ms).
+        hybrid model from there, which finishes in a few steps. The seed's own fixed point gets it too: next to a
+        singularity (a UR10 with the wrist centre on axis 1) it can stall micrometres from the solution, which LM
+        reaches at once, where the search would go on to the other branches' copies and valleys.
         ``result`` itself otherwise, and where LM ran from the same start already (``starts``, the solve's: added
         to)."""
         if result.success or result.position_error_mm >= NEAR_MISS_MM or _same_start(result.q, starts):
@@ -711,7 +690,7 @@ class IKSolver:
         branches (:meth:`AnalyticIK.nearest_checked`), when our FK takes it to within the inner tolerance and
         the target is singular on none of its branches. None otherwise: the whole classical stage follows
         (at a singularity it looks for the continuum's member nearest the seed). The same answer as that
-        stage's, for a third of its time (BENCHMARKS.md, TRAC-IK's protocol)."""
+        stage's, for a fraction of its time (bench_ik_singular, TRAC-IK's protocol: BENCHMARKS.md)."""
         if self.closed_form is None:
             return None
         found = self.closed_form.nearest_checked(target, seed)
@@ -738,9 +717,8 @@ class IKSolver:
         """The hybrid answer for one IK-Geo call: the closed forms' fixed point from their branch nearest the
         seed (:meth:`AnalyticIK.nearest`), where it converges, as on nearly every target. None otherwise,
         and the whole search follows (from the same branch first). The same answer as the search's, without
-        checking every other branch first (a UR10's single solution in half the time: BENCHMARKS.md).
-        Second: the branch and its fixed point's verdict where that missed (the search's first step, which
-        near a singularity took 2-3 ms again), else None."""
+        checking every other branch first (faster: BENCHMARKS.md). Second: the branch and its fixed point's
+        verdict where that missed (the search's first step, which it then need not repeat), else None."""
         if self.closed_form is None:
             return None, None
         q = self.closed_form.nearest(target, seed)  # checked on the hybrid FK: an answer that misses fails there
@@ -753,7 +731,7 @@ class IKSolver:
     def _beyond_reach(self, target: np.ndarray, seed: np.ndarray, closed: np.ndarray) -> np.ndarray:
         """Where the closed forms give no exact branch within the limits: their least-squares answers within
         NEAR_M / NEAR_RAD of the target (a hybrid target just beyond the URDF model's reach), nearest the seed
-        first; else none. Every classical restart there fails, and took half the budget (650d758)."""
+        first; else none. Every classical restart there fails, and would take half the budget."""
         if self.closed_form is None or len(closed):
             return np.empty((0, self.model.chain.dof))
         near = self.closed_form.approximations(target, seed, seeding.NEAR_M, seeding.NEAR_RAD)
@@ -829,11 +807,9 @@ class IKSolver:
         that stalled beyond the branch's reach too. ``valleys``: the solve's fallback points whose valleys
         were tried (appended to); the valley through a fixed point that missed, none of them, is searched
         before LM (:meth:`_valley_rows`; nothing to search where the point is not near a singularity, or
-        without closed forms, whose iterative solver never searched them). Once per point: restarts that end
-        on one fixed point would trace its valley again. A restart's URDF answer with the wrist straight next
-        to two limits stalled LM in the wrist's valley (an 8 ms crawl to 0.017 mm, and its weak-direction
-        restarts solved it after 35-49 ms of a 50 ms budget); the valley through it held the solution
-        (21-24 ms, bench UR10 models)."""
+        without closed forms, where the solver searches no valleys). Once per point: restarts that end on one
+        fixed point would trace its valley again. A restart's URDF answer with the wrist straight next to two
+        limits can stall LM in the wrist's valley, where the valley through it holds the solution."""
         if analytic or not self.model.is_corrected:
             return self.result(q0, target, analytic, start, dict(stats))
         with self.model.approaching(self._arrival(origin, q0)):
@@ -897,9 +873,9 @@ class IKSolver:
     ) -> list[tuple[np.ndarray, tuple[float, float] | None, bool]]:
         """:meth:`fixed_point` from each of ``starts`` side by side, their rounds in step: the hybrid FK of the
         rounds before a Newton step (errors of a millimetre, then a micrometre) in one batch, a few times
-        cheaper than one configuration at a time (8 UR10 configurations: 240 against 550 µs); the rounds after
-        one, where the answer is judged against the polish tolerance, one at a time on the same path as
-        :meth:`fixed_point` (a batch's float32 products differ by a nanometre)."""
+        cheaper than one configuration at a time; the rounds after one, where the answer is judged against the
+        polish tolerance, one at a time on the same path as :meth:`fixed_point` (a batch's float32 products differ
+        by a nanometre)."""
         if self.closed_form is None:
             return [(q, None, False) for q in starts]
         runs = [self._fixed_point_rounds(target, q, deadline, rounds) for q in starts]
@@ -1028,8 +1004,7 @@ class IKSolver:
         corrected = not analytic and self.model.is_corrected
         if time.perf_counter() > deadline:
             # the budget is spent (by the valley search, mostly): the verdict on what is there, no refinement
-            # after the deadline (each stage's first step ran regardless: RX160 wrist centre on axis 1, answers
-            # 4-12 ms late)
+            # after the deadline (each stage's first step would run regardless, and the answer come late)
             if fixed is not None and np.array_equal(fixed.q, q0):
                 return fixed
             return self.result(q0, target, analytic, start, dict(stats))
@@ -1153,10 +1128,10 @@ class IKSolver:
         (``timeout_s``) alone lets 65 seeds and the refinements add up to seconds. The seed search gets
         the first half of the time left, refinement the rest; solutions not refined by then are dropped.
         Where the closed forms give every exact branch (a target singular on none), those are the solutions'
-        starts and no seed is searched: the seed's and ``extra_seeds``' searches would end on one of them (half
-        the time of a UR10's or RX160's eight branches went there). A target just beyond the URDF model's reach
-        (no exact branch; a hybrid target can lie there) starts from each branch's nearest point instead, as
-        :meth:`solve` does: the seeds' URDF searches all failed there, after half the request's budget.
+        starts and no seed is searched: the seed's and ``extra_seeds``' searches would end on one of them, at a
+        cost. A target just beyond the URDF model's reach (no exact branch; a hybrid target can lie there) starts
+        from each branch's nearest point instead, as :meth:`solve` does: the seeds' URDF searches all fail there,
+        after half the request's budget.
         """
         start = time.perf_counter()
         given = seed is not None

@@ -11,9 +11,8 @@ The search here is global along the valley and local across it:
 1. The valley is traced on the URDF model from its first point (:func:`trace`): steps along the weak motion,
    each followed by a Newton step back onto it, one period of it or from joint limit to joint limit. No single
    joint parameterises a valley everywhere: a UR10's wrist continuum whose wrist circle crosses the arm's
-   reach passes the stretched elbow and turns back in every joint there (a grid over one joint, the search
-   before the trace, followed one side of it: UR10 targets from the other elbow's branch, 18 of 29 found
-   against 26 of 29 traced, ``test_valley.py``).
+   reach passes the stretched elbow and turns back in every joint there (a grid over one joint follows one
+   side of it only; ``test_valley.py``).
 2. At every traced point, all at once (batched hybrid FK), Gauss-Newton's chord steps in the five joints but
    the one that moves most along the valley there remove the error the model can remove; what is left is a
    scalar ``r``: the error along the lost direction, signed by the 6×5 Jacobian's cofactor vector, which
@@ -22,27 +21,23 @@ The search here is global along the valley and local across it:
    ``r = 0``, where the whole 6-D error vanishes up to the five joints' convergence. The caller's LM on the
    hybrid model finishes from there, in its basin.
 4. The chord steps move the five joints across the valley, where ``r`` does not change to first order:
-   ``r`` at the traced points themselves, one batched hybrid FK, changes sign where the settled one does.
-   Every valley of 140 targets (RX160 at the wrist centre on axis 1 and at q5 = 0, UR10 at q5 = 0; models
-   trained for a minute): the same count of sign changes on 467 of 475 valleys; 410 of the 412 valleys
-   with a sign change there held a solution, 1 of the 63 without. So a valley without one is settled and
-   searched after the others (RX160, wrist centre on axis 1 +0 / 1e-6 / 1e-4 rad, 200 targets at 50 ms,
-   each solved by both solvers in turn: 3 / 10 / 20 misses before, 0 / 1 / 9 after).
+   ``r`` at the traced points themselves, one batched hybrid FK, changes sign where the settled one does
+   (nearly always), and a valley with a sign change there nearly always holds a solution, one without
+   rarely. So a valley without one is settled and searched after the others.
 5. A local minimum of ``|r|`` that does not cross zero is a double root only at the fold itself; elsewhere
-   the LM from it fails, 4-8 ms each. On each valley the crossings come first.
+   the LM from it fails, after a whole run. On each valley the crossings come first.
 
 Every closed-form branch has its own valley, and the hybrid solution need not lie on the seed's: at a shoulder
 singularity (the wrist centre on axis 1) it can lie on the valley of the shoulder flipped, and a valley that
-crosses the wrist's singularity cannot be followed across it. So the valleys of all branches are searched
-(RX160, wrist centre on axis 1, 60 targets at 50 ms: 82 % with the seed's valley alone, 100 % with all
-branches'), one after the other, the seed's first, each only when the previous ones' starts failed (all in one
-batch, the search before, took 32-42 ms a target on the RX160 there; one by one 25-28 ms, and 90-94 % solved
-within 50 ms against 68-89 %, side by side on a machine at half its usual speed).
+crosses the wrist's singularity cannot be followed across it. So the valleys of all branches are searched,
+one after the other, the seed's first, each only when the previous ones' starts failed: a solution on the
+seed's valley then costs that valley alone, where all of them in one batch cost more than a request's budget.
 
 A branch past a joint limit has its valley too, and the valley can cross into the limits where the hybrid
-solution lies: a UR10 with its wrist straight next to its q3 = -2.8 limit had every exact branch past it
-(q3 = -3.06 and -2.67) and its solution at -2.78, found by LM restarts after 0.6-0.75 s. Such a branch is walked
-along its valley into the limits (:func:`enter`) and searched from there, after the branches within them.
+solution lies: a UR10 with its wrist straight next to its q3 = -2.8 limit can have every exact branch past it
+(q3 = -3.06 and -2.67) and its solution at -2.78, which LM restarts find only after many times the budget.
+Such a branch is walked along its valley into the limits (:func:`enter`) and searched from there, after the
+branches within them.
 """
 
 from __future__ import annotations
@@ -59,13 +54,11 @@ from hybrid_kinematics_ros.model.hybrid import HybridModel
 # Each valley is traced from its first point, TRACE_STEP (rad, joint space) apart, one period or from limit to
 # limit, at most TRACE_POINTS points a way (a UR10's wrist continuum: 15-30 points); it has closed when it
 # comes back within CLOSED steps of its start; where one Newton step moves a point further than TURN times
-# the step along (a sharp turn), the step halves, up to TURN_HALVINGS times (without: jumps of 1-3.6 rad
-# across a turn; with TURN 0.3, 50 % slower for no more found). Then POINT_STEPS chord steps settle the five
-# joints at each point (the traced points lie on the URDF model's valley, millimetres from the hybrid one), a
-# valley's points in one batch through the hybrid FK, and the regula falsi steps within a bracket. Measured by
-# the roots found from the closed forms' branches, 200 UR10 targets each (a model trained for a minute): a
-# step of 0.5 found 153 at the wrist centre on axis 1, against 163 at 0.35; one chord step 154 at q5 = 0,
-# against 185 with two.
+# the step along (a sharp turn), the step halves, up to TURN_HALVINGS times, so that the trace does not jump
+# across the turn. Then POINT_STEPS chord steps settle the five joints at each point (the traced points lie on
+# the URDF model's valley, millimetres from the hybrid one), a valley's points in one batch through the hybrid
+# FK, and BRACKET_STEPS regula falsi steps within a bracket. TRACE_STEP and POINT_STEPS: chosen by the roots
+# they find on near-singular UR10 targets (a longer step, or one chord step, finds fewer).
 TRACE_STEP = 0.35
 TRACE_POINTS = 40
 CLOSED = 0.75
@@ -74,7 +67,7 @@ POINT_STEPS = 2
 BRACKET_STEPS = 6
 MAX_ROOTS = 4  # brackets refined (all at once) on each valley, nearest the first q_near first
 TOUCH_STEPS = 3  # parabola steps at a double root
-SETTLE_STEPS = 1  # a bracket's points lie between settled ones: one chord step (2 gave the same answers, slower)
+SETTLE_STEPS = 1  # a bracket's points lie between settled ones: one chord step is enough
 SINGLE_ROWS = 2  # settle's rows evaluated one by one up to this many
 SETTLED = 1e-5  # m (or rad): a point whose five joints leave more across the valley brackets nothing
 # Where the URDF model counts as near-singular for this search: the Jacobian's smallest singular value (m or
@@ -103,7 +96,7 @@ def _normal(J5: np.ndarray) -> np.ndarray:
 
 def _poses_and_jacobians(model: HybridModel, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Hybrid poses and URDF Jacobians of ``Q (K, n)``: batched, or row by row on the single-pose path for a
-    few rows (a batch costs ~0.4 ms however small, a single pose 0.14 ms)."""
+    few rows (a batch, however small, costs a few single poses)."""
     if len(Q) <= SINGLE_ROWS:
         single = [(model.fk_single(q), model.fk_and_jacobian_single(q, analytic=True)[1]) for q in Q]
         return np.stack([T for T, _ in single]), np.stack([J for _, J in single])
@@ -135,7 +128,7 @@ def _advance(
 
 def warm_up(model: HybridModel, q: np.ndarray) -> None:
     """Loads the compiled steps (:mod:`valley_kernel`'s entry points) with a step from ``q``, so that a first
-    search does not (loading them from numba's cache took 11-20 ms, in a first RX160 search)."""
+    search does not (loading them from numba's cache takes a good part of a request's budget)."""
     pose, along = model.fk_single(q, analytic=True), np.eye(len(q))[0]
     _advance(model, pose, q, along)
     _onto(model, pose, q, along, along)
@@ -158,8 +151,7 @@ def enter(
     into them: the first point within them and its weak motion, or None where the valley comes no nearer to
     them either way. At a singularity the valley is a continuum of the URDF model's solutions, and a hybrid
     target's can cross the limits where every closed-form branch lies past them (a UR10 with its wrist
-    straight next to its q3 = -2.8 limit: branches at q3 = -3.06, the hybrid solution at -2.78, found by LM
-    restarts only after 0.6-0.75 s)."""
+    straight next to its q3 = -2.8 limit: branches at q3 = -3.06, the hybrid solution at -2.78)."""
     lower, upper, _ = limits
 
     def past(x: np.ndarray) -> float:
@@ -256,8 +248,8 @@ def settle(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Chord steps in the free joints of every row of ``Q (K, n)`` (in place), each row's valley joint
     ``j (K,)`` held. Returns ``Q``, the pose errors ``(K, 6)`` and the URDF Jacobians ``(K, 6, n)`` there.
-    ``deadline``: no step after it (a step of a whole valley's points takes 1-3 ms; without the check, a
-    search's answer came 4-8 ms after its budget); the errors and Jacobians are still those at ``Q``.
+    ``deadline``: no step after it (a step of a whole valley's points takes milliseconds, and the answer would
+    come after the budget); the errors and Jacobians are still those at ``Q``.
     ``at``: the errors and Jacobians at ``Q`` as given, where the caller has evaluated them already."""
     n = Q.shape[1]
     free = _free(j, n)
@@ -292,8 +284,8 @@ def _settle_along(
     model: HybridModel, target: np.ndarray, Q: np.ndarray, j: np.ndarray, limits: Limits, steps: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`settle`, then :func:`along` in each row's own joint: ``Q``, ``r`` and the error across. One row (a
-    valley's first bracket, a double root) on the compiled path: a bracket step cost 0.3 ms in numpy, of which
-    0.1 ms the two hybrid poses (:mod:`valley_kernel`)."""
+    valley's first bracket, a double root) on the compiled path: in numpy, most of a bracket step is call
+    overhead, not the two hybrid poses (:mod:`valley_kernel`)."""
     if len(Q) != 1:
         Q, e, J = settle(model, target, Q, j, limits, steps)
         return (Q, *along(e, J, j))
@@ -409,7 +401,7 @@ def _starts_along(
 
     First the pair of neighbours nearest ``near`` whose unsettled ``r`` changes sign (module docstring, 4.),
     its two points settled alone: where they still bracket a root, that root's start. Only when the caller asks
-    for more are all the points settled (one chord step of a valley's 20-40 points costs ~0.5 ms a hybrid FK)
+    for more are all the points settled (a chord step of a valley's 20-40 points costs a batched hybrid FK)
     and the other crossings and the double roots searched."""
     revolute = limits[2]
     points, motions, _ = path
@@ -485,8 +477,8 @@ def _all_starts(
     cross = np.array([k for kind, k in candidates if kind == "cross"], dtype=int)
 
     def refined() -> Iterator[np.ndarray]:
-        # the first crossing alone (a row alone takes the single-pose path: an RX160 target's four brackets at once
-        # took 3.6 ms, and the first held the solution), the others together when the caller asks for them
+        # the first crossing alone (a row alone takes the cheaper single-pose path, and the first crossing
+        # usually holds the solution), the others together when the caller asks for them
         for part in (cross[:1], cross[1:]):
             if len(part):
                 yield from _roots(

@@ -1,10 +1,9 @@
 """The valley trace's step (``valley._onto`` and ``valley._advance``), compiled.
 
 A trace takes 20-40 steps along a valley, each one or more Newton steps back onto it: a URDF pose and Jacobian,
-a bordered 6×6 system with two right-hand sides and a few norms. In numpy each step cost ~60 µs of small calls
-(an RX160 near-singular target's search traced for 0.8-2.2 ms, and walked its branches past the limits into them
-for 2.7 ms more); here a few. The maths is the module's own (``valley._onto``'s docstring); tests check the
-kernel against numpy.
+a bordered 6×6 system with two right-hand sides and a few norms. In numpy each step is mostly the overhead of
+small calls, and a search's traces take milliseconds of a request's budget; compiled, a fraction of that. The
+maths is the module's own (``valley._onto``'s docstring); tests check the kernel against numpy.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 Layout: ``model.json`` (the manifest), ``robot.urdf`` (a copy of the URDF the model was trained for),
 ``position.pt`` and ``orientation.pt`` (TorchScript residual nets; either may be absent, e.g. position-only),
 and ``coverage.npy`` (the training configurations, float32 ``(N, n)``, for the distance to the data; absent in
-models trained before it existed).
+older model directories).
 """
 
 from __future__ import annotations

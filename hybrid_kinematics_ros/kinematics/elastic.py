@@ -307,7 +307,7 @@ class ElasticChain:
     def _single(self, q: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray]:
         """The tip ``(4, 4)`` and (zeros unless ``jacobian``) the Jacobian ``(6, n)`` of one configuration, before
         the joint errors' slopes: the compiled kernel (:func:`fk_kernel.elastic_pose`), where the batch code
-        with a batch of one cost ~300 µs in numpy overhead and numpy written for one pose 92 µs."""
+        with a batch of one, or numpy written for one pose, would spend most of its time in numpy's overhead."""
         q_eff = np.ascontiguousarray(self.corrected_joints(q), dtype=float)
         return fk_kernel.elastic_pose(q_eff, *self._kernel_operands, jacobian)
 

@@ -25,7 +25,7 @@ def check_joints(chain: Chain, q: np.ndarray) -> np.ndarray:
     return q
 
 
-CHUNK = 2048  # samples per block: keeps the working set in cache, which makes numpy ~2x faster here
+CHUNK = 2048  # samples per block: keeps the working set in cache, which makes numpy faster here
 
 
 def transposed_generators(chain: Chain) -> np.ndarray:
@@ -81,7 +81,7 @@ def fk(chain: Chain, q: np.ndarray) -> np.ndarray:
 def fk_single(chain: Chain, q: np.ndarray) -> np.ndarray:
     """Tip pose ``(4, 4)`` of one configuration ``(n,)``: the low-overhead path for services and IK, compiled
     (:mod:`~hybrid_kinematics_ros.kinematics.fk_kernel`). A few configurations ``(k, n)`` give
-    ``(k, 4, 4)`` without :func:`fk`'s set-up (40 µs): the joint factors ``G0 + a G1 + b G2`` in one batched
+    ``(k, 4, 4)`` without :func:`fk`'s set-up: the joint factors ``G0 + a G1 + b G2`` in one batched
     product, then their product (``post`` and identities appended to a power of two) as a tree of 3 batched
     matrix products for 6 or 7 joints instead of a chain of 7. Both differ from :func:`fk`'s by rounding only.
     """
@@ -114,7 +114,7 @@ def geometric_jacobian(
     base frame ``z (..., n, 3)`` and the lever from the joint's origin to the tip ``(..., n, 3)``.
 
     A revolute joint moves the tip by ``z × lever`` and turns it about ``z``; a prismatic one moves it along
-    ``z``. The cross product is written out: ``np.cross`` costs ~20 µs on the small arrays of one pose.
+    ``z``. The cross product is written out: ``np.cross``'s overhead dominates on the small arrays of one pose.
     ``all_revolute``: whether every joint is, when the caller knows (it saves a test on one pose's path).
     """
     jac = np.empty((*z.shape[:-2], 6, z.shape[-2]))

@@ -1,10 +1,10 @@
 """One configuration's tip pose, and its geometric Jacobian, compiled: the IK's and the services' inner loop.
 
 The same product as :func:`fk.fk` (``A_0(q_0) ··· A_{n-1}(q_{n-1}) · post``, each factor
-``G0 + a G1 + b G2``; see ``chain.py``), joint by joint in one call, where :func:`fk.fk_single` made about
-twenty numpy calls (a UR10's pose and Jacobian: 2.3 against 23 µs). The elasto-geometric chain's one pose
+``G0 + a G1 + b G2``; see ``chain.py``), joint by joint in one call, where numpy would make about twenty
+calls, each costing more than the arithmetic. The elasto-geometric chain's one pose
 (:class:`~hybrid_kinematics_ros.kinematics.elastic.ElasticChain`: gravity torques on the rigid frames, the
-joints' deflections and the links' bending, then the frames again) is one call too (92 against ~10 µs).
+joints' deflections and the links' bending, then the frames again) is one call too.
 The association of the products is the plain left-to-right one, so the poses agree with the batched numpy
 code's to rounding (~1e-15), not bit for bit. Compiled on first use and cached on disk, as
 :mod:`~hybrid_kinematics_ros.model.mlp_kernel`.
@@ -115,7 +115,7 @@ def cyclic_errors(q, coefficients):
     """The joints' cyclic errors ``(n,)`` at one configuration: ``Σ_f a sin(f q) + b cos(f q)`` over harmonics
     ``f = 1 … K`` of ``coefficients (n, K, 2)`` (a, b), each joint's harmonics by the angle-addition recurrence
     from one sine and cosine (rounding ~K·1e-16 relative). The numpy twin is the stage's batch path
-    (``ElasticChain._joint_errors``); one pose there cost ~5 µs, here well under one."""
+    (``ElasticChain._joint_errors``), several times slower for one pose."""
     n, harmonics = coefficients.shape[0], coefficients.shape[1]
     out = np.zeros(n)
     for j in range(n):

@@ -40,8 +40,8 @@ def pose_from_matrix(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def quat_from_rotation(r: np.ndarray) -> np.ndarray:
     """xyzw quaternion (scalar part non-negative) of one rotation matrix, by Shepperd's method.
 
-    scipy's ``Rotation`` costs ~50 µs per call at batch size 1; this path serves single poses in nodes, in
-    Python floats (each numpy call on a scalar costs more than the arithmetic). Tested against scipy.
+    scipy's ``Rotation`` has a large fixed cost per call at batch size 1; this path serves single poses in
+    nodes, in Python floats (each numpy call on a scalar costs more than the arithmetic). Tested against scipy.
     """
     return np.array(quat_of_rows(np.asarray(r, dtype=float)[:3, :3].tolist()))
 
@@ -69,7 +69,7 @@ def quat_of_rows(rows: list[list[float]]) -> tuple[float, float, float, float]:
 
 def matrix_of_pose_one(position: Sequence[float], quat_xyzw: Sequence[float]) -> np.ndarray:
     """:func:`matrix_from_pose` of one position and unit quaternion, ``(4, 4)``, from Python floats with one
-    numpy call (a service's request; scipy's Rotation costs 20 µs for one)."""
+    numpy call (a service's request, where scipy's Rotation would cost more than the rest)."""
     x, y, z, w = quat_xyzw
     xx, yy, zz, xy, xz, yz, wx, wy, wz = x * x, y * y, z * z, x * y, x * z, y * z, w * x, w * y, w * z
     return np.array(
@@ -104,8 +104,8 @@ def skew(w: np.ndarray) -> np.ndarray:
 def exp_so3(w: np.ndarray) -> np.ndarray:
     """Rotation matrices ``(..., 3, 3)`` of rotation vectors ``(..., 3)`` (Rodrigues, exact near zero).
 
-    scipy's ``Rotation`` gives the same, but its set-up costs ~10 µs per call, too much for one pose; one
-    vector takes a path of Python floats (4 µs against 18 µs for the array path with a batch of one).
+    scipy's ``Rotation`` gives the same, but its set-up per call costs too much for one pose; one vector takes
+    a path of Python floats (several times faster than the array path with a batch of one).
     """
     w = np.asarray(w, dtype=float)
     if w.shape == (3,):
@@ -197,7 +197,7 @@ def fit_rigid(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.nd
     ``source`` is ``(k, 3)`` (one layout for every batch item, e.g. nominal reflector points on a tool) or
     ``(B, k, 3)``; ``target`` is ``(B, k, 3)``; ``k >= 3`` non-collinear points. Kabsch by a batched SVD,
     with the reflection guard: scipy's ``Rotation.align_vectors`` gives the same rotation one batch item
-    per call, which costs ~100x more over a whole measurement file.
+    per call, which costs far more over a whole measurement file.
     """
     target = np.asarray(target, dtype=float)
     source = np.broadcast_to(np.asarray(source, dtype=float), target.shape)

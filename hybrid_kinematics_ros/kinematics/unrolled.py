@@ -1,10 +1,10 @@
 """FK of one configuration as straight-line Python float code, generated once per chain.
 
 Why: a service answers one configuration at a time, and its process wakes up with cold caches, where each
-numpy call costs 1-2 µs; :func:`fk.fk_single` makes about twenty of them. The chain's product
-``A_0(q_0) ··· A_{n-1}(q_{n-1}) · post`` (see ``chain.py``), written out entry by entry with the chain's
-constants as literals and the zeros and ones of its fixed transforms folded away, needs no numpy at all:
-a UR10 takes 12 ``math`` calls and about 100 multiplications (2.3 µs warm, against 8 µs).
+numpy call costs more than the arithmetic it does; the chain's product in numpy takes about twenty of them.
+The product ``A_0(q_0) ··· A_{n-1}(q_{n-1}) · post`` (see ``chain.py``), written out entry by entry with the
+chain's constants as literals and the zeros and ones of its fixed transforms folded away, needs no numpy at
+all: a UR10 takes 12 ``math`` calls and about 100 multiplications.
 
 The source holds only names and float literals (``repr`` of a float reads back exactly) and is compiled
 with ``exec``, as :func:`collections.namedtuple` once did. The association of the products differs from

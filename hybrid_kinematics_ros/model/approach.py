@@ -3,13 +3,13 @@
 A geared joint stops on one side or the other of its lost motion (backlash, and the torsion friction holds),
 depending on the direction it came from; the encoder on the motor side does not see it. On the real UR10
 data set (series A) the residual of the parametric stage depends on that direction: nets given it as an
-input predict held-out poses 10 % better in position and 14 % in orientation than nets on the joints alone.
+input predict held-out poses better, in position and orientation, than nets on the joints alone (BENCHMARKS.md).
 ISO 9283 measures the same effect as multi-directional pose accuracy.
 
 The direction is +1 or -1 per joint: the way the joint last went by more than ``still`` (rad) from its
 last turning point, with hysteresis, so the label does not depend on how often the motion was sampled.
 A slow final approach of 0.5 mrad is a move whether it arrives as one row of a tracker export or as
-thousands of 500 Hz joint states a few microradians apart (judged step by step, it was no move at all).
+thousands of 500 Hz joint states a few microradians apart (judged step by step, it would be no move at all).
 0 where no move is known yet (the first pose, or a joint that has not moved), which the nets take as
 halfway between the two sides. It comes from the order of the poses: the rows of a tracker export, the
 pairs of a bag in stamp order, the joint states a node receives.

@@ -16,11 +16,11 @@ error grow as it extrapolates): a shoulder that extrapolates costs more than a f
 Why the trained range and not the distance to the nearest training configuration: in six dimensions the
 training data leave gaps everywhere, and a model interpolates across them as well as it does on the data;
 beyond the end of a joint's range it extrapolates, and there its error grows (a virtual UR10 trained with
-its shoulder in one radian: 0.0017 mm inside, 0.041 mm half a radian beyond, at the same nearest-neighbour
-distance as gaps inside with no growth).
+its shoulder in one radian errs an order of magnitude more half a radian beyond it than inside, where gaps at
+the same nearest-neighbour distance show no growth).
 
 The bound is a property of the model directory (``model.json``'s ``bounds`` section); a model without one
-(trained before this version) gives none.
+(an older model directory) gives none.
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ def features(q: np.ndarray, revolute: np.ndarray) -> np.ndarray:
 
 def features_one(q: list[float], revolute: list[bool]) -> list[float]:
     """:func:`features` of one configuration, in Python floats: on a service's hot path numpy's overhead on
-    ``(1, n)`` arrays was most of a bound's cost."""
+    ``(1, n)`` arrays is most of a bound's cost."""
     first = [math.sin(v) if r else v for v, r in zip(q, revolute, strict=True)]
     second = [math.cos(v) if r else v * v for v, r in zip(q, revolute, strict=True)]
     return [1.0, *first, *second]
@@ -104,8 +104,8 @@ class ErrorBound:
 
     quantile: float  # m or rad: the bound inside the trained range at a typical configuration (scale 1)
     rates: np.ndarray  # (n,) m or rad of error per rad (per m, prismatic) of each joint's excess
-    scale: Scale | None = None  # None: the same everywhere (a section written before the scale)
-    stage_quantile: float | None = None  # the stage alone's ``quantile``; None: a section written before it
+    scale: Scale | None = None  # None: the same everywhere (an older section without one)
+    stage_quantile: float | None = None  # the stage alone's ``quantile``; None: an older section without it
 
     def __call__(self, q: np.ndarray, x: np.ndarray, revolute: np.ndarray) -> np.ndarray:
         return self.at(features(q, revolute), x)
@@ -187,7 +187,7 @@ class Bounds:
 
     def inside_one(self, q: list[float], revolute: list[bool]) -> tuple[float, float | None]:
         """:meth:`of` of one configuration inside the trained range, in Python floats (a service's usual
-        call: a UR10 model's :meth:`HybridModel.error_bounds` 8 against 65 µs through :meth:`of`)."""
+        call, several times faster than through :meth:`of`)."""
         f = features_one(q, revolute)
         orientation = None if self.orientation is None else self.orientation.inside_one(f)
         return self.position.inside_one(f), orientation

@@ -1,18 +1,18 @@
 """Compiled kernels for a residual MLP: the values of one configuration or a small batch (one matrix product a
 layer), and one configuration's value with the Jacobian.
 
-At batch size 1 numpy spends most of a 256x3 net's 22 µs dispatching a dozen small operations, and
-TorchScript 50 µs; these numba kernels do the features, the layers and the output scaling in one call
-(a UR10 256x3 net, interleaved in one process: 17-18 against 25-31 µs; most of what is left is the two
-256x256 products, which BLAS does). The Jacobian's backward pass takes the three outputs' gradients through
-each layer as three matrix-vector products: numba's float32 ``(3, 256) @ (256, 256)ᵀ`` took 33 µs, the three
-products 7 µs (a UR10's hybrid FK with the Jacobian of two 256x3 nets: 205 µs before). The maths is the
-net's own (``calibration/nets.py``): features ``[(q − centre) / half span, sin q, cos q]`` for the joints,
-float32 layers, then ``y · scale + mean`` in float64. The joint-1 turn stays with the caller.
+At batch size 1 numpy spends most of a net's time dispatching a dozen small operations, and TorchScript
+more; these numba kernels do the features, the layers and the output scaling in one call (most of what is
+left is the two 256x256 products of a 256x3 net, which BLAS does). The Jacobian's backward pass takes the
+three outputs' gradients through each layer as three matrix-vector products, several times faster than
+numba's float32 ``(3, 256) @ (256, 256)ᵀ``. The maths is the net's own (``calibration/nets.py``): features
+``[(q − centre) / half span, sin q, cos q]`` for the joints, float32 layers, then ``y · scale + mean`` in
+float64. The joint-1 turn stays with the caller.
 
 A net is packed once (:func:`pack`) into one float32 array holding each layer's weight matrix ``(in, out)``
 and bias, every ensemble member's layers one after another, and a table of where each lies: numba unboxes
-typed lists of arrays at every call, 1.5 µs of a 64x2 net's 4. Activation codes: see ``ACTIVATIONS``.
+typed lists of arrays at every call, a large share of a small net's time. Activation codes: see
+``ACTIVATIONS``.
 Compiled on first use and cached on disk next to this file (or in numba's user cache where that is not
 writable): a fresh checkout compiles in a few seconds, once.
 """
@@ -62,7 +62,7 @@ def _features(q, center, half_span, n_joints, sincos):
 @numba.njit(cache=True, nogil=True, fastmath=_FLAGS)
 def _layer(y, w, b, code, slope):
     """``act(y @ w + b)``; its slope into ``slope`` (same length) when that is not empty."""
-    out = np.dot(y, w) + b  # BLAS: 2.5× faster than a loop numba would vectorise
+    out = np.dot(y, w) + b  # BLAS: faster than a loop numba would vectorise
     n_out = out.shape[0]
     if code != 0 or slope.shape[0]:
         for j in range(n_out):
@@ -90,9 +90,8 @@ def _bias(flat, layout, layer):
 def mlp_values(q, center, half_span, n_joints, sincos, flat, layout, codes, members, scale, mean):
     """The residuals ``(B, 3)`` float64 at inputs ``q (B, k)`` (joints, then condition columns): the mean of
     ``members`` MLPs whose layers lie one member after another in ``flat``/``layout``/``codes`` (:func:`pack`).
-    One row through matrix-vector products; several through one matrix product a layer (BLAS's sgemm: a UR10
-    256x3 net, 4 / 16 / 40 rows: 22 / 102 / 197 against 39 / 150 / 372 µs row by row), whose sums may differ
-    from a row's in the last float32 bit."""
+    One row through matrix-vector products; several through one matrix product a layer (BLAS's sgemm, faster
+    than row by row), whose sums may differ from a row's in the last float32 bit."""
     per = layout.shape[0] // members
     none = np.empty(0, dtype=np.float32)
     rows = q.shape[0]
@@ -156,7 +155,7 @@ def mlp_value_and_jacobian(q, center, half_span, n_joints, sincos, flat, layout,
             for r in range(3):
                 for j in range(g.shape[1]):
                     g[r, j] *= slope[j]
-                back[r] = np.dot(w, g[r])  # three BLAS gemv: numba's (3, n) @ wᵀ took 5× as long
+                back[r] = np.dot(w, g[r])  # three BLAS gemv: numba's (3, n) @ wᵀ is several times slower
             g = back
         for r in range(3):
             for i in range(x.shape[0]):

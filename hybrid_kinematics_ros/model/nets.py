@@ -1,7 +1,7 @@
 """The residual nets at run time: a compiled evaluator of a saved MLP and the joint-1 turn of its output.
 
 A saved TorchScript net is self-contained (:mod:`hybrid_kinematics_ros.calibration.nets` builds and
-trains it) and needs nothing from here to load; at batch size 1 the evaluator here is ~6× faster.
+trains it) and needs nothing from here to load; at batch size 1 the evaluator here is several times faster.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ class AxisTurn:
     def apply(self, r: np.ndarray, angle: np.ndarray | float) -> np.ndarray:
         """Vectors ``r (..., 3)`` turned by ``angle`` (one per vector, or one for all); one vector by one angle
         as ``r cos + (k × r) sin + k (k · r)(1 − cos)``, without building the matrix."""
-        if r.ndim == 1 and np.ndim(angle) == 0:  # in Python floats: 1.5 µs, where numpy's products cost 5
+        if r.ndim == 1 and np.ndim(angle) == 0:  # in Python floats: faster than numpy for one vector
             c, s = math.cos(angle), math.sin(angle)
             (x, y, z), (kx, ky, kz) = r.tolist(), self._k
             along = (1.0 - c) * (kx * x + ky * y + kz * z)
@@ -57,8 +57,8 @@ class FastResidual:
     """A compiled evaluator of a saved MLP residual net (:mod:`~hybrid_kinematics_ros.model.mlp_kernel`), for
     single configurations and small batches.
 
-    At batch size 1 TorchScript spends ~50 µs per call on operator dispatch, numpy ~15 µs on a dozen small
-    operations; the kernel does the whole net in one call. Only plain MLPs (Linear and activation layers),
+    At batch size 1 TorchScript spends most of a call on operator dispatch, numpy on a dozen small operations;
+    the kernel does the whole net in one call. Only plain MLPs (Linear and activation layers),
     or ensembles of equally deep ones, qualify; :meth:`from_module` returns None for others, and callers then
     use the TorchScript module. Tests check it against TorchScript and its autograd.
     """

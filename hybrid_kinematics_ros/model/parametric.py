@@ -89,7 +89,7 @@ def model_from_manifest(chain: Chain, section: dict[str, Any], rigid: bool = Fal
         joint_map = None if rigid or "joint_map" not in section else JointMap.from_manifest(section["joint_map"])
         if joint_map is not None and len(joint_map.lower) != chain.dof:
             raise ValueError(f"joint_map has {len(joint_map.lower)} joints, the chain {chain.dof}")
-        gravity = payload.get("gravity")  # models before the gravity vector: a floor mount
+        gravity = payload.get("gravity")  # a section without a gravity vector: a floor mount
         return build_model(
             chain, params, values, float(payload["mass"]), np.asarray(payload["com"], float), joint_map, gravity
         )

@@ -1,9 +1,9 @@
 """The hybrid pose of one configuration in one compiled call: the parametric stage, then both residual nets.
 
 Every FK service call and every round of the IK's fixed point asks for one pose. Done in steps (the stage's
-joint errors, its kernel, each net's kernel, the joint-1 turn of each residual, the rotation), a UR10's
-pose with two 64x2 nets took 27 µs back to back and 112 µs with 2 ms between calls (caches refilled on
-every request, as a node's are), most of it the Python between the kernels; here 9 and 49 µs. The maths is
+joint errors, its kernel, each net's kernel, the joint-1 turn of each residual, the rotation), most of a
+pose's time is the Python between the kernels, the more so with cold caches (refilled on every request, as
+a node's are); in one call, a fraction of it. The maths is
 the steps' own, called from here: ``fk_kernel.cyclic_errors`` and ``elastic_pose`` (or ``tip_pose`` for a
 stage without compliance), ``mlp_kernel.mlp_values``, and the turn and the rotation as ``model/nets.py``
 and ``HybridModel.correct`` write them; tests check the pose against the batch path.

@@ -3,7 +3,7 @@
 An adapter only: it turns messages into core calls and results back into messages.
 
 Three executors in three threads, all rclpy's EventsExecutor (the fastest here: a Trigger round trip
-costs 0.1 ms against 0.3-1.5 ms with the others, and it keeps up with high-rate topics where the
+costs a fraction of what it does with the others, and it keeps up with high-rate topics where the
 MultiThreadedExecutor drops messages). The node itself serves FK. A companion node, ``<name>_ik``,
 serves ``<name>/compute_ik`` and ``<name>/reload``, so a long IK or a reload never blocks FK; another,
 ``<name>_pose``, turns joint states into ``<name>/corrected_pose``, so a burst of FK requests does not
@@ -180,8 +180,8 @@ class KinematicsNode(Node):
         )
         for warning in m.chain.inertial_warnings:
             self.get_logger().warn(f"URDF: {warning}")
-        freeze_heap()  # no full collection of the loaded model inside a request (a 140 ms stall)
-        one_blas_thread()  # no BLAS pool spinning on the other core while a request waits for it (10-65 ms)
+        freeze_heap()  # no full collection of the loaded model inside a request (a stall past its budget)
+        one_blas_thread()  # no BLAS pool spinning on the other core while a request waits for it
 
     # ------------------------------------------------------------------ loading
     def _urdf(self) -> str | None:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import os
 
 # One BLAS thread, set before numpy loads OpenBLAS: the clock estimate's matrix work with two threads on a
-# busy 2-core machine spun for 3.1 s per SVD instead of 0.09 s, and starved the 3 kHz subscription.
+# busy 2-core machine spins for many times an SVD's own time, and starves the 3 kHz subscription.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import contextlib
@@ -128,8 +128,8 @@ class RecorderNode(Node):
     # ------------------------------------------------------------------ subscriptions
     def _subscribe(self, topic: str, msgtype, callback, reliability: ReliabilityPolicy) -> None:
         # No message-lost event handler: in Jazzy's rmw_fastrtps, taking that event while a DDS receive thread
-        # reports a lost sample deadlocks the two (AB-BA on the reader's and the event's mutexes; ros2/rmw_fastrtps
-        # #890): a saturated machine hung the recorder for good. The stream's own gaps show what is missing.
+        # reports a lost sample deadlocks the two (AB-BA on the reader's and the event's mutexes, an rmw_fastrtps
+        # bug): a saturated machine would hang the recorder for good. The stream's own gaps show what is missing.
         qos = QoSProfile(depth=10000, reliability=reliability)
         sub = self.create_subscription(msgtype, topic, callback, qos, raw=True)
         self.subscriptions_[topic] = (sub, reliability, msgtype, callback)

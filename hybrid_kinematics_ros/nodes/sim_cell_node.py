@@ -1,8 +1,8 @@
 """The simulated cell: the virtual robot's joints at 110 Hz and laser-tracker poses at 3 kHz.
 
 Samples are computed in vectorised blocks of 10 ms and published from a loop that sleeps until each
-sample is due (a ROS timer reaches only about 2.9 kHz here; busy-waiting holds the time a few µs closer
-but takes a whole core from the recorder on a 2-core machine). Stamps are the scheduled times, so
+sample is due (a ROS timer falls short of 3 kHz here; busy-waiting holds the time slightly closer but
+takes a whole core from the recorder on a 2-core machine). Stamps are the scheduled times, so
 lateness moves delivery, never the data. Computing a block makes the samples right after it up to about
 1 ms late; a producer thread does not help, because the computation holds the GIL. The tracker has its
 own clock (offset and drift against the robot's), noise, and beam breaks during which nothing is
