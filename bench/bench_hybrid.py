@@ -20,6 +20,7 @@ from bench.report import served, table, write_section
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
 from hybrid_kinematics_ros.calibration.fit import fit
+from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -50,12 +51,14 @@ def run_fit(
             va,
             te,
             Path(tmp) / "m",
-            preset,
-            minutes,
-            seed=0,
-            arch=arch,
-            parametric=parametric,
-            payload=payload,
+            Recipe(
+                preset,
+                minutes,
+                arch=arch or {},
+                parametric=parametric,
+                payload_mass=payload[0],
+                payload_com=tuple(payload[1]),
+            ),
         )
         seconds = time.perf_counter() - start
     return model, evaluate(model, te), seconds, manifest

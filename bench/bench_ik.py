@@ -16,6 +16,7 @@ from bench.bench_hybrid import dataset
 from bench.report import table, write_section
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.fit import fit
+from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.ik.baselines import scipy_refine_solver, wang_baseline
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, freeze_heap, one_blas_thread
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
@@ -29,7 +30,7 @@ FAST_MS = 5.0  # #35: ≥ 99.9 % of random targets within this
 def trained_model(robot: str, tmp: Path, minutes: float) -> HybridModel:
     cfg = load_robot_config(robot)
     tr, va, te = dataset(robot, 30_000, 1), dataset(robot, 3_000, 2), dataset(robot, 3_000, 3)
-    model, _ = fit(cfg.chain, tr, va, te, tmp / robot, train.PRESETS["fast"], minutes)
+    model, _ = fit(cfg.chain, tr, va, te, tmp / robot, Recipe(train.PRESETS["fast"], minutes, parametric=False))
     return model
 
 

@@ -26,6 +26,7 @@ from bench.report import table, write_section
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
 from hybrid_kinematics_ros.calibration.fit import fit, split
+from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.approach import approach_directions, arrival_directions, channel_names
@@ -130,11 +131,8 @@ def main() -> None:
                 va,
                 test,
                 path,
-                PRESET,
-                args.train_minutes,
-                conditions=conditions,
-                parametric=True,
-                capacity={"approach": bool(conditions)},  # "plain": without the directions, which the data choose
+                # "plain": without the directions, which the data would choose
+                Recipe(PRESET, args.train_minutes, conditions=conditions, capacity={"approach": bool(conditions)}),
             )
             models[name] = HybridModel.load(path)
             hybrid = evaluate(models[name], test)["hybrid"]

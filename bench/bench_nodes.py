@@ -252,13 +252,20 @@ def small_model(out: Path) -> Path:
     from bench.bench_hybrid import dataset
     from hybrid_kinematics_ros.calibration import train
     from hybrid_kinematics_ros.calibration.fit import fit
+    from hybrid_kinematics_ros.calibration.recipe import Recipe
     from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 
     cfg = load_robot_config("ur10")
     tr, va, te = dataset("ur10", 4000, 1), dataset("ur10", 500, 2), dataset("ur10", 500, 3)
     preset = replace(train.PRESETS["fast"], arch="mlp:64x2:silu")
-    payload = (cfg.payload_mass, cfg.payload_com)
-    fit(cfg.chain, tr, va, te, out, preset, 0.2, seed=0, parametric=True, payload=payload)
+    fit(
+        cfg.chain,
+        tr,
+        va,
+        te,
+        out,
+        Recipe(preset, 0.2, payload_mass=cfg.payload_mass, payload_com=tuple(cfg.payload_com)),
+    )
     return out
 
 

@@ -16,6 +16,7 @@ import numpy as np
 from bench.report import table, write_section
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.fit import fit, split
+from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
@@ -51,10 +52,12 @@ def main() -> None:
                 va,
                 te,
                 Path(tmp) / "m",
-                train.PRESETS["fast"],
-                args.minutes,
-                parametric=True,
-                payload=(cfg.payload_mass, cfg.payload_com),
+                Recipe(
+                    train.PRESETS["fast"],
+                    args.minutes,
+                    payload_mass=cfg.payload_mass,
+                    payload_com=tuple(cfg.payload_com),
+                ),
             )
         truth = exact.measure(te.q, np.random.default_rng(0))
         ref = model.referencing

@@ -25,6 +25,7 @@ import pytest
 from bench.bench_bounds import shoulder_configurations
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.fit import fit, split
+from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.approach import channel_names
@@ -136,7 +137,7 @@ def trained(ur10, virtual_pairs, tmp_path_factory):
     out = tmp_path_factory.mktemp("models") / "small"
     tr, va, te = split(virtual_pairs, seed=0)
     preset = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=EPOCHS, ensemble=1)
-    model, manifest = fit(ur10.chain, tr, va, te, out, preset, BUDGET_MINUTES, seed=0)
+    model, manifest = fit(ur10.chain, tr, va, te, out, Recipe(preset, BUDGET_MINUTES, parametric=False))
     return out, model, manifest, te
 
 
@@ -149,13 +150,13 @@ def shoulder_model(ur10, tmp_path_factory):
     tr, va, te = split(cell.pairs(shoulder_configurations(2000, (-2.0, -1.0), seed=1), seed=1), seed=0)
     beyond = cell.pairs(shoulder_configurations(400, (-0.8, -0.2), seed=2), seed=2)
     preset = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=400, ensemble=1)
-    payload = (ur10.payload_mass, ur10.payload_com)
     out = tmp_path_factory.mktemp("shoulder")
     # no joint error map (the selection takes a coarse one on these noise-free pairs): the compiled pose, tested
     # with this model's elastic stage and payload, does not take a map
-    model, _ = fit(
-        ur10.chain, tr, va, te, out, preset, 5.0, parametric=True, payload=payload, capacity={"map_step": 0.0}
+    recipe = Recipe(
+        preset, 5.0, payload_mass=ur10.payload_mass, payload_com=tuple(ur10.payload_com), capacity={"map_step": 0.0}
     )
+    model, _ = fit(ur10.chain, tr, va, te, out, recipe)
     return out, model, te, beyond
 
 
@@ -164,10 +165,12 @@ EXPANSION_PER_K = 2e-4  # a strong thermal growth of the whole arm about its bas
 THERMAL_PRESET = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=300, ensemble=1)
 # What the capacity selection chooses for these pairs with or without the channel (2026-11-26), fixed here:
 # the temperature input is under test, not the capacity (test_portfolio tests that); 40 s a model less.
-THERMAL_STAGE = {
-    "capacity": {"elastic": "bending", "harmonics": 2, "harmonic_prior": 30.0, "map_step": 0.0},
-    "choose_capacity": False,
-}
+THERMAL_STAGE = Recipe(
+    THERMAL_PRESET,
+    5.0,
+    capacity={"elastic": "bending", "harmonics": 2, "harmonic_prior": 30.0, "map_step": 0.0},
+    choose_capacity=False,
+)
 
 
 def thermal_pairs(ur10, count: int, seed: int) -> Pairs:
@@ -188,9 +191,8 @@ def thermal_models(ur10, tmp_path_factory):
     out = {}
     for name, conditions in (("plain", ()), ("thermal", ("temperature",))):
         path = tmp_path_factory.mktemp("conditions") / name
-        stage = {"parametric": True, **THERMAL_STAGE}
         # "plain": without the channel, which the pairs would offer the nets (test_offered_conditions)
-        fit(ur10.chain, tr, va, test, path, THERMAL_PRESET, 5.0, conditions=conditions, offered=(), **stage)
+        fit(ur10.chain, tr, va, test, path, replace(THERMAL_STAGE, conditions=conditions, offered=()))
         out[name] = HybridModel.load(path)
     return out, test
 
@@ -209,6 +211,6 @@ def backlash_models(ur10, tmp_path_factory):
     for name, conditions in (("plain", ()), ("approach", channel_names(ur10.chain.joint_names))):
         path = tmp_path_factory.mktemp("approach") / name
         given = {"approach": bool(conditions)}  # "plain" without the directions, which the data would choose
-        fit(ur10.chain, tr, va, test, path, THERMAL_PRESET, 5.0, conditions=conditions, parametric=True, capacity=given)
+        fit(ur10.chain, tr, va, test, path, Recipe(THERMAL_PRESET, 5.0, conditions=conditions, capacity=given))
         out[name] = HybridModel.load(path)
     return out, test

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +18,7 @@ from hybrid_kinematics_ros.calibration.alignment import align_raw
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import evaluate, pose_errors_of, target_errors
 from hybrid_kinematics_ros.calibration.parametric import HARMONIC_PRIOR, ParametricResult, identify, linearise
+from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.calibration.referencing import (
     anchor_stations,
     reference_stations,
@@ -203,221 +204,103 @@ def split_summary(blocks: int | None, separate_val: bool, separate_test: bool) -
     return {"validation": how(separate_val), "test": how(separate_test)}
 
 
+Sets = tuple[list[Pairs], list[Pairs], list[Pairs]]  # training, validation and test pairs, one Pairs per frame
+
+
+@dataclass(frozen=True)
+class Stage:
+    """What the nets learn on: the stage (or the URDF chain), the referencings it was fitted with and, when
+    one was identified and served, its result."""
+
+    base: ElasticChain
+    refs: dict[str, Referencing]
+    result: ParametricResult | None = None
+
+
+@dataclass(frozen=True)
+class Trained:
+    """The nets, their training histories, the inputs they take and, when channels were offered, which net
+    took them."""
+
+    nets: dict
+    histories: dict[str, list[dict]]
+    inputs: Inputs
+    offered: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class Inputs:
+    """The nets' inputs: the joints, then condition channels (the first ``forced`` always taken, the rest
+    offered), each normalised over ``lower`` … ``upper``."""
+
+    conditions: tuple[str, ...]
+    forced: int
+    lower: np.ndarray
+    upper: np.ndarray
+
+    def without_offered(self, dof: int) -> Inputs:
+        keep = dof + self.forced
+        return Inputs(self.conditions[: self.forced], self.forced, self.lower[:keep], self.upper[:keep])
+
+
 def fit(
     chain: Chain,
     train_pairs: Pairs | Sequence[Pairs],
     val_pairs: Pairs | Sequence[Pairs],
     test_pairs: Pairs | Sequence[Pairs],
     out: Path,
-    preset: train.Preset,
-    max_minutes: float,
-    seed: int = 0,
-    arch: dict[str, str] | None = None,
+    recipe: Recipe,
+    *,
     data_summary: dict[str, Any] | None = None,
     progress: Callable[[dict], None] | None = None,
-    parallel: bool = True,
-    parametric: bool = False,
-    payload: tuple[float, np.ndarray] = (0.0, np.zeros(3)),
     log: Callable[[str], None] = lambda _: None,
-    shared_targets: Sequence[Sequence[str]] = (),
-    conditions: Sequence[str] = (),
-    capacity: Mapping[str, Any] | None = None,
-    choose_capacity: bool = True,
-    gravity: np.ndarray | None = None,
-    offered: Sequence[str] | None = None,
+    parallel: bool = True,
 ) -> tuple[HybridModel, dict[str, Any]]:
-    """Reference, identify, train both nets within ``max_minutes`` (side by side), write the model directory.
+    """Reference, identify the stage, train both nets side by side, and write the model directory ``out``.
 
-    Each set of pairs may come from several tracker stations (one :class:`Pairs` per frame). Every
-    tracker frame is referenced first (:func:`reference_all`); with ``parametric`` the elasto-geometric
-    stage is identified next, from all stations together, and the nets learn what it leaves.
-    Position-only pairs train the position net alone. ``conditions`` names condition channels of the
-    pairs (``temperature``, say) that the nets take as inputs beside the joints; ``offered`` names channels
-    each net takes only where its validation errors show their worth (:func:`train.train_net`), a channel no
-    net takes leaves the model's inputs. None (the default): with no channel named in ``conditions``, every
-    channel all the pairs carry but the joints' approach directions (those the stage decides); else none.
-    ``capacity`` and
-    ``choose_capacity``: the stage's size, given or chosen from the training pairs (:func:`identify_stations`).
-    ``gravity``: m/s² in the base frame (None: a floor mount), for the stage's joint torques.
+    Each set of pairs may come from several tracker stations (one :class:`Pairs` per frame). Every tracker
+    frame is referenced first (:func:`reference_all`); with ``recipe.parametric`` the elasto-geometric stage
+    is identified next, from all stations together, and served only where it beats the rigid-only model
+    (the URDF model with its own referencing) on the validation pairs; the nets learn what it leaves.
+    Position-only pairs train the position net alone. The served model is checked against the rigid-only
+    one on the test pairs: if it is worse (:func:`worse_than_rigid`), the model is written and
+    :class:`CalibrationError` says not to serve it.
     """
-    manifest: dict[str, Any] = {}
-    raw = [[p] if isinstance(p, Pairs) else list(p) for p in (train_pairs, val_pairs, test_pairs)]
-    refs = reference_all(chain, raw[0], shared_targets, seed)
-    for ref in refs.values():
+    raw: Sets = tuple([p] if isinstance(p, Pairs) else list(p) for p in (train_pairs, val_pairs, test_pairs))
+    manifest: dict[str, Any] = {"recipe": recipe.manifest()}
+    rigid_refs = reference_all(chain, raw[0], recipe.shared_targets, recipe.seed)
+    for ref in rigid_refs.values():
         log(f"referenced frame '{ref.frame_id}': rms {ref.rms_position_mm:.4f} mm ({ref.outliers} outliers)")
         for note in ref.undetermined:
             log(f"frame '{ref.frame_id}': {note}")
-    rigid_refs = refs  # the rigid-only candidate: the URDF model with the tracker and target fitted to it
-    if refs:
-        manifest["rigid_referencing"] = [ref.manifest() for ref in refs.values()]
-    train_pairs, val_pairs, test_pairs = (to_base_frame(p, chain, refs) for p in raw)
-    position_only = train_pairs.position_only
-    base = ElasticChain.rigid(chain)
-    if parametric:
-        start = time.perf_counter()
-        refs, result = identify_stations(chain, raw[0], refs, payload, seed, capacity, choose_capacity, gravity)
-        verdict = rigid_verdict(chain, raw[1], (result.model, refs), rigid_refs)
-        if verdict is not None and not verdict["better"]:
-            log(
-                "parametric stage: not served, worse on the validation pairs than the URDF model with only the "
-                f"tracker and target fitted ({verdict['candidate_mm']:.4f} mm against {verdict['rigid_mm']:.4f} mm)"
-            )
-            manifest["stage_not_served"] = verdict
-            parametric, refs = False, rigid_refs
-    if parametric:
-        if result.capacity is not None:
-            manifest["capacity"] = result.capacity
-            log("parametric stage capacity (cross-validated): " + capacity_module.summary(result.capacity))
-        if refs:
-            train_pairs, val_pairs, test_pairs = (to_base_frame(p, chain, refs) for p in raw)
-        base = result.model
-        channels = approach.channel_names(chain.joint_names)
-        if base.backlash is not None and not set(channels) & set(conditions):
-            conditions = (*conditions, *channels)  # the stage's backlash terms and the nets take the directions
-        manifest["parametric"] = {**result.manifest(), "seconds": round(time.perf_counter() - start, 1)}
-        log(
-            f"parametric stage: {int(result.identifiable.sum())} of {len(result.params)} parameters identifiable; "
-            f"rms {result.rms_before['position_mm']:.4f} -> {result.rms_after['position_mm']:.4f} mm"
-        )
-    if refs:
-        manifest["referencing"] = [ref.manifest() for ref in refs.values()]
-    # position-only: the models predict the target points, wherever each station's target sat
-    target = _target_offsets(train_pairs)
-    lower, upper = train_pairs.q.min(axis=0), train_pairs.q.max(axis=0)
-    norm_lower, norm_upper = (chain.lower, chain.upper) if preset.full_range else (lower, upper)
-    norm_lower = np.where(np.isfinite(norm_lower), norm_lower, lower)
-    norm_upper = np.where(np.isfinite(norm_upper), norm_upper, upper)
-    if offered is None:
-        named = [c for c in conditions if not approach.is_channel(c)]
-        carried = set.intersection(*(set(p.conditions) for p in (train_pairs, val_pairs, test_pairs)))
-        varied = {c for c in carried if np.ptp(train_pairs.conditions[c]) > 0}  # a constant one teaches nothing
-        offered = () if named else tuple(sorted(c for c in varied if not approach.is_channel(c)))
-        every = set().union(*(set(p.conditions) for p in (train_pairs, val_pairs, test_pairs)))
-        unused = sorted(c for c in every - set(offered) - set(conditions) if not approach.is_channel(c))
-        if unused:
-            why = "channels were named" if named else "missing from some of the pairs, or constant in training"
-            log(f"condition channels not offered to the nets: {', '.join(unused)} ({why})")
-    offered = tuple(c for c in offered if c not in conditions)
-    forced = len(conditions)
-    conditions = (*conditions, *offered)
-    x_train, x_val = (_net_inputs(p, conditions) for p in (train_pairs, val_pairs))
-    if conditions:  # condition columns follow the joints, normalised over the range seen in training
-        c = x_train[:, chain.dof :]
-        directions = np.array([approach.is_channel(name) for name in conditions])  # always over -1 … +1
-        low, high = np.where(directions, -1.0, c.min(axis=0)), np.where(directions, 1.0, c.max(axis=0))
-        norm_lower, norm_upper = np.r_[norm_lower, low], np.r_[norm_upper, high]
-    # what the stage leaves, with its backlash terms shifting the joints the way each pair arrived
-    y_train = train.residual_targets(
-        base, base.approached(train_pairs.q, approach_of(train_pairs)), train_pairs.T, target
-    )
-    y_val = train.residual_targets(
-        base, base.approached(val_pairs.q, approach_of(val_pairs)), val_pairs.T, _target_offsets(val_pairs)
-    )
-    arch = arch or {}
-    kinds = ("position",) if position_only else train.KINDS
-    jobs = {}
-    for seed_offset, kind in enumerate(kinds):
-        p = replace(preset, arch=arch.get(kind) or preset.arch)
-        jobs[kind] = train.NetJob(
-            kind,
-            p,
-            x_train,
-            y_train[kind],
-            x_val,
-            y_val[kind],
-            norm_lower,
-            norm_upper,
-            train.joint1_axis(chain),
-            60.0 * max_minutes,
-            seed + seed_offset,
-            chain.dof,
-            offered=tuple(range(chain.dof + forced, chain.dof + len(conditions))),
-            offered_label=", ".join(offered),
-        )
+    if rigid_refs:
+        manifest["rigid_referencing"] = [ref.manifest() for ref in rigid_refs.values()]
+    stage = _stage(chain, raw, rigid_refs, recipe, manifest, log)
+    if stage.refs:
+        manifest["referencing"] = [ref.manifest() for ref in stage.refs.values()]
+    sets = tuple(to_base_frame(p, chain, stage.refs) for p in raw)
+    inputs = _inputs(chain, recipe, stage, sets, log)
     start = time.perf_counter()
-    nets, histories = train.train_pair(jobs, progress=progress, parallel=parallel)
-    seconds = time.perf_counter() - start
-    for kind, history in histories.items():
-        if history[-1].get("silenced"):
-            log(f"{kind} net: no better than the stage before it on validation, so it corrects nothing")
-    if offered:
-        taken = [kind for kind, history in histories.items() if history[-1].get("takes_offered")]
-        manifest["offered_conditions"] = {"channels": list(offered), "taken_by": taken}
-        log(
-            f"condition channels offered ({', '.join(offered)}): "
-            + (f"taken by the {' and '.join(taken)} net" if taken else "no net is better with them on validation")
-        )
-        if not taken:  # out of the inputs: the node then needs no value for them
-            dropped = tuple(range(chain.dof + forced, chain.dof + len(conditions)))
-            for net in nets.values():
-                net.drop_inputs(dropped)
-            conditions = conditions[:forced]
-            norm_lower, norm_upper = norm_lower[: chain.dof + forced], norm_upper[: chain.dof + forced]
-    manifest.update(
-        {
-            "base_link": chain.base_link,
-            "tip_link": chain.tip_link,
-            "joint_names": list(chain.joint_names),
-            "tool": chain.tool.tolist(),
-            "joint_limits": {"lower": chain.lower.tolist(), "upper": chain.upper.tolist()},
-            "trained_range": {"lower": lower.tolist(), "upper": upper.tolist()},
-            "position_only": position_only,
-        }
-    )
-    if conditions:
-        manifest["conditions"] = {
-            name: {
-                # an approach direction is unknown (0) until the joint moves; other channels: the training mean
-                "default": 0.0 if approach.is_channel(name) else float(np.mean(train_pairs.conditions[name])),
-                "lower": float(lo),
-                "upper": float(hi),
-            }
-            for name, lo, hi in zip(conditions, norm_lower[chain.dof :], norm_upper[chain.dof :], strict=True)
-        }
-    coverage = thinned(train_pairs.q)
-    model = HybridModel(chain, nets, manifest, coverage=coverage)
-    stage_options = result.options if parametric else {"kinds": capacity_module.ELASTIC["geometry"], "harmonics": 0}
-    try:
-        bounds = calibrate_bounds(chain, model, train_pairs, val_pairs, stage_options, payload, gravity)
-    except (CalibrationError, np.linalg.LinAlgError) as exc:  # too few pairs to measure the growth: no bounds
-        log(f"no error bounds: {exc}")
-    else:
-        manifest["bounds"] = bounds.manifest()
-        steepest = int(np.argmax(bounds.position.rates))
-        log(
-            f"error bounds ({bounds.level:.0%}): {1e3 * bounds.position.quantile:.4f} mm inside the trained range "
-            "at a typical configuration, "
-            f"growing beyond it by up to {1e3 * bounds.position.rates[steepest]:.3g} mm per rad "
-            f"({chain.joint_names[steepest]})"
-        )
-    # eager nets here; the saved TorchScript is checked against them. "analytic": the rigid-only candidate
-    errors = [pose_errors_of(model, p) for p in raw[2] if len(p)]
-    errors = (
-        {k: tuple(np.concatenate([e[k][i] for e in errors]) for i in (0, 1)) for k in errors[0]} if errors else None
-    )
-    metrics = evaluate(model, test_pairs, errors) if errors else evaluate(model, test_pairs)
+    trained = _train_nets(chain, recipe, stage.base, sets[:2], inputs, progress, parallel, log)
+    manifest["training_seconds"] = round(time.perf_counter() - start, 1)
+    manifest |= _model_manifest(chain, sets[0], trained, recipe)
+    coverage = thinned(sets[0].q)
+    model = HybridModel(chain, trained.nets, manifest, coverage=coverage)
+    _bounds(chain, model, sets, stage, recipe, manifest, log)
+    # eager nets here; the saved TorchScript is checked against them. "analytic" is the rigid-only model
+    errors = _test_errors(model, raw[2])
+    manifest["metrics"] = {"test": evaluate(model, sets[2], errors) if errors else evaluate(model, sets[2])}
     guard = None if errors is None else worse_than_rigid(errors["hybrid"][0], errors["analytic"][0])
-    manifest.update(
-        {
-            "nets": {kind: {"epochs": len(histories[kind]), **_best(histories[kind])} for kind in jobs},
-            "preset": asdict(preset),
-            "seed": seed,
-            "training_seconds": round(seconds, 1),
-            "data": {
-                **(data_summary or {}),
-                "train": len(train_pairs),
-                "val": len(val_pairs),
-                "test": len(test_pairs),
-                "frame_ids": [p.frame_id for p in raw[0]],
-            },
-            "metrics": {"test": metrics},
-        }
-    )
-    if position_only:
+    manifest["data"] = {
+        **(data_summary or {}),
+        **{name: len(p) for name, p in zip(("train", "val", "test"), sets, strict=True)},
+        "frame_ids": [p.frame_id for p in raw[0]],
+    }
+    if sets[0].position_only:
         manifest["note"] = "position-only data: orientation is not corrected (no orientation net)"
     if guard is not None:
         manifest["rigid_candidate"] = guard
-    save_model_dir(out, manifest, chain.urdf_text, nets, coverage=coverage)
+    save_model_dir(out, manifest, chain.urdf_text, trained.nets, coverage=coverage)
     if guard is not None and guard["worse"]:
         raise CalibrationError(
             f"{out}: the model is worse on the test pairs than the URDF model with only the tracker and target "
@@ -425,6 +308,208 @@ def fit(
             "do not serve it: check the referencing notes in its report and measure more varied poses"
         )
     return HybridModel.load(out), manifest
+
+
+def _stage(
+    chain: Chain,
+    raw: Sets,
+    rigid_refs: dict[str, Referencing],
+    recipe: Recipe,
+    manifest: dict[str, Any],
+    log: Callable[[str], None],
+) -> Stage:
+    """The stage the nets learn on: identified when the recipe says so and better than the rigid-only model
+    on the validation pairs, else the URDF chain with its own referencing. Records it in ``manifest``."""
+    rigid = Stage(ElasticChain.rigid(chain), rigid_refs)
+    if not recipe.parametric:
+        return rigid
+    start = time.perf_counter()
+    refs, result = identify_stations(
+        chain,
+        raw[0],
+        rigid_refs,
+        recipe.payload,
+        recipe.seed,
+        recipe.capacity,
+        recipe.choose_capacity,
+        recipe.gravity_vector,
+    )
+    verdict = rigid_verdict(chain, raw[1], (result.model, refs), rigid_refs)
+    if verdict is not None and not verdict["better"]:
+        log(
+            "parametric stage: not served, worse on the validation pairs than the URDF model with only the "
+            f"tracker and target fitted ({verdict['candidate_mm']:.4f} mm against {verdict['rigid_mm']:.4f} mm)"
+        )
+        manifest["stage_not_served"] = verdict
+        return rigid
+    if result.capacity is not None:
+        manifest["capacity"] = result.capacity
+        log("parametric stage capacity (cross-validated): " + capacity_module.summary(result.capacity))
+    manifest["parametric"] = {**result.manifest(), "seconds": round(time.perf_counter() - start, 1)}
+    log(
+        f"parametric stage: {int(result.identifiable.sum())} of {len(result.params)} parameters identifiable; "
+        f"rms {result.rms_before['position_mm']:.4f} -> {result.rms_after['position_mm']:.4f} mm"
+    )
+    return Stage(result.model, refs, result)
+
+
+def _inputs(chain: Chain, recipe: Recipe, stage: Stage, sets: tuple[Pairs, ...], log: Callable[[str], None]) -> Inputs:
+    """The nets' condition channels and the ranges every input is normalised over.
+
+    The stage's backlash terms give the nets the joints' approach directions too. Offered channels (None in
+    the recipe: every channel all the sets carry that varies in training, unless channels are named) are
+    taken by a net only where its validation errors show their worth (:func:`train.train_net`).
+    """
+    train_pairs = sets[0]
+    conditions = recipe.conditions
+    channels = approach.channel_names(chain.joint_names)
+    if stage.base.backlash is not None and not set(channels) & set(conditions):
+        conditions = (*conditions, *channels)
+    offered = recipe.offered
+    if offered is None:
+        named = [c for c in conditions if not approach.is_channel(c)]
+        carried = set.intersection(*(set(p.conditions) for p in sets))
+        varied = {c for c in carried if np.ptp(train_pairs.conditions[c]) > 0}  # a constant one teaches nothing
+        offered = () if named else tuple(sorted(c for c in varied if not approach.is_channel(c)))
+        every = set().union(*(set(p.conditions) for p in sets))
+        unused = sorted(c for c in every - set(offered) - set(conditions) if not approach.is_channel(c))
+        if unused:
+            why = "channels were named" if named else "missing from some of the pairs, or constant in training"
+            log(f"condition channels not offered to the nets: {', '.join(unused)} ({why})")
+    offered = tuple(c for c in offered if c not in conditions)
+    lower, upper = train_pairs.q.min(axis=0), train_pairs.q.max(axis=0)
+    norm_lower, norm_upper = (chain.lower, chain.upper) if recipe.preset.full_range else (lower, upper)
+    norm_lower = np.where(np.isfinite(norm_lower), norm_lower, lower)
+    norm_upper = np.where(np.isfinite(norm_upper), norm_upper, upper)
+    every_channel = (*conditions, *offered)
+    if every_channel:  # condition columns follow the joints, normalised over the range seen in training
+        c = _net_inputs(train_pairs, every_channel)[:, chain.dof :]
+        directions = np.array([approach.is_channel(name) for name in every_channel])  # always over -1 … +1
+        low, high = np.where(directions, -1.0, c.min(axis=0)), np.where(directions, 1.0, c.max(axis=0))
+        norm_lower, norm_upper = np.r_[norm_lower, low], np.r_[norm_upper, high]
+    return Inputs(every_channel, len(conditions), norm_lower, norm_upper)
+
+
+def _train_nets(
+    chain: Chain,
+    recipe: Recipe,
+    base: ElasticChain,
+    sets: tuple[Pairs, Pairs],
+    inputs: Inputs,
+    progress: Callable[[dict], None] | None,
+    parallel: bool,
+    log: Callable[[str], None],
+) -> Trained:
+    """Both nets on what ``base`` leaves of the training pairs, side by side; the inputs without the offered
+    channels when no net took them (the node then needs no value for them)."""
+    x = [_net_inputs(p, inputs.conditions) for p in sets]
+    # what the stage leaves, with its backlash terms shifting the joints the way each pair arrived
+    y = [train.residual_targets(base, base.approached(p.q, approach_of(p)), p.T, _target_offsets(p)) for p in sets]
+    offered_columns = tuple(range(chain.dof + inputs.forced, chain.dof + len(inputs.conditions)))
+    offered = inputs.conditions[inputs.forced :]
+    kinds = ("position",) if sets[0].position_only else train.KINDS
+    jobs = {
+        kind: train.NetJob(
+            kind,
+            replace(recipe.preset, arch=recipe.arch.get(kind) or recipe.preset.arch),
+            x[0],
+            y[0][kind],
+            x[1],
+            y[1][kind],
+            inputs.lower,
+            inputs.upper,
+            train.joint1_axis(chain),
+            60.0 * recipe.max_minutes,
+            recipe.seed + seed_offset,
+            chain.dof,
+            offered=offered_columns,
+            offered_label=", ".join(offered),
+        )
+        for seed_offset, kind in enumerate(kinds)
+    }
+    nets, histories = train.train_pair(jobs, progress=progress, parallel=parallel)
+    for kind, history in histories.items():
+        if history[-1].get("silenced"):
+            log(f"{kind} net: no better than the stage before it on validation, so it corrects nothing")
+    if not offered:
+        return Trained(nets, histories, inputs)
+    taken = [kind for kind, history in histories.items() if history[-1].get("takes_offered")]
+    log(
+        f"condition channels offered ({', '.join(offered)}): "
+        + (f"taken by the {' and '.join(taken)} net" if taken else "no net is better with them on validation")
+    )
+    record = {"channels": list(offered), "taken_by": taken}
+    if taken:
+        return Trained(nets, histories, inputs, record)
+    for net in nets.values():
+        net.drop_inputs(offered_columns)
+    return Trained(nets, histories, inputs.without_offered(chain.dof), record)
+
+
+def _model_manifest(chain: Chain, train_pairs: Pairs, trained: Trained, recipe: Recipe) -> dict[str, Any]:
+    """The manifest's entries on the chain, the trained range, the inputs and the nets."""
+    inputs = trained.inputs
+    out: dict[str, Any] = {
+        "base_link": chain.base_link,
+        "tip_link": chain.tip_link,
+        "joint_names": list(chain.joint_names),
+        "tool": chain.tool.tolist(),
+        "joint_limits": {"lower": chain.lower.tolist(), "upper": chain.upper.tolist()},
+        "trained_range": {"lower": train_pairs.q.min(axis=0).tolist(), "upper": train_pairs.q.max(axis=0).tolist()},
+        "position_only": train_pairs.position_only,
+        "nets": {kind: {"epochs": len(history), **_best(history)} for kind, history in trained.histories.items()},
+        "preset": asdict(recipe.preset),
+        "seed": recipe.seed,
+    }
+    if trained.offered:
+        out["offered_conditions"] = trained.offered
+    if inputs.conditions:
+        out["conditions"] = {
+            name: {
+                # an approach direction is unknown (0) until the joint moves; other channels: the training mean
+                "default": 0.0 if approach.is_channel(name) else float(np.mean(train_pairs.conditions[name])),
+                "lower": float(lo),
+                "upper": float(hi),
+            }
+            for name, lo, hi in zip(
+                inputs.conditions, inputs.lower[chain.dof :], inputs.upper[chain.dof :], strict=True
+            )
+        }
+    return out
+
+
+def _bounds(
+    chain: Chain,
+    model: HybridModel,
+    sets: tuple[Pairs, ...],
+    stage: Stage,
+    recipe: Recipe,
+    manifest: dict[str, Any],
+    log: Callable[[str], None],
+) -> None:
+    """The model's error bounds into ``manifest`` (:func:`calibrate_bounds`), or a log line saying why none."""
+    options = stage.result.options if stage.result else {"kinds": capacity_module.ELASTIC["geometry"], "harmonics": 0}
+    try:
+        bounds = calibrate_bounds(chain, model, sets[0], sets[1], options, recipe.payload, recipe.gravity_vector)
+    except (CalibrationError, np.linalg.LinAlgError) as exc:  # too few pairs to measure the growth: no bounds
+        log(f"no error bounds: {exc}")
+        return
+    manifest["bounds"] = bounds.manifest()
+    steepest = int(np.argmax(bounds.position.rates))
+    log(
+        f"error bounds ({bounds.level:.0%}): {1e3 * bounds.position.quantile:.4f} mm inside the trained range "
+        "at a typical configuration, "
+        f"growing beyond it by up to {1e3 * bounds.position.rates[steepest]:.3g} mm per rad "
+        f"({chain.joint_names[steepest]})"
+    )
+
+
+def _test_errors(model: HybridModel, stations: Sequence[Pairs]) -> dict[str, tuple[np.ndarray, np.ndarray]] | None:
+    """:func:`pose_errors_of` over every test station, in the order :func:`to_base_frame` joins them."""
+    parts = [pose_errors_of(model, p) for p in stations if len(p)]
+    if not parts:
+        return None
+    return {k: tuple(np.concatenate([e[k][i] for e in parts]) for i in (0, 1)) for k in parts[0]}
 
 
 def rigid_verdict(

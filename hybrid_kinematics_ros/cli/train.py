@@ -13,7 +13,9 @@ from typing import TextIO
 from tqdm import tqdm
 
 from hybrid_kinematics_ros.calibration import capacity, train
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.fit import SPLIT_BLOCKS, fit, load_stations, split, split_summary
+from hybrid_kinematics_ros.calibration.recipe import CAPACITY_SETTINGS, Recipe
 from hybrid_kinematics_ros.cli.common import (
     add_payload_args,
     add_robot_args,
@@ -21,6 +23,7 @@ from hybrid_kinematics_ros.cli.common import (
     gravity_from_args,
     payload_from_args,
 )
+from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.model import approach
 
 PLAIN_INTERVAL_S = 5.0  # off a terminal: one progress line this often
@@ -121,7 +124,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help=f"without --val-bag/--test-bag: cut --bag into this many contiguous time blocks and hold out whole "
         f"blocks, so that neighbours of a test pair do not train (default {SPLIT_BLOCKS}; 0: single random pairs)",
     )
-    p.set_defaults(run=run)
+    p.add_argument(
+        "--recipe",
+        type=Path,
+        help="train with the recipe of an earlier model (its directory or model.json): the same preset, budget, "
+        "seed, stage capacity, payload and conditions; no recipe flag may be given with it",
+    )
+    p.set_defaults(run=run, defaults={a.dest: a.default for a in p._actions})
 
 
 class Progress:
@@ -209,6 +218,58 @@ def _is_terminal(stream: TextIO) -> bool:
         return False
 
 
+RECIPE_FLAGS = (
+    "preset",
+    "arch_position",
+    "arch_orientation",
+    "max_minutes",
+    "max_epochs",
+    "members",
+    "seed",
+    "parametric",
+    "elastic",
+    "harmonics",
+    "harmonic_prior",
+    "map_step",
+    "map_smoothness",
+    "orientation_length",
+    "payload_mass",
+    "payload_com",
+    "condition",
+    "offer_conditions",
+    "approach",
+    "shared_target",
+)
+
+
+def recipe_from_args(args: argparse.Namespace, preset: train.Preset, chain: Chain) -> Recipe:
+    """The recipe the flags give, or with ``--recipe`` an earlier model's (no recipe flag may then be given)."""
+    if args.recipe:
+        given = [f"--{name.replace('_', '-')}" for name in RECIPE_FLAGS if getattr(args, name) != args.defaults[name]]
+        if given:
+            raise CalibrationError(f"--recipe {args.recipe}: give the recipe or {', '.join(given)}, not both")
+        return Recipe.read(args.recipe)
+    mass, com = payload_from_args(args)
+    gravity = gravity_from_args(args)
+    return Recipe(
+        preset=preset,
+        max_minutes=args.max_minutes,
+        seed=args.seed,
+        arch={k: v for k, v in (("position", args.arch_position), ("orientation", args.arch_orientation)) if v},
+        parametric=args.parametric,
+        capacity={name: getattr(args, name) for name in CAPACITY_SETTINGS},
+        payload_mass=mass,
+        payload_com=tuple(com),
+        gravity=None if gravity is None else tuple(gravity),
+        conditions=(
+            *(args.condition or ()),
+            *(approach.channel_names(chain.joint_names) if args.approach and not args.parametric else ()),
+        ),
+        offered=None if args.offer_conditions else (),
+        shared_targets=tuple(tuple(names.split(",")) for names in args.shared_target or ()),
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     preset = train.preset(args.preset, max_epochs=args.max_epochs, members=args.members)  # before reading bags
     chain = chain_from_args(args)
@@ -228,7 +289,8 @@ def run(args: argparse.Namespace) -> int:
         + (f"; dropped {dict(dropped)}" if dropped else "")
     )
     position_only = stations[0].position_only
-    progress = Progress(60.0 * args.max_minutes, ("position",) if position_only else train.KINDS)
+    recipe = recipe_from_args(args, preset, chain)
+    progress = Progress(60.0 * recipe.max_minutes, ("position",) if position_only else train.KINDS)
     try:
         _, manifest = fit(
             chain,
@@ -236,35 +298,14 @@ def run(args: argparse.Namespace) -> int:
             val_pairs,
             test_pairs,
             args.out,
-            preset,
-            args.max_minutes,
-            seed=args.seed,
-            arch={"position": args.arch_position, "orientation": args.arch_orientation},
+            recipe,
             data_summary={
                 "bags": [str(b) for b in args.bag],
                 "dropped": dict(dropped),
                 "split": split_summary(blocks, bool(args.val_bag), bool(args.test_bag)),
             },
             progress=progress,
-            parametric=args.parametric,
-            capacity={
-                "elastic": args.elastic,
-                "harmonics": args.harmonics,
-                "harmonic_prior": args.harmonic_prior,
-                "map_step": args.map_step,
-                "map_smoothness": args.map_smoothness,
-                "orientation_length": args.orientation_length,
-                "approach": args.approach,
-            },
-            payload=payload_from_args(args),
-            gravity=gravity_from_args(args),
             log=progress.write,
-            shared_targets=[names.split(",") for names in args.shared_target or []],
-            offered=None if args.offer_conditions else (),
-            conditions=[
-                *(args.condition or ()),
-                *(approach.channel_names(chain.joint_names) if args.approach and not args.parametric else ()),
-            ],
         )
     finally:
         progress.close()

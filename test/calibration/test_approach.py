@@ -9,6 +9,7 @@ import numpy as np
 
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
 from hybrid_kinematics_ros.calibration.fit import load_stations
+from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.io.pairs import write_pairs
 from hybrid_kinematics_ros.model.approach import ApproachTracker, approach_directions, channel_names
 from hybrid_kinematics_ros.simulation.backlash import play
@@ -102,7 +103,7 @@ def test_the_data_choose_the_directions_as_inputs(ur10, tmp_path):
     for name, half in (("play", (3e-4, 2e-4, 2e-4)), ("none", ())):
         cell = build_cell(CellSpec(name, poses=1200, test_poses=100, half_backlash_rad=half))
         tr, va, _ = split(cell.train, 0, (0.1, 0.0))
-        model, manifest = fit(ur10.chain, tr, va, va, tmp_path / name, preset, 1.0, parametric=True)
+        model, manifest = fit(ur10.chain, tr, va, va, tmp_path / name, Recipe(preset, 1.0))
         decision = next(d for d in manifest["capacity"]["decisions"] if d["setting"] == "approach")
         assert [c["candidate"] for c in decision["candidates"]] == [False, True]
         chosen[name] = (decision["chosen"], model.approach_index is not None)

@@ -9,6 +9,7 @@ import pytest
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
 from hybrid_kinematics_ros.calibration.fit import fit, split
+from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.model.errors import ModelError
 from test.conftest import THERMAL_PRESET, thermal_pairs
 
@@ -50,5 +51,12 @@ def test_served_paths_use_the_current_value(thermal_models):
 def test_training_on_a_channel_the_pairs_lack_says_so(ur10, tmp_path):
     tr, va, te = split(thermal_pairs(ur10, 200, seed=3), seed=0)
     with pytest.raises(CalibrationError, match="carry no humidity channel"):
-        fit(ur10.chain, tr, va, te, tmp_path / "m", THERMAL_PRESET, 1.0, conditions=("humidity",))
+        fit(
+            ur10.chain,
+            tr,
+            va,
+            te,
+            tmp_path / "m",
+            Recipe(THERMAL_PRESET, 1.0, parametric=False, conditions=("humidity",)),
+        )
     assert not (tmp_path / "m").exists()

@@ -13,6 +13,7 @@ import torch
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.fit import fit, split
 from hybrid_kinematics_ros.calibration.nets import Ensemble
+from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.model.nets import FastResidual
 
 MEMBERS = 3
@@ -23,7 +24,7 @@ def ensemble(ur10, virtual_pairs, tmp_path_factory):
     out = tmp_path_factory.mktemp("models") / "ensemble"
     tr, va, te = split(virtual_pairs.subset(np.arange(2000)), seed=0)
     preset = replace(train.PRESETS["fast"], arch="mlp:32x2:silu", max_epochs=40, members=MEMBERS)
-    model, manifest = fit(ur10.chain, tr, va, te, out, preset, 1.0, seed=0)
+    model, manifest = fit(ur10.chain, tr, va, te, out, Recipe(preset, 1.0, parametric=False))
     return model, manifest, te
 
 

@@ -16,7 +16,7 @@ from hybrid_kinematics_ros.calibration.fit import fit, split
 from hybrid_kinematics_ros.calibration.nets import ResidualNet
 from hybrid_kinematics_ros.calibration.report import _capacity_section
 from hybrid_kinematics_ros.model.hybrid import HybridModel
-from test.conftest import EXPANSION_PER_K, THERMAL_PRESET, THERMAL_STAGE, thermal_pairs
+from test.conftest import EXPANSION_PER_K, THERMAL_STAGE, thermal_pairs
 
 
 def _job(drift_per_unit: float) -> train.NetJob:
@@ -103,9 +103,8 @@ def test_fit_offers_the_channels_the_pairs_carry(ur10, tmp_path):
     """The temperature that grows the arm is taken where it counts; a channel of noise, on a cell that does not
     grow, is taken by no net and leaves the model's inputs, which then need no value for it."""
     pairs, test = thermal_pairs(ur10, 2000, seed=1), thermal_pairs(ur10, 300, seed=2)
-    stage = {"parametric": True, **THERMAL_STAGE}
     tr, va, _ = split(pairs, seed=0)
-    _, manifest = fit(ur10.chain, tr, va, test, tmp_path / "thermal", THERMAL_PRESET, 5.0, **stage)
+    _, manifest = fit(ur10.chain, tr, va, test, tmp_path / "thermal", THERMAL_STAGE)
     offer = manifest["offered_conditions"]
     assert offer["channels"] == ["temperature"] and "position" in offer["taken_by"]
     thermal = HybridModel.load(tmp_path / "thermal")
@@ -120,7 +119,7 @@ def test_fit_offers_the_channels_the_pairs_carry(ur10, tmp_path):
         return replace(p, T=T, conditions={"humidity": humidity})
 
     tr, va, _ = split(cold(pairs), seed=0)
-    _, manifest = fit(ur10.chain, tr, va, cold(test), tmp_path / "plain", THERMAL_PRESET, 5.0, **stage)
+    _, manifest = fit(ur10.chain, tr, va, cold(test), tmp_path / "plain", THERMAL_STAGE)
     assert manifest["offered_conditions"] == {"channels": ["humidity"], "taken_by": []}
     plain = HybridModel.load(tmp_path / "plain")
     assert plain.condition_names == () and "conditions" not in plain.manifest

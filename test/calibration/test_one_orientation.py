@@ -13,6 +13,7 @@ import pytest
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.evaluate import target_errors
 from hybrid_kinematics_ros.calibration.fit import fit, reference_all, split, worse_than_rigid
+from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.model.referencing import to_base_frame
 from hybrid_kinematics_ros.simulation.portfolio import SURFACE_CELLS, TRACKER_FAR, build_cell
@@ -54,7 +55,7 @@ def test_one_orientation_trains_a_model_no_worse_than_the_rigid_one_and_reports_
     cell = build_cell(SURFACE)
     chain = cell.config.chain
     tr, va, _ = split(cell.train, 0, (0.1, 0.0))
-    model, manifest = fit(chain, tr, va, cell.test, tmp_path / "m", PRESET, 1.0, parametric=True)
+    model, manifest = fit(chain, tr, va, cell.test, tmp_path / "m", Recipe(PRESET, 1.0))
     assert model.referencing.undetermined, "the served referencing keeps the note"
     test = manifest["metrics"]["test"]
     # "before": the URDF model with the tracker and target fitted to it alone, on the same held-out poses

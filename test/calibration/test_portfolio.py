@@ -15,6 +15,7 @@ from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.capacity import RESOLUTION
 from hybrid_kinematics_ros.calibration.evaluate import error_stats, target_errors
 from hybrid_kinematics_ros.calibration.fit import fit, identify_stations, reference_all, split
+from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
@@ -103,9 +104,8 @@ def test_hybrid_is_no_worse_than_its_stage_and_near_the_floor(tmp_path):
     cfg = cell.config
     tr, va, _ = split(cell.train, 0, (0.1, 0.0))
     preset = replace(train.PRESETS["fast"], max_epochs=800)  # 1 step an epoch at 1,350 pairs: 800 steps
-    model, manifest = fit(
-        cfg.chain, tr, va, va, tmp_path / "m", preset, 5.0, parametric=True, payload=(cfg.payload_mass, cfg.payload_com)
-    )
+    recipe = Recipe(preset, 5.0, payload_mass=cfg.payload_mass, payload_com=tuple(cfg.payload_com))
+    model, manifest = fit(cfg.chain, tr, va, va, tmp_path / "m", recipe)
     assert "capacity" in manifest and manifest["capacity"]["decisions"]
     base = to_base_frame([cell.test], cfg.chain, model.referencings)
     stage = error_stats(*target_errors(base, model.fk(base.q, nets=False)))

@@ -16,6 +16,7 @@ import pytest
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
 from hybrid_kinematics_ros.calibration.fit import fit, split
+from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
@@ -46,9 +47,8 @@ def trained_in_tracker_frame(request, ur10, tmp_path_factory):
     pairs = Pairs(q, T, np.arange(len(q)), ur10.chain.joint_names, cell.frame_id, position_only=position_only)
     tr, va, te = split(pairs, seed=0)
     out = tmp_path_factory.mktemp("tracker_frame") / request.param
-    model, _ = fit(
-        ur10.chain, tr, va, te, out, PRESET, 5.0, parametric=True, payload=(ur10.payload_mass, ur10.payload_com)
-    )
+    recipe = Recipe(PRESET, 5.0, payload_mass=ur10.payload_mass, payload_com=tuple(ur10.payload_com))
+    model, _ = fit(ur10.chain, tr, va, te, out, recipe)
     held_out = np.random.default_rng(12).uniform(0.9 * ur10.chain.lower, 0.9 * ur10.chain.upper, (500, 6))
     exact = _cell(ur10, noise=False).measure(held_out, np.random.default_rng(0))
     return model, held_out, exact, position_only

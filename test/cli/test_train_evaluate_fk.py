@@ -209,3 +209,37 @@ def test_tracker_frame_position_only_workflow(tmp_path):
     page = (report_dir / "index.html").read_text()
     assert "Method: least squares; frame 'tracker'" in page and "Not identifiable" in page
     assert "position-only pairs" in page and not (report_dir / "orientation_error_distribution.png").exists()
+
+
+def test_train_runs_an_earlier_models_recipe_and_refuses_a_mix(tmp_path):
+    bag = tmp_path / "bag"
+    assert main(["simulate", "--robot", "ur10", "--samples", "600", "--out", str(bag), "--seed", "4"]) == 0
+    given = ["--max-epochs", "3", "--arch-position", "mlp:16x2", "--arch-orientation", "mlp:16x2", "--members", "1"]
+    stage = ["--elastic", "geometry", "--harmonics", "0", "--map-step", "0", "--no-approach", "--seed", "2"]
+    stage += ["--orientation-length", "1.0"]  # every capacity setting given: nothing to cross-validate
+    first = cli("train", "--bag", str(bag), "--robot", "ur10", "--out", str(tmp_path / "a"), *given, *stage)
+    assert first.returncode == 0, first.stderr
+    again = cli(
+        "train", "--bag", str(bag), "--robot", "ur10", "--out", str(tmp_path / "b"), "--recipe", str(tmp_path / "a")
+    )
+    assert again.returncode == 0, again.stderr
+    recipes = [json.loads((tmp_path / m / "model.json").read_text())["recipe"] for m in ("a", "b")]
+    assert recipes[0] == recipes[1]
+    assert recipes[0]["seed"] == 2 and recipes[0]["capacity"]["harmonics"] == 0
+    assert recipes[0]["arch"] == {"position": "mlp:16x2", "orientation": "mlp:16x2"}
+
+    mixed = cli(
+        "train",
+        "--bag",
+        str(bag),
+        "--robot",
+        "ur10",
+        "--out",
+        str(tmp_path / "c"),
+        "--recipe",
+        str(tmp_path / "a"),
+        "--harmonics",
+        "3",
+    )
+    assert mixed.returncode == 2 and "--harmonics" in mixed.stderr
+    assert not (tmp_path / "c").exists()

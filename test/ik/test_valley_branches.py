@@ -15,6 +15,7 @@ import pytest
 from bench.bench_ik_singular import cases
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.fit import fit, split
+from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.ik import solver as solver_module
 from hybrid_kinematics_ros.ik import valley
 from hybrid_kinematics_ros.ik.analytic import turns
@@ -35,7 +36,7 @@ def rx160_model(tmp_path_factory):
     )
     tr, va, te = split(pairs, seed=0)
     preset = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=300, ensemble=1)
-    model, _ = fit(cfg.chain, tr, va, te, tmp_path_factory.mktemp("rx160"), preset, 2.0, seed=0)
+    model, _ = fit(cfg.chain, tr, va, te, tmp_path_factory.mktemp("rx160"), Recipe(preset, 2.0, parametric=False))
     return model
 
 
