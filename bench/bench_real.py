@@ -31,6 +31,7 @@ from bench.report import table, write_section
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.evaluate import error_stats, measured_targets, target_errors
 from hybrid_kinematics_ros.calibration.fit import fit, reference_all, split
+from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.calibration.report import net_label, repeated_poses
 from hybrid_kinematics_ros.io.import_spec import load_spec_dict, spec_from_dict
 from hybrid_kinematics_ros.io.importer import import_table
@@ -107,31 +108,29 @@ def noise_floor(pairs: Pairs, chain, tolerance_rad: float = 1e-3) -> tuple[float
     return 1e3 * float(np.mean(np.linalg.norm(diff, axis=1))) / root2, float(np.mean(angle_deg)) / root2, len(close)
 
 
-def fit_recipe(cfg, train_sets, preset, conditions, minutes, steps, seed=0, **fit_options):
+def fit_recipe(cfg, train_sets, preset, conditions, minutes, steps, seed=0, capacity=None, choose_capacity=True):
     """Fit one recipe on ``train_sets`` (a tenth of each validates); returns the model, its manifest, the
     training pairs and the seconds. ``steps``: optimiser steps per net, the budget that load does not
     change (the paper's recipe stops early on validation, or at ``minutes``). ``minutes``: the cap per net
-    trained, so a recipe that trains more nets (the ladder's sizes, an ensemble's members) gets more."""
+    trained, so a recipe that trains more nets (the ladder's sizes, an ensemble's members) gets more.
+    ``capacity`` and ``choose_capacity``: the stage's, as :class:`Recipe` takes them."""
     tr, va = zip(*[split(p, seed, (0.1, 0.0))[:2] for p in train_sets], strict=True)
     per_epoch = max(1, sum(len(p) for p in tr) // preset.batch)
     epochs = preset.max_epochs if preset.patience else max(1, steps // per_epoch)
+    recipe = Recipe(
+        replace(preset, max_epochs=epochs),
+        minutes * preset.nets,
+        seed=seed,
+        capacity=capacity or {},
+        choose_capacity=choose_capacity,
+        payload_mass=cfg.payload_mass,
+        payload_com=tuple(cfg.payload_com),
+        conditions=tuple(conditions),
+        offered=() if preset.name == "paper" else None,  # the paper's nets read the joints alone
+    )
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
-        model, manifest = fit(
-            cfg.chain,
-            list(tr),
-            list(va),
-            list(va),
-            Path(tmp) / "m",
-            replace(preset, max_epochs=epochs),
-            minutes * preset.nets,
-            seed=seed,
-            parametric=True,
-            payload=(cfg.payload_mass, cfg.payload_com),
-            conditions=conditions,
-            offered=() if preset.name == "paper" else None,  # the paper's nets read the joints alone
-            **fit_options,
-        )
+        model, manifest = fit(cfg.chain, list(tr), list(va), list(va), Path(tmp) / "m", recipe)
         seconds = time.perf_counter() - start
     return model, manifest, list(tr), seconds
 
