@@ -14,6 +14,7 @@ setup(
         (f"share/{package_name}", ["package.xml"]),
         (f"share/{package_name}/config", [f for f in glob("config/*") if os.path.isfile(f)]),
         (f"share/{package_name}/config/import", glob("config/import/*.yaml")),
+        (f"share/{package_name}/config/ur_kinematics", glob("config/ur_kinematics/*")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,

@@ -4,17 +4,24 @@ A ROS user installs the package's dependencies with rosdep, which reads only pac
 own machines install requirements.txt with pip. An import that one of them misses works on the machine
 where it was written and fails with ModuleNotFoundError on the other, so the imports are read from the
 source (with ``ast``, without importing anything) and held against both files.
+
+``colcon build`` installs only the data files setup.py lists, and the installed package reads ``config/``
+from its share directory: a file setup.py leaves out exists in the checkout and is missing where the package
+is installed, so every file under ``config/`` is held against setup.py's ``data_files``.
 """
 
 from __future__ import annotations
 
 import ast
+import contextlib
 import re
+import runpy
 import sys
 import xml.etree.ElementTree as ET
 from functools import cache
 from importlib.metadata import packages_distributions
 from pathlib import Path
+from unittest import mock
 
 from test.conftest import ROOT
 
@@ -157,3 +164,44 @@ def test_the_check_reports_an_undeclared_import(tmp_path: Path) -> None:
     assert len(problems) == 1 and problems[0].startswith(f"pandas (imported in {PACKAGE}/sub/mod.py): not in")
     assert problems[0].endswith("not pinned in requirements.txt")
     assert unpinned_python_dependencies(tmp_path / "package.xml", tmp_path / "requirements.txt") == ["rosbags"]
+
+
+def data_files_of(setup_py: Path) -> dict[str, str]:
+    """Each data file setup.py installs (relative to its folder) -> the folder it goes to, from running setup.py
+    with ``setuptools.setup`` replaced by a recorder."""
+    captured: dict = {}
+    with mock.patch("setuptools.setup", lambda **kwargs: captured.update(kwargs)), contextlib.chdir(setup_py.parent):
+        runpy.run_path(str(setup_py))
+    return {Path(f).as_posix(): folder for folder, files in captured.get("data_files", []) for f in files}
+
+
+def uninstalled_config_files(root: Path) -> list[str]:
+    """The files under ``config/`` that setup.py does not install into the same folder of the share directory."""
+    installed = data_files_of(root / "setup.py")
+    problems = []
+    for path in sorted((root / "config").rglob("*")):
+        if not path.is_file():
+            continue
+        relative = path.relative_to(root).as_posix()
+        expected = f"share/{PACKAGE}/{path.parent.relative_to(root).as_posix()}"
+        if installed.get(relative) != expected:
+            problems.append(f"{relative}: installed to {installed.get(relative)}, expected {expected}")
+    return problems
+
+
+def test_every_config_file_is_installed() -> None:
+    problems = uninstalled_config_files(ROOT)
+    assert not problems, "setup.py's data_files miss config files:\n" + "\n".join(problems)
+
+
+def test_the_check_reports_an_uninstalled_config_file(tmp_path: Path) -> None:
+    (tmp_path / "config" / "extra").mkdir(parents=True)
+    (tmp_path / "config" / "robot.yaml").write_text("name: r\n")
+    (tmp_path / "config" / "extra" / "more.yaml").write_text("a: 1\n")
+    (tmp_path / "setup.py").write_text(
+        "from glob import glob\nfrom setuptools import setup\n"
+        f"setup(data_files=[('share/{PACKAGE}/config', glob('config/*.yaml'))])\n"
+    )
+    assert uninstalled_config_files(tmp_path) == [
+        f"config/extra/more.yaml: installed to None, expected share/{PACKAGE}/config/extra"
+    ]

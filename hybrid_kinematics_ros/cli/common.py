@@ -11,7 +11,7 @@ import numpy as np
 
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
-from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.kinematics.robot_config import RobotConfig, load_robot_config
 from hybrid_kinematics_ros.model import range_policy
 from hybrid_kinematics_ros.model.bounds import COLUMNS, in_report_units
 
@@ -19,14 +19,27 @@ if TYPE_CHECKING:  # the model (and torch) only for the commands that load one: 
     from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 POSE_COLUMNS = ("x", "y", "z", "qx", "qy", "qz", "qw")
+UR_ROBOT = "ur10"  # the robot config --ur-kinematics alone stands on: the embedded UR10's inertials and limits
 
 
 def add_robot_args(p: argparse.ArgumentParser, required: bool = True) -> None:
-    group = p.add_mutually_exclusive_group(required=required)
-    group.add_argument("--robot", help="robot config YAML, or an embedded robot: ur10, rx160, kr16")
+    """``--robot``, ``--urdf`` (with ``--base-link`` and ``--tip-link``) and ``--ur-kinematics``. Where
+    ``required``, the help says that one of them is needed and :func:`chain_from_args` refuses none: argparse's
+    groups cannot require one of three of which ``--ur-kinematics`` may go with ``--robot``."""
+    group = p.add_mutually_exclusive_group()
+    needed = "; this command needs --robot, --urdf or --ur-kinematics" if required else ""
+    group.add_argument("--robot", help=f"robot config YAML, or an embedded robot: ur10, rx160, kr16{needed}")
     group.add_argument("--urdf", help="URDF file (with --base-link and --tip-link)")
     p.add_argument("--base-link", help="base link of the chain (with --urdf)")
     p.add_argument("--tip-link", help="tip link of the chain (with --urdf)")
+    p.add_argument(
+        "--ur-kinematics",
+        metavar="FILE",
+        help="a UR's kinematics file (ur_calibration's extract of the controller's calibration, or a model's "
+        "default in config/ur_kinematics/): the chain is the URDF ur_description builds from it, base_link to "
+        "tool0; the inertials, limits, working range, payload, gravity and tool come from --robot (a UR's "
+        "config), else from the embedded ur10",
+    )
 
 
 def add_payload_args(p: argparse.ArgumentParser) -> None:
@@ -68,9 +81,30 @@ def apply_range_args(model: HybridModel, args: argparse.Namespace) -> None:
     model.coverage_radius = args.coverage_radius
 
 
+def robot_given(args: argparse.Namespace) -> bool:
+    """Whether the command line names a robot (``--robot``, ``--urdf`` or ``--ur-kinematics``)."""
+    return bool(args.robot or args.urdf or getattr(args, "ur_kinematics", None))
+
+
+def robot_config_from_args(args: argparse.Namespace) -> RobotConfig | None:
+    """The robot config of ``--robot`` (the embedded ur10's for ``--ur-kinematics`` alone), its chain built from
+    ``--ur-kinematics`` when given; None for ``--urdf``."""
+    ur_kinematics = getattr(args, "ur_kinematics", None)
+    if ur_kinematics and args.urdf:
+        raise DataError(
+            "--ur-kinematics builds the URDF itself: give it alone or with --robot (a UR's config), not with --urdf"
+        )
+    if not (args.robot or ur_kinematics):
+        return None
+    return load_robot_config(args.robot or UR_ROBOT, ur_kinematics=ur_kinematics)
+
+
 def chain_from_args(args: argparse.Namespace) -> Chain:
-    if args.robot:
-        return load_robot_config(args.robot).chain
+    config = robot_config_from_args(args)
+    if config is not None:
+        return config.chain
+    if not args.urdf:
+        raise DataError("give the robot: --robot, --urdf (with --base-link and --tip-link) or --ur-kinematics")
     if not args.base_link or not args.tip_link:
         raise DataError("--urdf needs --base-link and --tip-link")
     return chain_from_urdf(Path(args.urdf), args.base_link, args.tip_link)
@@ -79,16 +113,17 @@ def chain_from_args(args: argparse.Namespace) -> Chain:
 def gravity_from_args(args: argparse.Namespace) -> np.ndarray | None:
     """Gravity in the base frame (m/s²): the robot config's (a wall or ceiling mount says so there), else
     ``--gravity``, else None (a floor mount)."""
-    if args.robot:
-        return load_robot_config(args.robot).gravity
+    config = robot_config_from_args(args)
+    if config is not None:
+        return config.gravity
     return None if getattr(args, "gravity", None) is None else np.asarray(args.gravity, dtype=float)
 
 
 def payload_from_args(args: argparse.Namespace) -> tuple[float, np.ndarray]:
     """Payload mass (kg) and centre of mass (m, tip frame): the robot config's, else ``--payload-*``."""
-    if args.robot:
-        cfg = load_robot_config(args.robot)
-        return cfg.payload_mass, cfg.payload_com
+    config = robot_config_from_args(args)
+    if config is not None:
+        return config.payload_mass, config.payload_com
     com = np.zeros(3) if args.payload_com is None else np.asarray(args.payload_com, dtype=float)
     return float(args.payload_mass or 0.0), com
 

@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from hybrid_kinematics_ros.cli.common import add_robot_args, chain_from_args
+from hybrid_kinematics_ros.cli.common import add_robot_args, chain_from_args, robot_given
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.io.import_spec import ORIENTATIONS, load_spec_dict, spec_from_dict
 from hybrid_kinematics_ros.io.importer import import_table
@@ -165,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
         raise DataError(f"{args.out} exists already, not overwriting")
     source = f"{args.spec} with flags" if args.spec else "from flags"
     spec = spec_from_dict(spec_dict_from_args(args), source)
-    model_joints = chain_from_args(args).joint_names if (args.robot or args.urdf) else None
+    model_joints = chain_from_args(args).joint_names if robot_given(args) else None
     result = import_table(args.csv, spec, model_joints)
     write_pairs(args.out, result.pairs)
     summary = {"csv": str(args.csv), "out": str(args.out), **result.summary()}

@@ -18,6 +18,7 @@ from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.elastic import GRAVITY
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 from hybrid_kinematics_ros.kinematics.paths import config_dir, resolve_path
+from hybrid_kinematics_ros.kinematics.ur_kinematics import chain_from_ur_kinematics, parent_frame
 
 CONFIG_DIR = config_dir()  # the package share directory's config/ (see paths.py)
 
@@ -62,7 +63,15 @@ def resolve_robot(spec: str | Path) -> Path:
     raise KinematicsError(f"robot config {spec} does not exist (embedded robots: ur10, rx160, kr16)")
 
 
-def load_robot_config(spec: str | Path) -> RobotConfig:
+def load_robot_config(spec: str | Path, ur_kinematics: str | Path | None = None) -> RobotConfig:
+    """A robot config (a path, ``package://`` too, or an embedded robot's name) with its chain.
+
+    With ``ur_kinematics`` (a UR kinematics file, see :mod:`~hybrid_kinematics_ros.kinematics.ur_kinematics`)
+    the chain is the one ur_description builds from that file, with the config's URDF as the template of its
+    inertials and limits; the config's tool, working range and payload apply to it as to its own URDF, and its
+    gravity is turned into the built URDF's ``base_link`` (REP-103 aligned, a half turn about z from the base of
+    the embedded UR10's URDF).
+    """
     path = resolve_robot(spec)
     try:
         raw = yaml.safe_load(path.read_text())
@@ -77,6 +86,12 @@ def load_robot_config(spec: str | Path) -> RobotConfig:
     if not urdf_path.is_file():
         raise KinematicsError(f"{path}: field 'urdf': {urdf_path} does not exist")
     chain = chain_from_urdf(urdf_path, raw["base_link"], raw["tip_link"])
+    base_turn = np.eye(3)
+    if ur_kinematics is not None:
+        template = chain
+        chain = chain_from_ur_kinematics(ur_kinematics, urdf_path, raw["base_link"], raw["tip_link"])
+        # both first joints hang from the UR's own base frame: the turn between the two URDFs' base links
+        base_turn = (parent_frame(chain, 0) @ np.linalg.inv(parent_frame(template, 0)))[:3, :3]
     chain = chain.with_tool(transform_from_xyz_rpy(raw.get("tool"), f"{path}: field 'tool'"))
     limits = raw.get("joint_limits")
     if limits:
@@ -91,6 +106,7 @@ def load_robot_config(spec: str | Path) -> RobotConfig:
     gravity = np.asarray(raw.get("gravity", GRAVITY), dtype=float)
     if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
         raise KinematicsError(f"{path}: field 'gravity' needs three numbers (m/s², in the base frame)")
+    gravity = base_turn @ gravity + 0.0  # no negative zeros from the turn
     return RobotConfig(
         name=str(raw.get("name", path.stem)),
         path=path,

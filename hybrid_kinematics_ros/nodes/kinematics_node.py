@@ -34,9 +34,12 @@ from hybrid_kinematics_ros.ik.compensate import MAX_JOINT_CORRECTION_RAD, compen
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.solver import OTHER_BRANCH, IKOptions, IKSolver, freeze_heap, one_blas_thread
 from hybrid_kinematics_ros.io.errors import DataError
-from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
+from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 from hybrid_kinematics_ros.kinematics.paths import resolve_path
+from hybrid_kinematics_ros.kinematics.ur_kinematics import BASE_LINK as UR_BASE_LINK
+from hybrid_kinematics_ros.kinematics.ur_kinematics import TIP_LINK as UR_TIP_LINK
+from hybrid_kinematics_ros.kinematics.ur_kinematics import chain_from_ur_kinematics, ur_urdf
 from hybrid_kinematics_ros.model import approach, range_policy
 from hybrid_kinematics_ros.model.approach import ApproachTracker
 from hybrid_kinematics_ros.model.errors import ModelError
@@ -78,6 +81,12 @@ class KinematicsNode(Node):
         )
         self.urdf_path = declare("urdf_path", "", "URDF file or package://pkg/path (or give robot_description)")
         self.robot_description = declare("robot_description", "", "URDF text (used when urdf_path is empty)")
+        self.ur_kinematics = declare(
+            "ur_kinematics",
+            "",
+            "a UR's kinematics file (ur_calibration's, or package://pkg/path): the URDF is the one ur_description "
+            "builds from it, on urdf_path's (or robot_description's) inertials and limits, else the embedded UR10's",
+        )
         self.base_link = declare("base_link", "", "base link of the chain (default: the model's)")
         self.tip_link = declare("tip_link", "", "tip link of the chain (default: the model's)")
         topic = declare("joint_states_topic", "/joint_states", "joint states to turn into corrected poses")
@@ -185,6 +194,12 @@ class KinematicsNode(Node):
 
     # ------------------------------------------------------------------ loading
     def _urdf(self) -> str | None:
+        """The URDF the node serves without a model, or checks the model against: the one built from
+        ``ur_kinematics`` when given (see :func:`_given_urdf` for its template), else the given one."""
+        given = self._given_urdf()
+        return ur_urdf(self.ur_kinematics, given) if self.ur_kinematics else given
+
+    def _given_urdf(self) -> str | None:
         if self.urdf_path:
             path = resolve_path(self.urdf_path)
             if not path.is_file():
@@ -193,22 +208,30 @@ class KinematicsNode(Node):
             return path.read_text(encoding="utf-8-sig")
         return self.robot_description or None
 
+    def _analytic_chain(self) -> Chain:
+        """The chain served without a model: ``ur_kinematics``'s (``base_link`` to ``tool0`` unless the
+        parameters name other links), else the given URDF's between ``base_link`` and ``tip_link``."""
+        if self.ur_kinematics:
+            base, tip = self.base_link or UR_BASE_LINK, self.tip_link or UR_TIP_LINK
+            return chain_from_ur_kinematics(self.ur_kinematics, self._given_urdf(), base, tip)
+        urdf = self._given_urdf()
+        if urdf is None or not self.base_link or not self.tip_link:
+            raise StartupError(
+                "give model_dir, or urdf_path (or robot_description) with base_link and tip_link, or ur_kinematics"
+            )
+        return chain_from_urdf(urdf, self.base_link, self.tip_link)
+
     def _load(self) -> tuple[HybridModel, IKSolver]:
         try:
-            urdf = self._urdf()
             if self.model_dir:
-                model = HybridModel.load(self.model_dir, expect_urdf=urdf)
+                model = HybridModel.load(self.model_dir, expect_urdf=self._urdf())
                 for name, value in (("base_link", self.base_link), ("tip_link", self.tip_link)):
                     if value and value != getattr(model.chain, name):
                         raise StartupError(
                             f"parameter {name} '{value}' differs from the model's '{getattr(model.chain, name)}'"
                         )
             else:
-                if urdf is None or not self.base_link or not self.tip_link:
-                    raise StartupError(
-                        "give model_dir, or urdf_path (or robot_description) with base_link and tip_link"
-                    )
-                model = HybridModel.analytic_only(chain_from_urdf(urdf, self.base_link, self.tip_link))
+                model = HybridModel.analytic_only(self._analytic_chain())
             model.range_policy = self.range_policy
             model.coverage_radius = self.coverage_radius if self.coverage_radius > 0 else None
             gravity = np.asarray(self.gravity, dtype=float)
