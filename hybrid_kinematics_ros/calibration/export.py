@@ -1,4 +1,5 @@
-"""The calibrated geometry as a URDF, for tools that only read URDFs (MoveIt, robot_state_publisher).
+"""The calibrated geometry in the files users keep: a URDF (MoveIt, robot_state_publisher), a UR kinematics
+file (ur_robot_driver's ``kinematics_params_file``) or a DH table (controllers that take one).
 
 A URDF has joint origins and nothing else, so it carries the parametric stage's geometry-only fit (the
 stage fits one beside the full model, so that the geometry absorbs what it can of the compliance): the
@@ -9,13 +10,18 @@ and the nets cannot be expressed; :func:`export_urdf`'s caller should report how
 
 from __future__ import annotations
 
+import hashlib
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
+from hybrid_kinematics_ros.kinematics.dh import dh_table, format_dh
+from hybrid_kinematics_ros.kinematics.ur_kinematics import ENTRIES, UR_JOINTS, format_ur_kinematics
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.model.parametric import model_from_manifest
 
@@ -88,3 +94,70 @@ def export_urdf(model: HybridModel) -> str:
     )
     root.insert(0, comment)
     return ET.tostring(root, encoding="unicode", xml_declaration=True)
+
+
+FORMATS = ("urdf", "ur-kinematics", "dh")
+LEFT_BEHIND = "the compliance, bending, cyclic joint errors, backlash and the residual nets"
+
+
+@dataclass(frozen=True)
+class Exported:
+    """A calibration in a file users keep: its text, the geometry it describes (a chain from the model's base
+    link to its tip, to judge it by), and what of the model it cannot carry."""
+
+    text: str
+    chain: Chain
+    left: tuple[str, ...]
+
+
+def export(model: HybridModel, form: str, convention: str = "standard") -> Exported:
+    """The model's calibrated geometry in ``form`` (one of :data:`FORMATS`); ``convention`` for DH tables."""
+    if form not in FORMATS:
+        raise CalibrationError(f"unknown export format '{form}'; choose one of {', '.join(FORMATS)}")
+    urdf = export_urdf(model)
+    chain = _chain_of(model, urdf)
+    if form == "urdf":
+        return Exported(urdf, chain, (LEFT_BEHIND,))
+    if form == "dh":
+        table = dh_table(chain, convention)
+        return Exported(format_dh(table, chain.joint_names), chain, (LEFT_BEHIND, *table.notes))
+    return _ur_kinematics(model, urdf)
+
+
+def _chain_of(model: HybridModel, urdf: str) -> Chain:
+    return chain_from_urdf(urdf, model.chain.base_link, model.chain.tip_link).with_tool(model.chain.tool)
+
+
+def _ur_kinematics(model: HybridModel, urdf: str) -> Exported:
+    """The six joint origins as a UR kinematics file. Its hash is new, so that the UR driver warns that the
+    file no longer matches the controller's own calibration. The flange correction has no entry: the xacro
+    fixes the flange, so the file's geometry is the calibrated URDF with its flange joint back at nominal."""
+    root = ET.fromstring(urdf)
+    joints = {j.get("name"): j for j in root.iter("joint")}
+    missing = [name for name in UR_JOINTS if name not in joints]
+    if missing or model.chain.joint_names != UR_JOINTS:
+        raise CalibrationError(
+            f"the model's joints are {', '.join(model.chain.joint_names)}, not a UR's ({', '.join(UR_JOINTS)}): "
+            "a UR kinematics file cannot describe it; export --format urdf or dh"
+        )
+    origins = [_origin(joints[name]) for name in UR_JOINTS]
+    digest = hashlib.sha256(np.round(np.array(origins), 12).tobytes()).hexdigest()[:16]
+    text = format_ur_kinematics(
+        dict(zip(ENTRIES, origins, strict=True)),
+        f"calib_hkr_{digest}",
+        f"Calibrated by hybrid_kinematics_ros from model {model.path}: joint origins with the zero offsets "
+        "folded in. The hash is new, so ur_robot_driver warns that this file is not the controller's own "
+        "calibration. Not in this file: the flange correction, " + LEFT_BEHIND + ".",
+    )
+    nominal = ET.fromstring(model.chain.urdf_text)
+    nominal_joints = {j.get("name"): j for j in nominal.iter("joint")}
+    flange = (
+        se3.inverse(model.chain.post)
+        @ model_from_manifest(model.chain, model.manifest["parametric"], rigid=True).chain.post
+    )
+    for joint in root.iter("joint"):  # the fixed joints after the wrist back at the nominal URDF's
+        if joint.get("type") == "fixed" and joint.get("name") in nominal_joints and joint.get("name") not in UR_JOINTS:
+            _set_origin(joint, _origin(nominal_joints[joint.get("name")]))
+    mm, deg = se3.pose_errors(flange[None], np.eye(4)[None])
+    left = (f"the flange correction ({mm[0]:.3f} mm, {deg[0]:.4f} deg)", LEFT_BEHIND)
+    return Exported(text, _chain_of(model, ET.tostring(root, encoding="unicode")), left)

@@ -32,6 +32,7 @@ COMMANDS = {
     "fk": "fk",
     "ik": "ik",
     "compensate": "compensate",
+    "export": "export",
     "export-urdf": "export_urdf",
 }
 USER_ERRORS: tuple[type[Exception], ...] = (

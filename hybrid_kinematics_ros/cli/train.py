@@ -227,17 +227,11 @@ RECIPE_FLAGS = (
     "members",
     "seed",
     "parametric",
-    "elastic",
-    "harmonics",
-    "harmonic_prior",
-    "map_step",
-    "map_smoothness",
-    "orientation_length",
+    *CAPACITY_SETTINGS,
     "payload_mass",
     "payload_com",
     "condition",
     "offer_conditions",
-    "approach",
     "shared_target",
 )
 

@@ -118,9 +118,10 @@ def test_train_evaluate_fk_workflow(tmp_path, capsys):
     result = cli("export-urdf", "--model", str(model_dir), "--out", str(urdf), "--bag", str(bag))
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
-    assert report["exported_urdf"]["position_mm_mean"] < report["nominal_urdf"]["position_mm_mean"]
-    assert report["parametric"]["position_mm_mean"] < report["exported_urdf"]["position_mm_mean"]
+    assert report["exported"]["position_mm_mean"] < report["nominal"]["position_mm_mean"]
+    assert report["parametric"]["position_mm_mean"] < report["exported"]["position_mm_mean"]
     assert "_calibrated" in urdf.read_text()
+    assert "compliance" in " ".join(report["left_behind"]) and "kinematics node" in result.stderr
 
     # the report shows the parametric stage's joint error map, as a row per joint and as a plot
     result = cli("report", "--model", str(model_dir), "--bag", str(bag), "--out", str(tmp_path / "report"))

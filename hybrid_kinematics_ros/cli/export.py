@@ -1,0 +1,87 @@
+"""``export``: the calibrated geometry as a URDF, a UR kinematics file or a DH table, and what it leaves behind."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybrid_kinematics_ros.calibration.evaluate import error_stats, pose_errors_of, target_errors
+from hybrid_kinematics_ros.calibration.export import FORMATS, Exported, export
+from hybrid_kinematics_ros.calibration.fit import load_stations
+from hybrid_kinematics_ros.io.errors import DataError
+from hybrid_kinematics_ros.kinematics import fk
+from hybrid_kinematics_ros.model.hybrid import HybridModel
+from hybrid_kinematics_ros.model.referencing import to_base_frame
+
+SERVE_THE_REST = (
+    "the rest is served by the kinematics node (ros2 run hybrid_kinematics_ros kinematics_node --ros-args "
+    "-p model_dir:=MODEL), or by `hybrid-kinematics compensate` for a trajectory"
+)
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("export", help="write the calibrated geometry as a URDF, a UR kinematics file or a DH table")
+    add_export_args(p)
+    p.add_argument("--format", required=True, choices=FORMATS, help="the file to write")
+    p.add_argument(
+        "--convention",
+        choices=("standard", "modified"),
+        default="standard",
+        help="DH convention, with --format dh (default standard)",
+    )
+    p.set_defaults(run=run)
+
+
+def add_export_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--model", required=True, type=Path, help="model directory with a parametric stage")
+    p.add_argument("--out", required=True, type=Path, help="file to write")
+    p.add_argument(
+        "--bag", nargs="+", help="held-out pairs bag(s): the exported geometry's errors beside the full model's"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    return write(args, export(HybridModel.load(args.model), args.format, args.convention), args.format)
+
+
+def write(args: argparse.Namespace, exported: Exported, form: str) -> int:
+    """Write the file, print what it leaves behind and, with ``--bag``, how accurate it is beside the model."""
+    if args.out.exists():
+        raise DataError(f"{args.out} exists already, not overwriting")
+    args.out.write_text(exported.text)
+    report: dict[str, Any] = {form: str(args.out), "left_behind": list(exported.left)}
+    if args.bag:
+        model = HybridModel.load(args.model)
+        report |= held_out(model, exported, args.bag)
+        exported_mm = report["exported"]["position_mm_mean"]
+        print(
+            f"{form}: {exported_mm:.4f} mm held out, against {report['hybrid']['position_mm_mean']:.4f} mm for the "
+            f"full model ({report['nominal']['position_mm_mean']:.4f} mm uncalibrated); " + SERVE_THE_REST,
+            file=sys.stderr,
+        )
+    else:
+        print(f"{form}: pass --bag with held-out pairs to see its accuracy; " + SERVE_THE_REST, file=sys.stderr)
+    print(json.dumps(report, indent=2))
+    return 0
+
+
+def held_out(model: HybridModel, exported: Exported, bags: list[str]) -> dict[str, dict]:
+    """Errors at the target on the pairs of ``bags``: the URDF model with its own referencing (``nominal``),
+    the exported geometry, the stage and the full model, the last three with the model's referencing."""
+    stations = load_stations(bags, model.chain)
+    errors: dict[str, list] = {}
+    for pairs in stations:
+        for name, values in pose_errors_of(model, pairs).items():
+            errors.setdefault({"analytic": "nominal"}.get(name, name), []).append(values)
+        base = to_base_frame([pairs], model.chain, model.referencings)
+        errors.setdefault("exported", []).append(target_errors(base, fk.fk(exported.chain, base.q)))
+    return {name: error_stats(*(_joined(parts, k) for k in (0, 1))) for name, parts in errors.items()}
+
+
+def _joined(parts: list, k: int) -> np.ndarray:
+    return np.concatenate([p[k] for p in parts])
