@@ -24,6 +24,7 @@ STEPS = [
     ["bench.bench_hybrid", "curve", "--minutes", "8"],
     ["bench.bench_parametric", "referencing", "range", "table1", "--minutes", "10"],
     ["bench.bench_one_orientation"],
+    ["bench.bench_export"],
 ]
 
 

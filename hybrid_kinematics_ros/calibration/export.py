@@ -12,18 +12,22 @@ from __future__ import annotations
 
 import hashlib
 import xml.etree.ElementTree as ET
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.calibration.evaluate import error_stats, pose_errors_of, target_errors
+from hybrid_kinematics_ros.io.pairs import Pairs
+from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.dh import dh_table, format_dh
 from hybrid_kinematics_ros.kinematics.ur_kinematics import ENTRIES, UR_JOINTS, format_ur_kinematics
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.model.parametric import model_from_manifest
+from hybrid_kinematics_ros.model.referencing import to_base_frame
 
 
 def _origin(joint: ET.Element) -> np.ndarray:
@@ -161,3 +165,18 @@ def _ur_kinematics(model: HybridModel, urdf: str) -> Exported:
     mm, deg = se3.pose_errors(flange[None], np.eye(4)[None])
     left = (f"the flange correction ({mm[0]:.3f} mm, {deg[0]:.4f} deg)", LEFT_BEHIND)
     return Exported(text, _chain_of(model, ET.tostring(root, encoding="unicode")), left)
+
+
+def held_out_errors(model: HybridModel, exported: Exported, stations: Sequence[Pairs]) -> dict[str, dict]:
+    """Error statistics at the target on held-out ``stations``: the URDF model with its own referencing
+    (``nominal``), the exported geometry, the stage and the full model (``hybrid``), the last three with the
+    model's referencing."""
+    errors: dict[str, list] = {}
+    for pairs in stations:
+        for name, values in pose_errors_of(model, pairs).items():
+            errors.setdefault({"analytic": "nominal"}.get(name, name), []).append(values)
+        base = to_base_frame([pairs], model.chain, model.referencings)
+        errors.setdefault("exported", []).append(target_errors(base, fk.fk(exported.chain, base.q)))
+    return {
+        name: error_stats(*(np.concatenate([p[k] for p in parts]) for k in (0, 1))) for name, parts in errors.items()
+    }

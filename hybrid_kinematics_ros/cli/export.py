@@ -8,15 +8,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from hybrid_kinematics_ros.calibration.evaluate import error_stats, pose_errors_of, target_errors
-from hybrid_kinematics_ros.calibration.export import FORMATS, Exported, export
+from hybrid_kinematics_ros.calibration.export import FORMATS, Exported, export, held_out_errors
 from hybrid_kinematics_ros.calibration.fit import load_stations
 from hybrid_kinematics_ros.io.errors import DataError
-from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.model.hybrid import HybridModel
-from hybrid_kinematics_ros.model.referencing import to_base_frame
 
 SERVE_THE_REST = (
     "the rest is served by the kinematics node (ros2 run hybrid_kinematics_ros kinematics_node --ros-args "
@@ -57,7 +52,7 @@ def write(args: argparse.Namespace, exported: Exported, form: str) -> int:
     report: dict[str, Any] = {form: str(args.out), "left_behind": list(exported.left)}
     if args.bag:
         model = HybridModel.load(args.model)
-        report |= held_out(model, exported, args.bag)
+        report |= held_out_errors(model, exported, load_stations(args.bag, model.chain))
         exported_mm = report["exported"]["position_mm_mean"]
         print(
             f"{form}: {exported_mm:.4f} mm held out, against {report['hybrid']['position_mm_mean']:.4f} mm for the "
@@ -68,20 +63,3 @@ def write(args: argparse.Namespace, exported: Exported, form: str) -> int:
         print(f"{form}: pass --bag with held-out pairs to see its accuracy; " + SERVE_THE_REST, file=sys.stderr)
     print(json.dumps(report, indent=2))
     return 0
-
-
-def held_out(model: HybridModel, exported: Exported, bags: list[str]) -> dict[str, dict]:
-    """Errors at the target on the pairs of ``bags``: the URDF model with its own referencing (``nominal``),
-    the exported geometry, the stage and the full model, the last three with the model's referencing."""
-    stations = load_stations(bags, model.chain)
-    errors: dict[str, list] = {}
-    for pairs in stations:
-        for name, values in pose_errors_of(model, pairs).items():
-            errors.setdefault({"analytic": "nominal"}.get(name, name), []).append(values)
-        base = to_base_frame([pairs], model.chain, model.referencings)
-        errors.setdefault("exported", []).append(target_errors(base, fk.fk(exported.chain, base.q)))
-    return {name: error_stats(*(_joined(parts, k) for k in (0, 1))) for name, parts in errors.items()}
-
-
-def _joined(parts: list, k: int) -> np.ndarray:
-    return np.concatenate([p[k] for p in parts])
