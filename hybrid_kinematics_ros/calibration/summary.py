@@ -128,6 +128,14 @@ def iso_summary(entries: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
 def capacity_lines(manifest: dict[str, Any]) -> list[str]:
     """One short line per stage setting and net: what was chosen, and the validation figure that chose it."""
     lines = [] if "parametric" in manifest else ["no parametric stage"]
+    if manifest.get("stage_not_served"):
+        lines = ["parametric stage not served (worse than the URDF model with only the tracker and target fitted)"]
+    refs = manifest.get("referencing") or []
+    for ref in [refs] if isinstance(refs, dict) else refs:  # a model of one station may hold one section
+        if ref.get("undetermined"):
+            lines.append(
+                f"target offset partly held at the config's tool in frame '{ref['frame_id']}' (see Referencing)"
+            )
     for d in (manifest.get("capacity") or {}).get("decisions", []):
         if d.get("given"):
             lines.append(f"{d['setting']} {d['chosen']} (given)")

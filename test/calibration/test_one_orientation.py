@@ -14,6 +14,7 @@ from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.evaluate import target_errors
 from hybrid_kinematics_ros.calibration.fit import fit, reference_all, split, worse_than_rigid
 from hybrid_kinematics_ros.calibration.recipe import Recipe
+from hybrid_kinematics_ros.calibration.summary import capacity_lines
 from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.model.referencing import to_base_frame
 from hybrid_kinematics_ros.simulation.portfolio import SURFACE_CELLS, TRACKER_FAR, build_cell
@@ -64,6 +65,7 @@ def test_one_orientation_trains_a_model_no_worse_than_the_rigid_one_and_reports_
     assert test["analytic"]["position_mm_mean"] == pytest.approx(before, rel=1e-9)
     assert test["hybrid"]["position_mm_mean"] < test["analytic"]["position_mm_mean"]
     assert not manifest["rigid_candidate"]["worse"]
+    assert any("target offset partly held" in line for line in capacity_lines(manifest))  # the report's summary
 
 
 def test_a_served_model_worse_than_the_rigid_one_is_caught_and_a_tie_is_not():
