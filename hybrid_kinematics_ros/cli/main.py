@@ -29,6 +29,7 @@ COMMANDS = {
     "train": "train",
     "evaluate": "evaluate",
     "report": "report",
+    "verify": "verify",
     "fk": "fk",
     "ik": "ik",
     "compensate": "compensate",

@@ -1,0 +1,231 @@
+"""Verify a calibration with a tracker placed anywhere: is the model still calibrated, or has the robot drifted,
+and does it meet the tolerance?
+
+A check is a recording of some poses, often from a new tracker station after a crash, a gear change or months
+of wear. A station the model does not know is referenced from the check itself: every ``REFERENCE_EVERY``-th
+pose places the tracker (through the model, so what is judged is the model), and the others are judged. Each
+judged pose is compared with the model's own 95 % bound at its configuration. Five poses in a hundred may lie
+beyond it by design, and the bound's coverage is itself known only from the validation pairs that set it, so
+"drifted" needs more poses beyond it than those pairs had, with significance (a one-sided Fisher exact
+test): a few unlucky poses do not fail a good model. The tolerance verdict is the report's.
+
+When the robot drifted, a least-squares fit of the residual to each group of the geometry's parameters (a
+joint's zero offset, a joint origin, the tool, the tracker's placement) says which explains it best.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
+from hybrid_kinematics_ros.calibration.evaluate import target_errors
+from hybrid_kinematics_ros.calibration.referencing import reference_stations
+from hybrid_kinematics_ros.calibration.summary import verdict
+from hybrid_kinematics_ros.io.pairs import Pairs
+from hybrid_kinematics_ros.kinematics import fk, se3
+from hybrid_kinematics_ros.kinematics.chain import Chain
+from hybrid_kinematics_ros.model.hybrid import HybridModel
+from hybrid_kinematics_ros.model.referencing import Referencing
+
+REFERENCE_EVERY = 10  # an unknown station is placed with every tenth check pose, spread over the run
+MIN_REFERENCE_POSES = 10  # the least squares that place a station with its target need this many
+DRIFT_P_VALUE = 0.01  # "drifted" when the share of poses over their bound is this unlikely for a good model
+STEP = 1e-6  # m or rad: the finite difference of the diagnosis's columns
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    """What the check must meet, as ``report --tolerance-mm/--tolerance-deg`` (None: no PASS/FAIL)."""
+
+    position_mm: float | None = None
+    orientation_deg: float | None = None
+
+
+@dataclass(frozen=True)
+class Verification:
+    """A check's outcome: the judged poses' errors (mm, deg), how each station was placed, the bound test,
+    the tolerance verdict and, for a drift, what explains it."""
+
+    position_mm: np.ndarray
+    orientation_deg: np.ndarray
+    stations: dict[str, str]
+    over_bound: int | None  # judged poses beyond the model's position or orientation bound, the larger count
+    # (None: the model carries no bounds)
+    level: float
+    p_value: float
+    tolerance: dict[str, Any] | None
+    diagnosis: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def drifted(self) -> bool:
+        return self.over_bound is not None and self.p_value < DRIFT_P_VALUE
+
+    @property
+    def holds(self) -> bool:
+        """Still calibrated and, when a tolerance was given, within it: the exit code's 0."""
+        return not self.drifted and (self.tolerance is None or self.tolerance["passed"])
+
+    def lines(self) -> list[str]:
+        """What ``verify`` prints: the two verdicts and the diagnosis."""
+        n = len(self.position_mm)
+        out = [f"{n} poses judged, mean {np.mean(self.position_mm):.4f} mm"]
+        if self.over_bound is None:
+            out.append("no bound test: the model carries no error bounds (retrain it)")
+        else:
+            state = "DRIFTED" if self.drifted else "STILL CALIBRATED"
+            out.append(
+                f"{state}: {self.over_bound} of {n} poses beyond the model's {self.level:.0%} bound "
+                "(position or orientation, the more), "
+                f"{1 - self.level:.0%} allowed (p = {self.p_value:.2g})"
+            )
+        if self.tolerance is not None:
+            out.append(self.tolerance["line"])
+        out += [f"explains {d['explained']:.0%} of the residual: {d['what']}" for d in self.diagnosis]
+        return out
+
+    def manifest(self) -> dict[str, Any]:
+        return {
+            "poses": len(self.position_mm),
+            "position_mm_mean": float(np.mean(self.position_mm)),
+            "orientation_deg_mean": None
+            if np.all(np.isnan(self.orientation_deg))
+            else float(np.nanmean(self.orientation_deg)),
+            "stations": self.stations,
+            "bound_level": self.level,
+            "over_bound": self.over_bound,
+            "p_value": self.p_value,
+            "drifted": self.drifted,
+            "tolerance": self.tolerance,
+            "holds": self.holds,
+            "diagnosis": self.diagnosis,
+        }
+
+
+def verify(model: HybridModel, stations: Sequence[Pairs], tolerance: Tolerance = Tolerance()) -> Verification:
+    """Judge ``model`` on the check pairs ``stations`` (one :class:`Pairs` per frame)."""
+    judged, how = [], {}
+    for pairs in stations:
+        ref, rest, how[pairs.frame_id] = _station(model, pairs)
+        judged.append(rest if ref is None else ref.to_base(rest, model.chain.base_link))
+    pairs = Pairs.concatenate(judged)
+    tip = model.fk(pairs.q, conditions=model.conditions_of(pairs.conditions, len(pairs)))
+    pos_mm, rot_deg = target_errors(pairs, tip)
+    over, level, p_value = _bound_test(model, pairs, pos_mm, rot_deg)
+    checked = None
+    if tolerance.position_mm is not None:
+        checked = verdict(pos_mm, rot_deg, tolerance.position_mm, tolerance.orientation_deg)
+    result = Verification(pos_mm, rot_deg, how, over, level, p_value, checked)
+    if result.drifted:
+        result = replace(result, diagnosis=diagnose(model.chain, pairs, tip))
+    return result
+
+
+def _station(model: HybridModel, pairs: Pairs) -> tuple[Referencing | None, Pairs, str]:
+    """The referencing that brings ``pairs`` into the base frame, the pairs left to judge, and how it was
+    found: the model's own for a station it knows, else placed from every ``REFERENCE_EVERY``-th pose."""
+    if pairs.frame_id == model.chain.base_link:
+        return None, pairs, "the base frame"
+    if pairs.frame_id in model.referencings:
+        return model.referencings[pairs.frame_id], pairs, "the model's referencing"
+    pick = np.zeros(len(pairs), dtype=bool)
+    pick[:: max(1, min(REFERENCE_EVERY, len(pairs) // MIN_REFERENCE_POSES))] = True
+    if pick.sum() < MIN_REFERENCE_POSES or len(pairs) - pick.sum() < 1:
+        raise CalibrationError(
+            f"frame '{pairs.frame_id}': {len(pairs)} check poses; a station the model does not know needs at "
+            f"least {MIN_REFERENCE_POSES} to place it and more to judge (give {2 * MIN_REFERENCE_POSES} or more)"
+        )
+    place, rest = pairs.subset(np.flatnonzero(pick)), pairs.subset(np.flatnonzero(~pick))
+    tips = model.fk(place.q, conditions=model.conditions_of(place.conditions, len(place)))
+    if not pairs.position_only and model.referencing is not None:  # the probe's orientation places the target too
+        (ref,) = reference_stations(model.chain, [place], [tips])
+        if not ref.undetermined:
+            return ref, rest, f"placed from {len(place)} of its poses, the target with it"
+    ref = _placed_with_target(model, place, tips)
+    return ref, rest, f"placed from {len(place)} of its poses with the model's target"
+
+
+def _placed_with_target(model: HybridModel, place: Pairs, tips: np.ndarray) -> Referencing:
+    """The tracker placed by the measured target points against the model's, the target where the model has it."""
+    target = np.eye(4) if model.referencing is None else model.referencing.flange_to_target
+    predicted = (tips @ target)[:, :3, 3]
+    base, _ = se3.fit_rigid(place.T[:, :3, 3], predicted[None])
+    return Referencing(place.frame_id, base[0], target, place.position_only, method="placed by the check")
+
+
+def _bound_test(
+    model: HybridModel, pairs: Pairs, pos_mm: np.ndarray, rot_deg: np.ndarray
+) -> tuple[int | None, float, float]:
+    """Poses beyond the model's position bound (or, when more, its orientation bound), the bounds' level, and
+    the binomial p-value of at least that many, each kind tested on its own (Bonferroni over the two)."""
+    bounds = model.error_bounds(pairs.q, model.conditions_of(pairs.conditions, len(pairs)))
+    if bounds is None:
+        return None, float("nan"), 1.0
+    position, orientation = bounds
+    beyond = [pos_mm > 1e3 * position]
+    if orientation is not None and not pairs.position_only:
+        beyond.append(rot_deg > np.degrees(orientation))
+    level = model.bounds.level
+    counts = [int(b.sum()) for b in beyond]
+    p_values = [_excess_p_value(c, len(pos_mm), level, model.bounds.figures.get("validation_pairs")) for c in counts]
+    return max(counts), level, float(min(1.0, len(beyond) * min(p_values)))
+
+
+def _excess_p_value(over: int, count: int, level: float, validation: int | None) -> float:
+    """How unlikely ``over`` of ``count`` poses beyond a bound are for a model still as good as when its bound
+    was set. The bound's coverage is known from its ``validation`` pairs alone, so the check is compared with
+    them (Fisher's exact test, one-sided); without that count, with the nominal share (a binomial test)."""
+    if not validation:
+        return float(stats.binomtest(over, count, 1.0 - level, alternative="greater").pvalue)
+    allowed = round((1.0 - level) * validation)
+    table = [[over, count - over], [allowed, validation - allowed]]
+    return float(stats.fisher_exact(table, alternative="greater").pvalue)
+
+
+def diagnose(chain: Chain, pairs: Pairs, tip: np.ndarray, top: int = 3) -> list[dict[str, Any]]:
+    """The parameter groups that best explain the position residual at the target, each fitted alone by
+    least squares on the nominal geometry's Jacobian: share of the residual explained and the fitted values."""
+    measured = pairs.T[:, :3, 3] if pairs.position_only else (pairs.T @ pairs.targets)[:, :3, 3]
+    residual = (measured - (tip @ pairs.targets)[:, :3, 3]).ravel()
+    out = []
+    for name, columns, unit in _groups(chain, pairs):
+        fitted, *_ = np.linalg.lstsq(columns, residual, rcond=None)
+        left = residual - columns @ fitted
+        explained = 1.0 - float(left @ left) / float(residual @ residual)
+        scale = np.degrees(1.0) if unit == "deg" else 1e3
+        values = ", ".join(f"{scale * v:+.4f}" for v in fitted)
+        out.append({"group": name, "explained": explained, "what": f"{name} ({values} {unit})"})
+    return sorted(out, key=lambda d: -d["explained"])[:top]
+
+
+def _groups(chain: Chain, pairs: Pairs) -> list[tuple[str, np.ndarray, str]]:
+    """Each group's columns ``(3N, k)``: how the target points move per unit of its parameters."""
+    q = pairs.q
+    base = _points(chain, q, pairs.targets)
+    out = []
+    for j, name in enumerate(chain.joint_names):
+        moved = q.copy()
+        moved[:, j] += STEP
+        out.append(
+            (f"zero offset of {name}", ((_points(chain, moved, pairs.targets) - base) / STEP).reshape(-1, 1), "deg")
+        )
+    for k, name in enumerate(chain.joint_names):
+        columns = []
+        for axis in np.eye(3):
+            pre = chain.pre.copy()
+            pre[k, :3, 3] += STEP * (pre[k, :3, :3] @ axis)
+            columns.append(((_points(replace(chain, pre=pre), q, pairs.targets) - base) / STEP).ravel())
+        out.append((f"origin of {name} (x, y, z)", np.column_stack(columns), "mm"))
+    rotations = fk.fk(chain, q)[:, :3, :3]
+    out.append(("the tool (x, y, z in the tip frame)", np.concatenate(list(rotations), axis=0), "mm"))
+    shift = np.tile(np.eye(3), (len(q), 1))
+    out.append(("the tracker's placement (x, y, z)", shift, "mm"))
+    return out
+
+
+def _points(chain: Chain, q: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    return (fk.fk(chain, q) @ targets)[:, :3, 3].ravel()
