@@ -101,8 +101,9 @@ class Verification:
             "p_value": self.p_value,
             "drifted": self.drifted,
             "tolerance": self.tolerance,
+            "passed": None if self.tolerance is None else self.tolerance["passed"],
             "holds": self.holds,
-            "diagnosis": self.diagnosis,
+            "causes": self.diagnosis,  # most likely first
         }
 
 
@@ -192,38 +193,39 @@ def diagnose(chain: Chain, pairs: Pairs, tip: np.ndarray, top: int = 3) -> list[
     measured = pairs.T[:, :3, 3] if pairs.position_only else (pairs.T @ pairs.targets)[:, :3, 3]
     residual = (measured - (tip @ pairs.targets)[:, :3, 3]).ravel()
     out = []
-    for name, columns, unit in _groups(chain, pairs):
+    for name, joint, columns, unit in _groups(chain, pairs):
         fitted, *_ = np.linalg.lstsq(columns, residual, rcond=None)
         left = residual - columns @ fitted
         explained = 1.0 - float(left @ left) / float(residual @ residual)
         scale = np.degrees(1.0) if unit == "deg" else 1e3
         values = ", ".join(f"{scale * v:+.4f}" for v in fitted)
-        out.append({"group": name, "explained": explained, "what": f"{name} ({values} {unit})"})
+        what = f"{name} ({values} {unit})"
+        out.append({"group": name, "joint": joint, "explained": explained, "values": fitted.tolist(), "what": what})
     return sorted(out, key=lambda d: -d["explained"])[:top]
 
 
-def _groups(chain: Chain, pairs: Pairs) -> list[tuple[str, np.ndarray, str]]:
-    """Each group's columns ``(3N, k)``: how the target points move per unit of its parameters."""
+def _groups(chain: Chain, pairs: Pairs) -> list[tuple[str, str | None, np.ndarray, str]]:
+    """Each group's name, joint (None: not a joint's), columns ``(3N, k)`` (how the target points move per
+    unit of its parameters, SI) and the unit it is shown in."""
     q = pairs.q
     base = _points(chain, q, pairs.targets)
     out = []
     for j, name in enumerate(chain.joint_names):
         moved = q.copy()
         moved[:, j] += STEP
-        out.append(
-            (f"zero offset of {name}", ((_points(chain, moved, pairs.targets) - base) / STEP).reshape(-1, 1), "deg")
-        )
+        columns = ((_points(chain, moved, pairs.targets) - base) / STEP).reshape(-1, 1)
+        out.append((f"zero offset of {name}", name, columns, "deg"))
     for k, name in enumerate(chain.joint_names):
         columns = []
         for axis in np.eye(3):
             pre = chain.pre.copy()
             pre[k, :3, 3] += STEP * (pre[k, :3, :3] @ axis)
             columns.append(((_points(replace(chain, pre=pre), q, pairs.targets) - base) / STEP).ravel())
-        out.append((f"origin of {name} (x, y, z)", np.column_stack(columns), "mm"))
+        out.append((f"origin of {name} (x, y, z)", name, np.column_stack(columns), "mm"))
     rotations = fk.fk(chain, q)[:, :3, :3]
-    out.append(("the tool (x, y, z in the tip frame)", np.concatenate(list(rotations), axis=0), "mm"))
+    out.append(("the tool (x, y, z in the tip frame)", None, np.concatenate(list(rotations), axis=0), "mm"))
     shift = np.tile(np.eye(3), (len(q), 1))
-    out.append(("the tracker's placement (x, y, z)", shift, "mm"))
+    out.append(("the tracker's placement (x, y, z)", None, shift, "mm"))
     return out
 
 

@@ -50,6 +50,7 @@ def test_a_drifted_zero_offset_is_caught_and_named(ur10, shoulder_model, station
     result = verify(model, [pairs if station == "known" else in_new_station(pairs)])
     assert result.drifted and not result.holds
     assert result.diagnosis[0]["group"] == f"zero offset of {ur10.chain.joint_names[ELBOW]}", result.diagnosis
+    assert result.manifest()["causes"][0]["joint"] == ur10.chain.joint_names[ELBOW]
 
 
 def test_verify_exits_with_its_verdict_and_writes_json_and_html(ur10, shoulder_model, tmp_path):
@@ -60,7 +61,8 @@ def test_verify_exits_with_its_verdict_and_writes_json_and_html(ur10, shoulder_m
     good = cli(*args, "--bag", str(tmp_path / "good"), "--json", str(tmp_path / "good.json"))
     assert good.returncode == 0, good.stderr + good.stdout
     assert "STILL CALIBRATED" in good.stdout and "PASS" in good.stdout
-    assert json.loads((tmp_path / "good.json").read_text())["holds"] is True
+    outcome = json.loads((tmp_path / "good.json").read_text())
+    assert outcome["holds"] is True and outcome["drifted"] is False and outcome["passed"] is True
     drifted = cli(*args, "--bag", str(tmp_path / "drifted"), "--out", str(tmp_path / "page"))
     assert drifted.returncode == 1 and "DRIFTED" in drifted.stdout and "zero offset of elbow_joint" in drifted.stdout
     assert "DRIFTED" in (tmp_path / "page" / "index.html").read_text()
