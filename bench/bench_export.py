@@ -14,17 +14,25 @@ from bench.report import table, write_section
 from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.export import FORMATS, export, held_out_errors
 from hybrid_kinematics_ros.calibration.fit import split
+from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.model.hybrid import HybridModel
+
+
+def trained_on_a(steps: int) -> tuple[HybridModel, Pairs, Pairs]:
+    """The real UR10's model of series A with ``train``'s recipe on four fifths (contiguous blocks): the model,
+    its training pairs and the held-out fifth."""
+    cfg = load_robot_config("ur10")
+    train_pairs, _, held_out = split(load_series("A", cfg.chain.joint_names), 0, (0.0, 0.2))
+    model, *_ = fit_recipe(cfg, [train_pairs], train.PRESETS["fast"], (), 10.0, steps)
+    return model, train_pairs, held_out
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--steps", type=int, default=6000, help="optimiser steps per net")
     args = parser.parse_args()
-    cfg = load_robot_config("ur10")
-    pairs = load_series("A", cfg.chain.joint_names)
-    train_pairs, _, test = split(pairs, 0, (0.0, 0.2))
-    model, *_ = fit_recipe(cfg, [train_pairs], train.PRESETS["fast"], (), 10.0, args.steps)
+    model, train_pairs, test = trained_on_a(args.steps)
     rows = []
     for form in FORMATS:
         exported = export(model, form)

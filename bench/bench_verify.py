@@ -9,12 +9,10 @@ from __future__ import annotations
 
 import argparse
 
-from bench.bench_real import fit_recipe, load_series
+from bench.bench_export import trained_on_a
+from bench.bench_real import load_series
 from bench.report import table, write_section
-from hybrid_kinematics_ros.calibration import train
-from hybrid_kinematics_ros.calibration.fit import split
 from hybrid_kinematics_ros.calibration.verify import Tolerance, verify
-from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 
 TOLERANCE_MM = 0.1
 
@@ -23,14 +21,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--steps", type=int, default=6000, help="optimiser steps per net")
     args = parser.parse_args()
-    cfg = load_robot_config("ur10")
-    a = load_series("A", cfg.chain.joint_names)
-    train_pairs, _, held_out = split(a, 0, (0.0, 0.2))
-    model, *_ = fit_recipe(cfg, [train_pairs], train.PRESETS["fast"], (), 10.0, args.steps)
+    model, _, held_out = trained_on_a(args.steps)
     rows = []
     for label, pairs in (
         ("A, held-out fifth", held_out),
-        ("D, another station", load_series("D", cfg.chain.joint_names)),
+        ("D, another station", load_series("D", model.chain.joint_names)),
     ):
         result = verify(model, [pairs], Tolerance(TOLERANCE_MM))
         rows.append(

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -112,6 +112,3 @@ class Recipe:
         if not isinstance(section, dict) or ("preset" not in section and "recipe" not in data):
             raise CalibrationError(f"{file}: no recipe in it (a model.json written by train has one)")
         return cls.from_manifest(section, str(file))
-
-    def with_changes(self, **changes: Any) -> Recipe:
-        return replace(self, **changes)

@@ -41,17 +41,17 @@ def add_export_args(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    return write(args, export(HybridModel.load(args.model), args.format, args.convention), args.format)
+    model = HybridModel.load(args.model)
+    return write(args, model, export(model, args.format, args.convention), args.format)
 
 
-def write(args: argparse.Namespace, exported: Exported, form: str) -> int:
+def write(args: argparse.Namespace, model: HybridModel, exported: Exported, form: str) -> int:
     """Write the file, print what it leaves behind and, with ``--bag``, how accurate it is beside the model."""
     if args.out.exists():
         raise DataError(f"{args.out} exists already, not overwriting")
     args.out.write_text(exported.text)
     report: dict[str, Any] = {form: str(args.out), "left_behind": list(exported.left)}
     if args.bag:
-        model = HybridModel.load(args.model)
         report |= held_out_errors(model, exported, load_stations(args.bag, model.chain))
         exported_mm = report["exported"]["position_mm_mean"]
         print(

@@ -16,4 +16,5 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    return write(args, export(HybridModel.load(args.model), "urdf"), "urdf")
+    model = HybridModel.load(args.model)
+    return write(args, model, export(model, "urdf"), "urdf")
