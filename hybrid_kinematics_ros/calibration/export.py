@@ -134,8 +134,9 @@ def _chain_of(model: HybridModel, urdf: str) -> Chain:
 
 def _ur_kinematics(model: HybridModel, urdf: str) -> Exported:
     """The six joint origins as a UR kinematics file. Its hash is new, so that the UR driver warns that the
-    file no longer matches the controller's own calibration. The flange correction has no entry: the xacro
-    fixes the flange, so the file's geometry is the calibrated URDF with its flange joint back at nominal."""
+    file no longer matches the controller's own calibration. The xacro fixes the flange, so the flange
+    correction's part along wrist 3's axis (a shift along it and a turn about it, which commute with the joint)
+    moves into wrist 3's origin; the rest has no entry and is named in what the file leaves behind."""
     root = ET.fromstring(urdf)
     joints = {j.get("name"): j for j in root.iter("joint")}
     missing = [name for name in UR_JOINTS if name not in joints]
@@ -144,27 +145,49 @@ def _ur_kinematics(model: HybridModel, urdf: str) -> Exported:
             f"the model's joints are {', '.join(model.chain.joint_names)}, not a UR's ({', '.join(UR_JOINTS)}): "
             "a UR kinematics file cannot describe it; export --format urdf or dh"
         )
+    chain = model.chain
+    flange = se3.inverse(chain.post) @ model_from_manifest(chain, model.manifest["parametric"], rigid=True).chain.post
+    along, across = split_along_axis(chain.post @ flange @ se3.inverse(chain.post), chain.axes[-1])
+    wrist_3 = joints[UR_JOINTS[-1]]
+    _set_origin(wrist_3, _origin(wrist_3) @ along)
     origins = [_origin(joints[name]) for name in UR_JOINTS]
     digest = hashlib.sha256(np.round(np.array(origins), 12).tobytes()).hexdigest()[:16]
     text = format_ur_kinematics(
         dict(zip(ENTRIES, origins, strict=True)),
         f"calib_hkr_{digest}",
         f"Calibrated by hybrid_kinematics_ros from model {model.path}: joint origins with the zero offsets "
-        "folded in. The hash is new, so ur_robot_driver warns that this file is not the controller's own "
-        "calibration. Not in this file: the flange correction, " + LEFT_BEHIND + ".",
+        "and the flange correction along wrist 3's axis folded in. The hash is new, so ur_robot_driver warns "
+        "that this file is not the controller's own calibration. Not in this file: the flange correction "
+        "across wrist 3's axis, " + LEFT_BEHIND + ".",
     )
-    nominal = ET.fromstring(model.chain.urdf_text)
-    nominal_joints = {j.get("name"): j for j in nominal.iter("joint")}
-    flange = (
-        se3.inverse(model.chain.post)
-        @ model_from_manifest(model.chain, model.manifest["parametric"], rigid=True).chain.post
-    )
+    nominal = {j.get("name"): j for j in ET.fromstring(chain.urdf_text).iter("joint")}
     for joint in root.iter("joint"):  # the fixed joints after the wrist back at the nominal URDF's
-        if joint.get("type") == "fixed" and joint.get("name") in nominal_joints and joint.get("name") not in UR_JOINTS:
-            _set_origin(joint, _origin(nominal_joints[joint.get("name")]))
-    mm, deg = se3.pose_errors(flange[None], np.eye(4)[None])
-    left = (f"the flange correction ({mm[0]:.3f} mm, {deg[0]:.4f} deg)", LEFT_BEHIND)
+        if joint.get("type") == "fixed" and joint.get("name") in nominal and joint.get("name") not in UR_JOINTS:
+            _set_origin(joint, _origin(nominal[joint.get("name")]))
+    tip = se3.inverse(chain.post) @ across @ chain.post  # in the tip's frame, as a TCP is given
+    xyz = " ".join(f"{v:.4f}" for v in tip[:3, 3] * 1e3)
+    rpy = " ".join(f"{v:.5f}" for v in np.degrees(Rotation.from_matrix(tip[:3, :3]).as_euler("xyz")))
+    left = (
+        f"the flange correction across wrist 3's axis: xyz {xyz} mm, rpy {rpy} deg in {chain.tip_link}'s frame "
+        "(append it to the TCP or to the end effector's fixed joint)",
+        LEFT_BEHIND,
+    )
     return Exported(text, _chain_of(model, ET.tostring(root, encoding="unicode")), left)
+
+
+def split_along_axis(correction: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``correction = along @ across``: ``along`` a shift along the unit ``axis`` and a turn about it (it
+    commutes with a joint about ``axis``), ``across`` what is left, with no shift along the axis and a rotation
+    about an axis perpendicular to it (swing-twist)."""
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    x, y, z, w = Rotation.from_matrix(correction[:3, :3]).as_quat()
+    twist = np.array([*(np.dot([x, y, z], axis) * axis), w])
+    along = np.eye(4)
+    along[:3, :3] = (
+        Rotation.from_quat(twist / np.linalg.norm(twist)).as_matrix() if np.linalg.norm(twist) else np.eye(3)
+    )
+    along[:3, 3] = np.dot(correction[:3, 3], axis) * axis
+    return along, se3.inverse(along) @ correction
 
 
 def held_out_errors(model: HybridModel, exported: Exported, stations: Sequence[Pairs]) -> dict[str, dict]:

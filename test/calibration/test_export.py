@@ -7,8 +7,9 @@ import json
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
-from hybrid_kinematics_ros.calibration.export import export
+from hybrid_kinematics_ros.calibration.export import export, split_along_axis
 from hybrid_kinematics_ros.io.pairs import write_pairs
 from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
@@ -32,8 +33,33 @@ def test_the_ur_kinematics_file_reads_back_as_the_exported_geometry(shoulder_mod
     exported_tip = fk.fk(exported.chain, te.q[:50])
     position, angle = se3.pose_errors(fk.fk(read, te.q[:50]) @ _tool0_turn(read, exported.chain), exported_tip)
     assert position.max() < 1e-6 and angle.max() < 1e-6  # mm, deg
-    # what it cannot hold is named: the flange correction, the elastic terms and the nets
+    # what it cannot hold is named: the flange correction across wrist 3's axis, the elastic terms and the nets
     assert any("flange" in item for item in exported.left) and any("nets" in item for item in exported.left)
+
+
+def test_the_ur_file_differs_from_the_stage_only_by_the_flange_correction_across_wrist_3(shoulder_model):
+    _, model, te, _ = shoulder_model
+    chain = model.chain
+    geometry = model_from_manifest(chain, model.manifest["parametric"], rigid=True)
+    flange = se3.inverse(chain.post) @ geometry.chain.post
+    _, across = split_along_axis(chain.post @ flange @ se3.inverse(chain.post), chain.axes[-1])
+    exported = export(model, "ur-kinematics")
+    restored = fk.fk(exported.chain, te.q) @ se3.inverse(chain.post) @ across @ chain.post
+    position, angle = se3.pose_errors(restored, geometry.fk(te.q))
+    assert position.max() < 1e-6 and angle.max() < 1e-6  # mm, deg
+
+
+def test_a_correction_splits_into_a_part_that_commutes_with_the_joint_and_one_across_its_axis():
+    rng = np.random.default_rng(3)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    correction = se3.from_rotvec(rng.normal(scale=0.003, size=(1, 3)), rng.normal(scale=0.02, size=(1, 3)))[0]
+    along, across = split_along_axis(correction, axis)
+    assert np.allclose(along @ across, correction, atol=1e-12)
+    turn = se3.from_rotvec(np.zeros((1, 3)), (0.7 * axis)[None])[0]  # the joint moving about its axis
+    assert np.allclose(along @ turn, turn @ along, atol=1e-12)
+    assert abs(np.dot(across[:3, 3], axis)) < 1e-12
+    assert abs(np.dot(Rotation.from_matrix(across[:3, :3]).as_rotvec(), axis)) < 1e-12
 
 
 def _tool0_turn(read, exported) -> np.ndarray:

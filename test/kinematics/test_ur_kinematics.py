@@ -211,3 +211,35 @@ def test_the_built_urdf_is_itself_a_template_and_keeps_the_configs_gravity(tmp_p
         q = random_joints(20, 4)
         plain = chain_from_ur_kinematics(UR10)
         np.testing.assert_allclose(fk.fk(loaded.chain, q), fk.fk(plain, q) @ loaded.chain.tool, atol=1e-12)
+
+
+def _xacro_fk(entries: dict, q: np.ndarray) -> np.ndarray:
+    """FK as ur_description's xacro composes it, written out by hand from the file's numbers: base_link to
+    base_link_inertia (π about z), each entry ``Trans(x y z) · RPY(roll pitch yaw)`` then the joint about its z,
+    then the flange (rpy 0 −π/2 −π/2) and tool0 (rpy π/2 0 π/2)."""
+
+    def frame(xyz, rpy) -> np.ndarray:
+        t = np.eye(4)
+        t[:3, :3] = Rotation.from_euler("xyz", rpy).as_matrix()  # URDF rpy: fixed axes x, y, z
+        t[:3, 3] = xyz
+        return t
+
+    out = np.broadcast_to(frame([0, 0, 0], [0, 0, np.pi]), (len(q), 4, 4))
+    for k, name in enumerate(ENTRIES):
+        e = entries[name]
+        turn = np.tile(np.eye(4), (len(q), 1, 1))
+        turn[:, :3, :3] = Rotation.from_euler("z", q[:, k, None]).as_matrix()
+        out = out @ frame([e["x"], e["y"], e["z"]], [e["roll"], e["pitch"], e["yaw"]]) @ turn
+    return out @ frame([0, 0, 0], [0, -np.pi / 2, -np.pi / 2]) @ frame([0, 0, 0], [np.pi / 2, 0, np.pi / 2])
+
+
+def test_the_ur10e_file_and_a_perturbed_copy_build_the_robot_the_xacro_builds(tmp_path):
+    raw = yaml.safe_load((UR_DIR / "ur10e_default.yaml").read_text())["kinematics"]
+    rng = np.random.default_rng(4)
+    perturbed = {name: {key: value + rng.normal(scale=1e-3) for key, value in raw[name].items()} for name in ENTRIES}
+    q = random_joints(10_000, 5)
+    for entries in (raw, perturbed):
+        path = tmp_path / "ur10e.yaml"
+        path.write_text(yaml.safe_dump({"kinematics": {**entries, "hash": "calib_test"}}))
+        chain = chain_from_ur_kinematics(path)
+        np.testing.assert_allclose(fk.fk(chain, q), _xacro_fk(entries, q), atol=1e-9)
