@@ -60,6 +60,7 @@ from hybrid_kinematics_ros.model.parametric import Parameter, build_model
 
 ORIENTATION_LENGTH = 1.0  # m per rad: weighs orientation residuals against position ones, unless chosen (capacity)
 RANK_TOLERANCE = 1e-6  # pivots below this fraction of the largest are unidentifiable
+CORRELATED_PAIRS = 5  # the most correlated pairs of parameters the manifest and the report name
 ROBUST_SCALE = 1e-3  # m: residuals well above this are down-weighted (soft L1)
 # Scaled unit of each kind of parameter, in SI: what one unit of the optimiser's variable means.
 # The capacity of the cyclic errors and of the joint error map is chosen from the data being calibrated
@@ -330,6 +331,7 @@ class ParametricResult:
     mounts: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     capacity: dict[str, Any] | None = None  # how the capacity was chosen (calibration.capacity), if it was
     options: dict[str, Any] | None = None  # the capacity options it was identified with (kinds, harmonics, …)
+    uncertainty: Uncertainty | None = None  # σ per parameter (``params`` order), condition, correlations
 
     def geometry_model(self) -> ElasticChain:
         """The geometry-only calibration (joint offsets and joint origins, no compliance, bending or
@@ -358,12 +360,19 @@ class ParametricResult:
                     "value": float(v),
                     "rigid_value": float(r),
                     "identifiable": bool(ok),
+                    **({"sigma": float(sd)} if np.isfinite(sd) else {}),
                     **({"reason": self.reasons[p.name]} if p.name in self.reasons else {}),
                 }
-                for p, v, r, ok in zip(self.params, self.values, self.rigid_values, self.identifiable, strict=True)
+                for p, v, r, ok, sd in zip(
+                    self.params, self.values, self.rigid_values, self.identifiable, self._sigma(), strict=True
+                )
             ],
+            **({"uncertainty": self.uncertainty.manifest()} if self.uncertainty is not None else {}),
             **({"joint_map": self.joint_map.manifest()} if self.joint_map is not None else {}),
         }
+
+    def _sigma(self) -> np.ndarray:
+        return self.uncertainty.sigma if self.uncertainty is not None else np.full(len(self.params), np.nan)
 
 
 def _rms(res: np.ndarray) -> dict[str, float]:
@@ -613,7 +622,11 @@ def _identify(
     # the Jacobian at zero, already computed, starts the fit: its pose rows, then the active priors' rows
     start_rows = np.r_[np.arange(len(r0)), len(r0) + np.flatnonzero(active[held_back])]
     start_jac = full_jac[np.ix_(start_rows, np.flatnonzero(active))]
-    values = values_at(solve(active, np.zeros(int(active.sum())), first_jac=start_jac), active, nothing)
+    z = solve(active, np.zeros(int(active.sum())), first_jac=start_jac)
+    values = values_at(z, active, nothing)
+    cols = np.flatnonzero(active)
+    covariance = _covariance(jacobian(z, active, nothing), residual(z, active, nothing), len(r0), width)
+    uncertainty = Uncertainty.of(covariance * np.outer(scale[cols], scale[cols]), cols, params, ~movable)
     model = chain_model(values)
     every_direction = None if directions is None else np.asarray(directions, dtype=float)
 
@@ -660,7 +673,58 @@ def _identify(
         joint_map=joint_map,
         placements=station_moves(params, values, "placement", counts[0])[:-1],
         mounts=station_moves(params, values, "mount", counts[1])[:-1],
+        uncertainty=uncertainty,
     )
+
+
+def _covariance(jac: np.ndarray, res: np.ndarray, pose_rows: int, width: int) -> np.ndarray:
+    """The covariance of the fitted (scaled) parameters, ``A⁻¹ JᵀWJ A⁻¹`` with ``A = JᵀWJ + RᵀR``, ``J`` the
+    pose rows and ``R`` the priors' rows (a prior narrows the spread of what it holds). ``W`` is the inverse of
+    the variance the residuals show after the fit: one for the position rows, one for the orientation rows
+    (their scatter differs); the priors' rows are in the position rows' units, as the cost weighs them."""
+    pose = res[:pose_rows].reshape(-1, width)
+    dof_share = max(1.0 - jac.shape[1] / pose_rows, 1e-3)  # the parameters take their share of the scatter
+    variance = np.array([np.mean(pose[:, b : b + 3] ** 2) / dof_share for b in range(0, width, 3)])
+    data = jac[:pose_rows] / np.sqrt(np.tile(np.repeat(variance, 3), len(pose)))[:, None]
+    priors = jac[pose_rows:] / np.sqrt(variance[0])
+    information = data.T @ data
+    inverse = np.linalg.inv(information + priors.T @ priors)
+    return inverse @ information @ inverse
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """How well the data pin the fitted parameters down: each one's σ (SI, NaN where not fitted), the
+    condition number of the problem with every column scaled to unit length, and the most correlated pairs.
+
+    σ takes the residuals left after the fit, tracker noise and what the stage does not model, as independent
+    from pose to pose: it is the spread expected between calibrations on new poses. Measuring the same poses
+    again varies only the noise, and the fits then spread less than σ says."""
+
+    sigma: np.ndarray
+    condition_number: float
+    correlated: tuple[tuple[str, str, float], ...]
+
+    @classmethod
+    def of(cls, covariance: np.ndarray, cols: np.ndarray, params: list[Parameter], keep: np.ndarray) -> Uncertainty:
+        """From the SI covariance of the fitted columns ``cols`` of ``params``; ``keep``: the chain's parameters
+        (the stations' corrections are fitted too, but reported with the referencing)."""
+        sd = np.sqrt(np.diag(covariance))
+        sigma = np.full(len(params), np.nan)
+        sigma[cols] = sd
+        correlation = covariance / np.outer(sd, sd)
+        eig = np.linalg.eigvalsh(correlation)
+        chain = np.flatnonzero(keep[cols])
+        upper = [(abs(correlation[i, j]), i, j) for a, i in enumerate(chain) for j in chain[a + 1 :]]
+        top = sorted(upper, reverse=True)[:CORRELATED_PAIRS]
+        pairs = tuple((params[cols[i]].name, params[cols[j]].name, float(correlation[i, j])) for _, i, j in top)
+        return cls(sigma[keep], float(np.sqrt(eig.max() / max(eig.min(), 1e-300))), pairs)
+
+    def manifest(self) -> dict[str, Any]:
+        return {
+            "condition_number": self.condition_number,
+            "correlated": [{"a": a, "b": b, "correlation": r} for a, b, r in self.correlated],
+        }
 
 
 def _soft_l1_cost(res: np.ndarray, scale: float) -> float:

@@ -525,21 +525,23 @@ def write_report(
     if par:
         fitted = [p for p in par["parameters"] if p["identifiable"]]
         free = [p for p in par["parameters"] if not p["identifiable"] and p["kind"] != "harmonic"]
-        rows = [[p["name"], p["value"], p["unit"]] for p in fitted if p["kind"] != "harmonic"]
+        rows = [[p["name"], p["value"], p.get("sigma", ""), p["unit"]] for p in fitted if p["kind"] != "harmonic"]
         # hundreds of Fourier coefficients of the cyclic joint errors: one line per joint says their size
         for joint in sorted({p["index"] for p in fitted if p["kind"] == "harmonic"}):
             values = np.array([p["value"] for p in fitted if p["kind"] == "harmonic" and p["index"] == joint])
             rms = np.degrees(np.sqrt(0.5 * np.sum(values**2))) * 3600.0
-            rows.append([f"cyclic error of joint {joint + 1}, rms over a turn ({len(values)} terms)", rms, "arcsec"])
+            label = f"cyclic error of joint {joint + 1}, rms over a turn ({len(values)} terms)"
+            rows.append([label, rms, "", "arcsec"])
         joint_map = JointMap.from_manifest(par["joint_map"]) if "joint_map" in par else None
         if joint_map is not None:
             for k, name in enumerate(m["joint_names"]):
                 rms = np.degrees(np.sqrt(np.mean(joint_map.values[k] ** 2))) * 3600.0
-                rows.append([f"joint error map of {name}, rms over its knots", rms, "arcsec"])
+                rows.append([f"joint error map of {name}, rms over its knots", rms, "", "arcsec"])
         parts += [
             f"<p>{len(fitted)} of {len(par['parameters'])} parameters identified; rms position error "
             f"{par['rms_before']['position_mm']:.4f} → {par['rms_after']['position_mm']:.4f} mm.</p>",
-            _table(["parameter", "value", "unit"], rows),
+            _table(["parameter", "value", "σ", "unit"], rows),
+            *_uncertainty_lines(par.get("uncertainty")),
             *(
                 [
                     f"<p>Joint error map: knots {np.degrees(joint_map.step):.3f} deg apart.</p>",
@@ -567,3 +569,15 @@ def write_report(
     )
     (out_dir / "report.json").write_text(json.dumps({**report, "iso9283": iso, "summary": summary}, indent=2) + "\n")
     return page, summary
+
+
+def _uncertainty_lines(uncertainty: dict | None) -> list[str]:
+    """The condition number and the most correlated pairs, under the parameter table."""
+    if not uncertainty:
+        return []
+    pairs = "; ".join(f"{c['a']} and {c['b']} ({c['correlation']:+.2f})" for c in uncertainty["correlated"])
+    return [
+        "<p>σ: the spread expected between calibrations on new poses, from the residuals the stage leaves. "
+        f"Condition number (columns scaled to unit length): {uncertainty['condition_number']:.1f}. "
+        f"Most correlated: {html.escape(pairs)}.</p>"
+    ]
