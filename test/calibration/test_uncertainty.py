@@ -3,12 +3,16 @@ calibrations on new poses, and it narrows as the poses grow."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
 from hybrid_kinematics_ros.calibration.parametric import identify
+from hybrid_kinematics_ros.io.pairs import write_pairs
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from hybrid_kinematics_ros.simulation.sampling import sample_joints
+from test.cli.inprocess import cli
 
 
 @pytest.fixture(scope="module")
@@ -51,3 +55,16 @@ def test_the_most_correlated_pairs_come_first_and_name_the_chains_parameters(cel
     names = {p.name for p in result.params}
     assert all({c["a"], c["b"]} <= names for c in section["correlated"])
     assert section["condition_number"] >= 1.0
+
+
+def test_the_model_and_its_report_carry_each_parameters_sigma(shoulder_model, tmp_path):
+    model_dir, _, te, _ = shoulder_model
+    section = json.loads((model_dir / "model.json").read_text())["parametric"]
+    assert section["uncertainty"]["condition_number"] >= 1.0
+    assert any("sigma" in p for p in section["parameters"])
+    bag = tmp_path / "held_out"
+    write_pairs(bag, te)
+    result = cli("report", "--model", str(model_dir), "--bag", str(bag), "--out", str(tmp_path / "report"))
+    assert result.returncode == 0, result.stderr
+    page = (tmp_path / "report" / "index.html").read_text()
+    assert "<th>σ</th>" in page and "Condition number" in page and "Most correlated" in page
