@@ -30,6 +30,7 @@ COMMANDS = {
     "evaluate": "evaluate",
     "report": "report",
     "verify": "verify",
+    "compare": "compare",
     "fk": "fk",
     "ik": "ik",
     "compensate": "compensate",
