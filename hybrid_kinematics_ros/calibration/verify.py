@@ -141,13 +141,19 @@ def _station(model: HybridModel, pairs: Pairs) -> tuple[Referencing | None, Pair
             f"least {MIN_REFERENCE_POSES} to place it and more to judge (give {2 * MIN_REFERENCE_POSES} or more)"
         )
     place, rest = pairs.subset(np.flatnonzero(pick)), pairs.subset(np.flatnonzero(~pick))
-    tips = model.fk(place.q, conditions=model.conditions_of(place.conditions, len(place)))
+    ref, how = place_station(model, place)
+    return ref, rest, how
+
+
+def place_station(model: HybridModel, pairs: Pairs) -> tuple[Referencing, str]:
+    """A station the model does not know, placed through the model from ``pairs``: with a 6-D probe the
+    target too, unless the poses leave it undetermined; else at the model's target. Also says how."""
+    tips = model.fk(pairs.q, conditions=model.conditions_of(pairs.conditions, len(pairs)))
     if not pairs.position_only and model.referencing is not None:  # the probe's orientation places the target too
-        (ref,) = reference_stations(model.chain, [place], [tips])
+        (ref,) = reference_stations(model.chain, [pairs], [tips])
         if not ref.undetermined:
-            return ref, rest, f"placed from {len(place)} of its poses, the target with it"
-    ref = _placed_with_target(model, place, tips)
-    return ref, rest, f"placed from {len(place)} of its poses with the model's target"
+            return ref, f"placed from {len(pairs)} of its poses, the target with it"
+    return _placed_with_target(model, pairs, tips), f"placed from {len(pairs)} of its poses with the model's target"
 
 
 def _placed_with_target(model: HybridModel, place: Pairs, tips: np.ndarray) -> Referencing:

@@ -30,6 +30,7 @@ COMMANDS = {
     "evaluate": "evaluate",
     "report": "report",
     "verify": "verify",
+    "update": "update",
     "compare": "compare",
     "fk": "fk",
     "ik": "ik",

@@ -1,0 +1,254 @@
+"""Update a calibration from a few new poses, in seconds, without retraining.
+
+The parent model is kept whole (its nets, bounds and cyclic terms); what moves is its parametric stage's
+identified parameters and the tracker stations. The stations of the new poses are placed through the parent
+(:func:`~hybrid_kinematics_ros.calibration.verify.place_station`) when it does not know them, and each gets a
+small correction of its tracker placement and target. The stage's parameters change from the parent's values
+against a prior that holds each by its σ (the parent's :class:`~.parametric.Uncertainty`), weighted by a
+factor. A few poses cannot say how much the robot changed since the parent's calibration, so the factor is
+chosen from the new poses themselves: each candidate is fitted on all but one of ``FOLDS`` contiguous blocks and
+judged on the one left out; an infinite factor, the stations alone, is among the candidates.
+
+The problem is linear: the nets depend on the joints only, and the stage's parameters and the stations'
+corrections are small, so the poses move linearly in them about the parent.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import shutil
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
+from hybrid_kinematics_ros.calibration.parametric import GEOMETRY_KINDS, ORIENTATION_LENGTH, SCALE
+from hybrid_kinematics_ros.calibration.verify import place_station
+from hybrid_kinematics_ros.io.pairs import Pairs
+from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.model.hybrid import HybridModel
+from hybrid_kinematics_ros.model.parametric import model_from_manifest
+from hybrid_kinematics_ros.model.referencing import Referencing
+
+FOLDS = 4  # contiguous blocks of the new poses that choose the prior's weight
+MIN_POSES = 20  # fewer cannot place a station and leave blocks to judge on
+PRIOR_WEIGHTS = (*10.0 ** np.arange(-6, 4), np.inf)  # the prior's weight, in units of the parent's information
+STEP = 1e-3  # of each parameter's scaled unit: the finite difference of the stage's columns
+STATION_STEP = 1e-6  # m or rad: the same for the stations' corrections
+CHANGES_LISTED = 10  # the largest changes (in σ) that model.json and the summary name
+
+
+@dataclass(frozen=True)
+class Problem:
+    """The new poses' residuals about the parent (``residual`` ``(N, w)``, position m then orientation rad ×
+    ``ORIENTATION_LENGTH``, at the target in the base frame) and how they change per unit of each column
+    (``jacobian`` ``(N, w, P)``): first the stage's parameters (``params``, indices into the manifest's list, per
+    ``unit`` SI), then each station's corrections (its tracker's placement, its target's offset and, with a 6-D
+    probe, turn). ``information`` ``(P,)``: the parent's, for a weight of one (zero for the stations)."""
+
+    residual: np.ndarray
+    jacobian: np.ndarray
+    information: np.ndarray
+    params: list[int]
+    unit: np.ndarray
+    refs: list[Referencing]
+    station: np.ndarray  # (N,) which of ``refs`` each pose was measured from
+    position_only: bool
+
+    def solve(self, weight: float, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """The columns' values for the prior ``weight`` (inf: the stations alone), fitted on pose ``rows``."""
+        design = self.jacobian[rows].reshape(-1, self.jacobian.shape[2])
+        free = np.ones(design.shape[1], dtype=bool)
+        if np.isinf(weight):
+            free[: len(self.params)] = False
+        ridge = np.diag(np.sqrt(weight * self.information[free])) if np.isfinite(weight) else np.zeros((0, free.sum()))
+        stacked = np.vstack([design[:, free], ridge])
+        target = np.r_[self.residual[rows].reshape(-1), np.zeros(len(ridge))]
+        out = np.zeros(design.shape[1])
+        out[free] = np.linalg.lstsq(stacked, target, rcond=None)[0]
+        return out
+
+    def position_mm(self, x: np.ndarray, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """Each pose's position error (mm) at the target after the columns' values ``x``."""
+        left = self.residual[rows] - self.jacobian[rows] @ x
+        return 1e3 * np.linalg.norm(left[:, :3], axis=1)
+
+    def stations_moved(self, x: np.ndarray) -> list[Referencing]:
+        """The stations' referencings with their corrections ``x`` applied."""
+        count = 9 if self.position_only else 12
+        out = []
+        for k, ref in enumerate(self.refs):
+            move = np.zeros(12)
+            move[:count] = x[len(self.params) + k * count : len(self.params) + (k + 1) * count]
+            placement = se3.from_rotvec(move[:3], move[3:6])[0]
+            mount = se3.from_rotvec(move[6:9], move[9:])[0]
+            out.append(
+                replace(
+                    ref,
+                    base_to_tracker=placement @ ref.base_to_tracker,
+                    flange_to_target=ref.flange_to_target @ mount,
+                    method="placed by update",
+                )
+            )
+        return out
+
+
+@dataclass(frozen=True)
+class Updated:
+    """The new model's manifest and what the update did (``record``, also in the manifest as ``update``)."""
+
+    manifest: dict[str, Any]
+    record: dict[str, Any]
+
+    def lines(self) -> list[str]:
+        r = self.record
+        weight = "the stations alone" if r["prior_weight"] is None else f"prior weight {r['prior_weight']:g}"
+        out = [
+            f"{r['poses']} poses; {weight}, chosen on {FOLDS} held-out blocks "
+            f"({r['held_out_position_mm_mean']:.4f} mm mean against {r['stations_only_position_mm_mean']:.4f} mm "
+            "with the stations alone)"
+        ]
+        out += [
+            f"  {c['name']}: {c['from']:+.4g} -> {c['to']:+.4g} {c['unit']} ({c['sigmas']:.1f} σ)" for c in r["changed"]
+        ]
+        return out
+
+
+def update(model: HybridModel, stations: Sequence[Pairs]) -> Updated:
+    """A child of ``model`` fitted to the new poses ``stations`` (one :class:`Pairs` per frame)."""
+    section = model.manifest.get("parametric")
+    if not section or "uncertainty" not in section:
+        raise CalibrationError(
+            "the model has no parametric stage with parameter σ to update: retrain it with this version's train"
+        )
+    count = sum(len(p) for p in stations)
+    if count < MIN_POSES:
+        raise CalibrationError(f"{count} new poses; an update needs at least {MIN_POSES}")
+    problem = _problem(model, section, stations)
+    blocks = np.array_split(np.arange(count), FOLDS)
+    held_out = {w: _held_out_mm(problem, w, blocks) for w in PRIOR_WEIGHTS}
+    weight = min(held_out, key=held_out.get)
+    x = problem.solve(weight)
+    manifest, changed = _child_manifest(model, section, problem, x)
+    record = {
+        "poses": count,
+        "stations": [ref.frame_id for ref in problem.refs],
+        "prior_weight": None if np.isinf(weight) else float(weight),
+        "held_out_position_mm_mean": float(held_out[weight]),
+        "stations_only_position_mm_mean": float(held_out[np.inf]),
+        "position_mm_mean": float(np.mean(problem.position_mm(x))),
+        "changed": changed,
+    }
+    manifest["parent"] = {"path": str(model.path), "sha256": _digest(model)}
+    manifest["update"] = record
+    return Updated(manifest, record)
+
+
+def write_updated(model: HybridModel, updated: Updated, out: Path) -> Path:
+    """The child model directory at ``out``: the parent's files with the updated ``model.json``."""
+    check_out(out)
+    shutil.copytree(model.path, out)
+    (out / "model.json").write_text(json.dumps(updated.manifest, indent=2) + "\n")
+    return out
+
+
+def check_out(out: Path) -> None:
+    """Refuse a child directory that exists: an update never writes over a model."""
+    if out.exists():
+        raise CalibrationError(f"{out} exists already: choose a new directory, the parent model stays as it is")
+
+
+def _digest(model: HybridModel) -> str:
+    return hashlib.sha256((Path(model.path) / "model.json").read_bytes()).hexdigest()
+
+
+def _held_out_mm(problem: Problem, weight: float, blocks: list[np.ndarray]) -> float:
+    errors = []
+    for k, block in enumerate(blocks):
+        rest = np.concatenate([b for j, b in enumerate(blocks) if j != k])
+        errors.append(problem.position_mm(problem.solve(weight, rest), block))
+    return float(np.mean(np.concatenate(errors)))
+
+
+def _problem(model: HybridModel, section: dict[str, Any], stations: Sequence[Pairs]) -> Problem:
+    """The update's linear problem about the parent, its stations placed."""
+    position_only = stations[0].position_only
+    if any(p.position_only != position_only for p in stations):
+        raise CalibrationError("the new poses mix 6-D and position-only stations: update with one kind at a time")
+    refs = [model.referencings.get(p.frame_id) or place_station(model, p)[0] for p in stations]
+    pairs = Pairs.concatenate(
+        [p.with_poses(ref.base_to_tracker @ p.T, p.frame_id) for ref, p in zip(refs, stations, strict=True)]
+    )
+    station = np.repeat(np.arange(len(stations)), [len(p) for p in stations])
+    conditions = model.conditions_of(pairs.conditions, len(pairs))
+    hybrid, stage = model.fk(pairs.q, conditions=conditions), model.fk(pairs.q, nets=False, conditions=conditions)
+    targets = np.stack([refs[k].flange_to_target for k in station])
+
+    def residual(tips: np.ndarray = stage, moves: np.ndarray | None = None) -> np.ndarray:
+        """Measured minus predicted at the target, for stage ``tips`` and the stations' ``moves`` ``(S, 12)``."""
+        moves = np.zeros((len(refs), 12)) if moves is None else moves
+        placement = se3.from_rotvec(moves[station, :3], moves[station, 3:6])
+        mount = se3.from_rotvec(moves[station, 6:9], moves[station, 9:])
+        served = tips.copy()  # the nets' correction, as the parent serves it: a shift and a turn in the base frame
+        served[:, :3, 3] += hybrid[:, :3, 3] - stage[:, :3, 3]
+        served[:, :3, :3] = hybrid[:, :3, :3] @ np.swapaxes(stage[:, :3, :3], 1, 2) @ tips[:, :3, :3]
+        measured, predicted = placement @ pairs.T, served @ targets @ mount
+        out = measured[:, :3, 3] - predicted[:, :3, 3]
+        if position_only:
+            return out
+        turn = Rotation.from_matrix(measured[:, :3, :3] @ np.swapaxes(predicted[:, :3, :3], 1, 2)).as_rotvec()
+        return np.hstack([out, ORIENTATION_LENGTH * turn])
+
+    r0 = residual()
+    params = [i for i, p in enumerate(section["parameters"]) if "sigma" in p and p["kind"] != "harmonic"]
+    unit = np.array([SCALE[section["parameters"][i]["kind"]] for i in params])
+    nominal = model_from_manifest(model.chain, section).fk(pairs.q)
+    columns = []
+    for i, u in zip(params, unit, strict=True):
+        moved = copy.deepcopy(section["parameters"])
+        moved[i]["value"] += STEP * u
+        shifted = model_from_manifest(model.chain, dict(section, parameters=moved)).fk(pairs.q)
+        columns.append((r0 - residual(shifted @ se3.inverse(nominal) @ stage)) / STEP)  # left motion of the tip
+    for k in range(len(refs)):
+        for c in range(9 if position_only else 12):  # a reflector's turn on the flange is not seen
+            moves = np.zeros((len(refs), 12))
+            moves[k, c] = STATION_STEP
+            columns.append((r0 - residual(stage, moves)) / STATION_STEP)
+    sigma = np.array([section["parameters"][i]["sigma"] for i in params])
+    information = np.zeros(len(columns))
+    information[: len(params)] = (unit / sigma) ** 2 * np.mean(r0**2)
+    return Problem(r0, np.stack(columns, axis=-1), information, params, unit, refs, station, position_only)
+
+
+def _child_manifest(
+    model: HybridModel, section: dict[str, Any], problem: Problem, x: np.ndarray
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The parent's manifest with the stage's parameters and the stations moved, and the largest changes."""
+    manifest = copy.deepcopy(model.manifest)
+    parameters = manifest["parametric"]["parameters"]
+    changed = []
+    for i, u, value in zip(problem.params, problem.unit, x[: len(problem.params)], strict=True):
+        entry, change = parameters[i], float(value * u)
+        entry["value"] += change
+        if entry["kind"] in GEOMETRY_KINDS:  # the geometry a URDF export carries moves with it
+            entry["rigid_value"] += change
+        sigmas = abs(change) / entry["sigma"]
+        changed.append(
+            {
+                "name": entry["name"],
+                "unit": entry["unit"],
+                "from": entry["value"] - change,
+                "to": entry["value"],
+                "sigmas": sigmas,
+            }
+        )
+    refs = {r.frame_id: r for r in model.referencings.values()}
+    refs.update({r.frame_id: r for r in problem.stations_moved(x)})
+    manifest["referencing"] = [r.manifest() for r in refs.values()]
+    return manifest, sorted(changed, key=lambda c: -c["sigmas"])[:CHANGES_LISTED]
