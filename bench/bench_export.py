@@ -44,12 +44,12 @@ from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from hybrid_kinematics_ros.simulation.sampling import sample_joints
 
 
-def trained_on_a(steps: int) -> tuple[HybridModel, Pairs, Pairs]:
+def trained_on_a(steps: int, out: Path | None = None) -> tuple[HybridModel, Pairs, Pairs]:
     """The real UR10's model of series A with ``train``'s recipe on four fifths (contiguous blocks): the model,
-    its training pairs and the held-out fifth."""
+    its training pairs and the held-out fifth. ``out``: the model directory to keep."""
     cfg = load_robot_config("ur10")
     train_pairs, _, held_out = split(load_series("A", cfg.chain.joint_names), 0, (0.0, 0.2))
-    model, *_ = fit_recipe(cfg, [train_pairs], train.PRESETS["fast"], (), 10.0, steps)
+    model, *_ = fit_recipe(cfg, [train_pairs], train.PRESETS["fast"], (), 10.0, steps, out=out)
     return model, train_pairs, held_out
 
 

@@ -108,12 +108,15 @@ def noise_floor(pairs: Pairs, chain, tolerance_rad: float = 1e-3) -> tuple[float
     return 1e3 * float(np.mean(np.linalg.norm(diff, axis=1))) / root2, float(np.mean(angle_deg)) / root2, len(close)
 
 
-def fit_recipe(cfg, train_sets, preset, conditions, minutes, steps, seed=0, capacity=None, choose_capacity=True):
+def fit_recipe(
+    cfg, train_sets, preset, conditions, minutes, steps, seed=0, capacity=None, choose_capacity=True, out=None
+):
     """Fit one recipe on ``train_sets`` (a tenth of each validates); returns the model, its manifest, the
     training pairs and the seconds. ``steps``: optimiser steps per net, the budget that load does not
     change (the paper's recipe stops early on validation, or at ``minutes``). ``minutes``: the cap per net
     trained, so a recipe that trains more nets (the ladder's sizes, an ensemble's members) gets more.
-    ``capacity`` and ``choose_capacity``: the stage's, as :class:`Recipe` takes them."""
+    ``capacity`` and ``choose_capacity``: the stage's, as :class:`Recipe` takes them. ``out``: the model
+    directory to keep (None: a temporary one)."""
     tr, va = zip(*[split(p, seed, (0.1, 0.0))[:2] for p in train_sets], strict=True)
     per_epoch = max(1, sum(len(p) for p in tr) // preset.batch)
     epochs = preset.max_epochs if preset.patience else max(1, steps // per_epoch)
@@ -130,7 +133,7 @@ def fit_recipe(cfg, train_sets, preset, conditions, minutes, steps, seed=0, capa
     )
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
-        model, manifest = fit(cfg.chain, list(tr), list(va), list(va), Path(tmp) / "m", recipe)
+        model, manifest = fit(cfg.chain, list(tr), list(va), list(va), out or Path(tmp) / "m", recipe)
         seconds = time.perf_counter() - start
     return model, manifest, list(tr), seconds
 

@@ -25,7 +25,7 @@ STEPS = [
     ["bench.bench_parametric", "referencing", "range", "table1", "--minutes", "10"],
     ["bench.bench_one_orientation"],
     ["bench.bench_export"],
-    ["bench.bench_verify"],
+    ["bench.bench_lifecycle"],
 ]
 
 
