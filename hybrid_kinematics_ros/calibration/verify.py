@@ -149,7 +149,7 @@ def place_station(model: HybridModel, pairs: Pairs) -> tuple[Referencing, str]:
     """A station the model does not know, placed through the model from ``pairs``: with a 6-D probe the
     target too, unless the poses leave it undetermined; else at the model's target. Also says how."""
     tips = model.fk(pairs.q, conditions=model.conditions_of(pairs.conditions, len(pairs)))
-    if not pairs.position_only and model.referencing is not None:  # the probe's orientation places the target too
+    if not pairs.position_only:  # the probe's orientation places the target too
         (ref,) = reference_stations(model.chain, [pairs], [tips])
         if not ref.undetermined:
             return ref, f"placed from {len(pairs)} of its poses, the target with it"
@@ -178,11 +178,11 @@ def _bound_test(
         beyond.append(rot_deg > np.degrees(orientation))
     level = model.bounds.level
     counts = [int(b.sum()) for b in beyond]
-    p_values = [_excess_p_value(c, len(pos_mm), level, model.bounds.figures.get("validation_pairs")) for c in counts]
+    p_values = [excess_p_value(c, len(pos_mm), level, model.bounds.figures.get("validation_pairs")) for c in counts]
     return max(counts), level, float(min(1.0, len(beyond) * min(p_values)))
 
 
-def _excess_p_value(over: int, count: int, level: float, validation: int | None) -> float:
+def excess_p_value(over: int, count: int, level: float, validation: int | None) -> float:
     """How unlikely ``over`` of ``count`` poses beyond a bound are for a model still as good as when its bound
     was set. The bound's coverage is known from its ``validation`` pairs alone, so the check is compared with
     them (Fisher's exact test, one-sided); without that count, with the nominal share (a binomial test)."""

@@ -15,7 +15,7 @@ from hybrid_kinematics_ros.kinematics.robot_config import RobotConfig, load_robo
 from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from hybrid_kinematics_ros.simulation.tracker import Tracker
-from hybrid_kinematics_ros.simulation.trajectory import random_waypoints, through
+from hybrid_kinematics_ros.simulation.trajectory import JointStep, random_waypoints, through
 
 START_NS = 1_700_000_000_000_000_000  # the robot clock at the recording's first joint state
 JOINT_HZ = 110.0
@@ -49,24 +49,28 @@ def simulated_recording(
     tracker_hz: float = 3000.0,
     encoder: tuple[float, float] | None = None,
     robot: str = "ur10",
+    step: JointStep | None = None,
+    dwell_s: float = 0.3,
 ) -> SimulatedRecording:
     """The simulated cell moving through ``waypoints`` random waypoints at ``speed`` rad/s for ``seconds``.
 
     The tracker's stamps are ``t + offset_s + drift_ppm·1e-6·t`` (t in s of the robot clock from the start);
     it starts 0.1 s before the joints and ends 0.1 s after. ``gap``: a beam break, from and to (s), with no
     tracker poses. ``frames``: the tracker's placement and the target's mount (as ``PLACED``; None: the
-    config's). ``encoder``: the joint readings' (noise sigma, quantisation step) in rad."""
+    config's). ``encoder``: the joint readings' (noise sigma, quantisation step) in rad. ``step``: a joint that
+    slips during the recording (the tracker sees it, the joint readings do not). ``dwell_s``: the still time at
+    each waypoint."""
     cfg = load_robot_config(robot)
     cell = VirtualCell.from_config(cfg, noise=noise)
     if frames is not None:
         cell = VirtualCell(cfg, cell.robot, Tracker.from_config({**cfg.tracker, **frames}, noise=noise))
     rng = np.random.default_rng(seed)
-    traj = through(random_waypoints(cfg.chain, waypoints, rng), speed, 0.3)
+    traj = through(random_waypoints(cfg.chain, waypoints, rng), speed, dwell_s)
     tj = np.arange(0.0, seconds, 1 / JOINT_HZ)
     tp = np.arange(-0.1, seconds + 0.1, 1 / tracker_hz)
     if gap is not None:
         tp = tp[(tp < gap[0]) | (tp >= gap[1])]
-    p, quat = pose_from_matrix(cell.measure(traj(tp), rng))
+    p, quat = pose_from_matrix(cell.measure(traj(tp) if step is None else step.reached(traj(tp), tp), rng))
     q = traj(tj)
     if encoder is not None:
         q = np.round((q + rng.normal(0.0, encoder[0], q.shape)) / encoder[1]) * encoder[1]

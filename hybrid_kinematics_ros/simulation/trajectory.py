@@ -71,3 +71,19 @@ def cube_waypoints(chain: Chain, centre_q: np.ndarray, side_m: float = 0.3) -> n
             raise SimulationError(f"cube corner {corner * half} m is not reachable from the centre; use a smaller side")
         out.append(result.q)
     return np.array(out)
+
+
+@dataclass(frozen=True)
+class JointStep:
+    """A joint that slips by ``rad`` at ``after_s`` (a re-mastering gone wrong, a slipped gear): the robot
+    reaches ``q + rad`` on that joint while its encoders still read ``q``."""
+
+    joint: int
+    rad: float
+    after_s: float
+
+    def reached(self, q: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """The joints the robot reaches at times ``t (B,)`` s when commanded ``q (B, n)``."""
+        out = np.array(q, dtype=float, copy=True)
+        out[np.asarray(t) >= self.after_s, self.joint] += self.rad
+        return out
