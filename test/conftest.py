@@ -54,7 +54,11 @@ EXAMPLE_ROBOT_DATA = "cmeel.prefix/share/example-robot-data/robots"
 # - the recorder's: each test streams tracker poses at 3 kHz in real time, and two at once overload 2 cores;
 # - those that name the same expensive session fixture (each trains models for about a minute): each
 #   worker builds the session fixtures its own tests use.
-REAL_TIME_MODULES = ("test/nodes/test_recorder.py", "test/nodes/test_recorder_real_cell.py")
+REAL_TIME_MODULES = (
+    "test/nodes/test_recorder.py",
+    "test/nodes/test_recorder_real_cell.py",
+    "test/nodes/test_kinematics_node_monitor.py",
+)
 ONE_WORKER_FIXTURES = ("shoulder_model", "thermal_models", "backlash_models")
 # the longest test (it runs every command of README.md and docs/ in turn) starts first, then the real-time
 # group, so that no worker waits for either at the end

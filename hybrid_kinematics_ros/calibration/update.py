@@ -29,6 +29,7 @@ from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.parametric import GEOMETRY_KINDS, ORIENTATION_LENGTH, SCALE
+from hybrid_kinematics_ros.calibration.referencing import reference_stations
 from hybrid_kinematics_ros.calibration.verify import place_station
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import se3
@@ -135,7 +136,7 @@ def update(model: HybridModel, stations: Sequence[Pairs]) -> Updated:
     held_out = {w: _held_out_mm(problem, w, blocks) for w in PRIOR_WEIGHTS}
     weight = min(held_out, key=held_out.get)
     x = problem.solve(weight)
-    manifest, changed = _child_manifest(model, section, problem, x)
+    manifest, changed = _child_manifest(model, stations, problem, x)
     record = {
         "poses": count,
         "stations": [ref.frame_id for ref in problem.refs],
@@ -227,7 +228,7 @@ def _problem(model: HybridModel, section: dict[str, Any], stations: Sequence[Pai
 
 
 def _child_manifest(
-    model: HybridModel, section: dict[str, Any], problem: Problem, x: np.ndarray
+    model: HybridModel, stations: Sequence[Pairs], problem: Problem, x: np.ndarray
 ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """The parent's manifest with the stage's parameters and the stations moved, and the largest changes."""
     manifest = copy.deepcopy(model.manifest)
@@ -251,4 +252,10 @@ def _child_manifest(
     refs = {r.frame_id: r for r in model.referencings.values()}
     refs.update({r.frame_id: r for r in problem.stations_moved(x)})
     manifest["referencing"] = [r.manifest() for r in refs.values()]
+    if "rigid_referencing" in manifest:  # "before" at a new station: the URDF model with its own referencing
+        rigid = {r.frame_id: r for r in model.rigid_referencings.values()}
+        for pairs in stations:
+            if pairs.frame_id not in rigid:
+                (rigid[pairs.frame_id],) = reference_stations(model.chain, [pairs])
+        manifest["rigid_referencing"] = [r.manifest() for r in rigid.values()]
     return manifest, sorted(changed, key=lambda c: -c["sigmas"])[:CHANGES_LISTED]

@@ -162,6 +162,11 @@ def joint_state_msg(q: np.ndarray, names: Sequence[str], stamp: Time) -> JointSt
     return msg
 
 
+def stamp_ns(stamp: Time) -> int:
+    """A header stamp in nanoseconds."""
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
 def stamp_is_zero(stamp: Time) -> bool:
     return stamp.sec == 0 and stamp.nanosec == 0
 

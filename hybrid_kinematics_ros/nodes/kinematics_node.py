@@ -16,7 +16,7 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 import numpy as np
 import rclpy
@@ -30,6 +30,8 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from hybrid_kinematics_interfaces.srv import CompensateTrajectory, ComputeFK, ComputeIK
+from hybrid_kinematics_ros.calibration.errors import CalibrationError
+from hybrid_kinematics_ros.calibration.monitor import DriftMonitor, MonitorOptions, MonitorStatus
 from hybrid_kinematics_ros.ik.compensate import MAX_JOINT_CORRECTION_RAD, compensate
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.solver import OTHER_BRANCH, IKOptions, IKSolver, freeze_heap, one_blas_thread
@@ -57,6 +59,7 @@ from hybrid_kinematics_ros.nodes.convert import (
     pose_with_covariance_msg,
     set_bounds,
     stamp_is_zero,
+    stamp_ns,
     trajectory_arrays,
     trajectory_msg,
     transform_msg_of_pose,
@@ -120,6 +123,22 @@ class KinematicsNode(Node):
             "warn",
             f"outside the joint range the nets were trained on: {range_policy.described()}",
         )
+        monitor_topic = declare(
+            "monitor_tracker_topic",
+            "",
+            "the tracker's live poses (geometry_msgs/PoseStamped): the node judges each still pose against the "
+            "model and reports drift on /diagnostics; empty: off",
+        )
+        window = declare("monitor_window", 100, "judged poses the drift test looks back over")
+        reference = declare("monitor_reference_poses", 20, "poses that place a tracker station the model does not know")
+        still = declare("monitor_still_s", 0.2, "a still run of the joints this long gives one pose (s)")
+        margin = declare(
+            "monitor_clock_margin_s", 0.05, "tracker poses this close to a still run's ends are left out (s)"
+        )
+        try:
+            monitor_options = MonitorOptions(window, reference, still, clock_margin_s=margin) if monitor_topic else None
+        except CalibrationError as exc:
+            raise StartupError(f"parameters monitor_*: {exc}") from exc
         self.coverage_radius = declare(
             "coverage_radius_rad",
             0.0,
@@ -178,6 +197,12 @@ class KinematicsNode(Node):
         # best effort (matches reliable and best-effort publishers) with a deep queue for bursts
         joint_qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.BEST_EFFORT)
         self.pose_node.create_subscription(JointState, topic, self._on_joint_state, joint_qos)
+        self._monitor_options = monitor_options
+        self.monitor = DriftMonitor(self.model, monitor_options) if monitor_options else None
+        self._drifted = False
+        if self.monitor is not None:
+            tracker_qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
+            self.pose_node.create_subscription(PoseStamped, monitor_topic, self._on_tracker_pose, tracker_qos)
         if diagnostics_period > 0:
             self.diag_pub = self.pose_node.create_publisher(DiagnosticArray, "/diagnostics", 10)
             self.pose_node.create_timer(diagnostics_period, self._publish_diagnostics)
@@ -366,6 +391,8 @@ class KinematicsNode(Node):
             )
             return
         self._latest = q
+        if self.monitor is not None:
+            self._watch(self.monitor.joints(stamp_ns(msg.header.stamp), q))
         with self._lock:
             model, values = self.model, self._conditions
             # a model with approach inputs follows the joints' directions of motion (a reload starts afresh)
@@ -377,6 +404,23 @@ class KinematicsNode(Node):
         if self.pose_pub is not None:
             with model.using(values):
                 self._publish_corrected_pose(model, q, msg)
+
+    def _on_tracker_pose(self, msg: PoseStamped) -> None:
+        p, o = msg.pose.position, msg.pose.orientation
+        try:
+            self.monitor.tracker(stamp_ns(msg.header.stamp), [p.x, p.y, p.z], [o.x, o.y, o.z, o.w], msg.header.frame_id)
+        except CalibrationError as exc:
+            self.get_logger().error(f"tracker monitor: {exc}", throttle_duration_sec=5.0)
+
+    def _watch(self, status: MonitorStatus | None) -> None:
+        """Log the monitor's verdict when it changes."""
+        if status is None or status.drifted == self._drifted:
+            return
+        self._drifted = status.drifted
+        if status.drifted:
+            self.get_logger().warn(status.message() + ": verify the model (hybrid-kinematics verify) or update it")
+        else:
+            self.get_logger().info(status.message())
 
     def _publish_corrected_pose(self, model: HybridModel, q: np.ndarray, msg: JointState) -> None:
         if model.range_policy == "refuse" and model.nets and not model.in_calibrated_range(q)[0]:
@@ -618,6 +662,8 @@ class KinematicsNode(Node):
             self.model, self.solver, self.compensator = model, solver, compensator
             self._conditions, self._unset = conditions, unset
             self._loads += 1
+            if self.monitor is not None:  # a new model is judged afresh
+                self.monitor, self._drifted = DriftMonitor(model, self._monitor_options), False
         freeze_heap()
         response.success, response.message = True, f"reloaded {self.model_dir or 'the URDF model'}"
         self.get_logger().info(response.message)
@@ -642,7 +688,19 @@ class KinematicsNode(Node):
             message=("calibrated model" if model.is_corrected else "analytic URDF model") + note,
             values=[KeyValue(key=k, value=v) for k, v in values.items()],
         )
-        msg = DiagnosticArray(status=[status])
+        statuses = [status]
+        if self.monitor is not None:
+            watch = self.monitor.status()
+            statuses.append(
+                DiagnosticStatus(
+                    level=DiagnosticStatus.WARN if watch.drifted else DiagnosticStatus.OK,
+                    name=f"{self.get_name()}: tracker monitor",
+                    hardware_id=model.chain.base_link,
+                    message=watch.message(),
+                    values=[KeyValue(key=k, value=str(v)) for k, v in asdict(watch).items()],
+                )
+            )
+        msg = DiagnosticArray(status=statuses)
         msg.header.stamp = self.pose_node.get_clock().now().to_msg()
         self.diag_pub.publish(msg)
 

@@ -26,10 +26,10 @@ from sensor_msgs.msg import JointState
 
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
-from hybrid_kinematics_ros.nodes.runtime import read_only_parameter, run_node
+from hybrid_kinematics_ros.nodes.runtime import StartupError, read_only_parameter, run_node
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from hybrid_kinematics_ros.simulation.tracker import Tracker
-from hybrid_kinematics_ros.simulation.trajectory import cube_waypoints, random_waypoints, through
+from hybrid_kinematics_ros.simulation.trajectory import JointStep, cube_waypoints, random_waypoints, through
 
 BLOCK_S = 0.01
 LATENESS_SAMPLES = 2_000_000
@@ -76,6 +76,12 @@ class SimCellNode(Node):
         self.encoder_noise = declare("encoder_noise_rad", 0.0, "joint encoder noise, standard deviation (rad)")
         self.encoder_step = declare("encoder_resolution_rad", 0.0, "joint encoder quantisation step (rad); 0: none")
 
+        slip = declare(
+            "slip", [0.0, 0.0, 0.0], "joint index, rad, after s: that joint slips then, its encoder does not see it"
+        )
+        if len(slip) != 3 or not float(slip[0]).is_integer():
+            raise StartupError(f"parameter slip: {list(slip)} is not [joint index, rad, after s]")
+        self.slip = JointStep(int(slip[0]), float(slip[1]), float(slip[2])) if slip[1] else None
         cfg = load_robot_config(robot)
         self.cell = VirtualCell.from_config(cfg, noise=noise)
         if any(np.any(np.asarray(v, dtype=float) != 0.0) for f in frames.values() for v in f.values()):
@@ -147,7 +153,8 @@ class SimCellNode(Node):
             tk += len(tt)
             breaks = [b for b in breaks if b[1] > t0] + self._beam_breaks(t0, t0 + BLOCK_S)
             qj = self._encoders(self.trajectory(tj))
-            measured = self.cell.measure(self.trajectory(tt), self.rng)
+            reached = self.trajectory(tt)
+            measured = self.cell.measure(reached if self.slip is None else self.slip.reached(reached, tt), self.rng)
             positions, quats = pose_from_matrix(measured)
             if self.plain_reflector:
                 quats = np.zeros_like(quats)  # the contract's "no orientation"
