@@ -678,18 +678,22 @@ def _identify(
 
 
 def _covariance(jac: np.ndarray, res: np.ndarray, pose_rows: int, width: int) -> np.ndarray:
-    """The covariance of the fitted (scaled) parameters, ``A⁻¹ JᵀWJ A⁻¹`` with ``A = JᵀWJ + RᵀR``, ``J`` the
-    pose rows and ``R`` the priors' rows (a prior narrows the spread of what it holds). ``W`` is the inverse of
-    the variance the residuals show after the fit: one for the position rows, one for the orientation rows
-    (their scatter differs); the priors' rows are in the position rows' units, as the cost weighs them."""
+    """The covariance of the fitted (scaled) parameters between fits on new poses: the sandwich
+    ``A⁻¹ (Σᵢ gᵢ gᵢᵀ) A⁻¹`` with ``A = JᵀWJ + RᵀR`` and ``gᵢ = JᵢᵀW rᵢ`` the pull of pose ``i``'s residual
+    (``J`` the pose rows, ``R`` the priors' rows: a prior narrows the spread of what it holds). What the stage
+    leaves unmodelled is larger at some poses than at others; the sandwich takes each pose's own residual, so
+    those poses weigh as much as they scatter. ``W`` weighs the position and orientation rows by the inverse
+    of their mean squared residual (their scatter differs); the priors' rows are in the position rows' units,
+    as the cost weighs them."""
     pose = res[:pose_rows].reshape(-1, width)
     dof_share = max(1.0 - jac.shape[1] / pose_rows, 1e-3)  # the parameters take their share of the scatter
-    variance = np.array([np.mean(pose[:, b : b + 3] ** 2) / dof_share for b in range(0, width, 3)])
-    data = jac[:pose_rows] / np.sqrt(np.tile(np.repeat(variance, 3), len(pose)))[:, None]
+    variance = np.array([np.mean(pose[:, b : b + 3] ** 2) for b in range(0, width, 3)])
+    weight = 1.0 / np.tile(np.repeat(variance, 3), len(pose))
+    data = jac[:pose_rows]
     priors = jac[pose_rows:] / np.sqrt(variance[0])
-    information = data.T @ data
-    inverse = np.linalg.inv(information + priors.T @ priors)
-    return inverse @ information @ inverse
+    inverse = np.linalg.inv(data.T @ (weight[:, None] * data) + priors.T @ priors)
+    pulls = np.einsum("nwp,nw->np", (weight[:, None] * data).reshape(len(pose), width, -1), pose)
+    return inverse @ (pulls.T @ pulls / dof_share) @ inverse
 
 
 @dataclass(frozen=True)
