@@ -28,8 +28,8 @@ from hybrid_kinematics_ros.calibration.evaluate import evaluate
 from hybrid_kinematics_ros.calibration.fit import fit, split
 from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
+from hybrid_kinematics_ros.kinematics.approach import approach_directions, arrival_directions, channel_names
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
-from hybrid_kinematics_ros.model.approach import approach_directions, arrival_directions, channel_names
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.simulation.backlash import BacklashCell
 

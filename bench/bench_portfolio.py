@@ -21,8 +21,8 @@ from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.evaluate import pose_errors_of
 from hybrid_kinematics_ros.calibration.fit import split
 from hybrid_kinematics_ros.io.pairs import Pairs
+from hybrid_kinematics_ros.kinematics import approach
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
-from hybrid_kinematics_ros.model import approach
 from hybrid_kinematics_ros.model.bounds import excess
 from hybrid_kinematics_ros.simulation.portfolio import CELLS, build_cell
 

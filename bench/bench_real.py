@@ -36,9 +36,8 @@ from hybrid_kinematics_ros.calibration.report import net_label, repeated_poses
 from hybrid_kinematics_ros.io.import_spec import load_spec_dict, spec_from_dict
 from hybrid_kinematics_ros.io.importer import import_table
 from hybrid_kinematics_ros.io.pairs import Pairs
-from hybrid_kinematics_ros.kinematics import fk, se3
+from hybrid_kinematics_ros.kinematics import approach, fk, se3
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
-from hybrid_kinematics_ros.model import approach
 from hybrid_kinematics_ros.model.parametric import model_from_manifest
 from hybrid_kinematics_ros.model.referencing import to_base_frame
 

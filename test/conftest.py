@@ -27,8 +27,8 @@ from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.fit import fit, split
 from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.io.pairs import Pairs
+from hybrid_kinematics_ros.kinematics.approach import channel_names
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
-from hybrid_kinematics_ros.model.approach import channel_names
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.simulation.backlash import BacklashCell
 from hybrid_kinematics_ros.simulation.cell import VirtualCell

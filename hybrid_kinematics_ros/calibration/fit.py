@@ -34,9 +34,9 @@ from hybrid_kinematics_ros.io.pairs import (
     bag_topics,
     read_pairs,
 )
+from hybrid_kinematics_ros.kinematics import approach
 from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
-from hybrid_kinematics_ros.model import approach
 from hybrid_kinematics_ros.model.bounds import Bounds, excess
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.model.referencing import Referencing, to_base_frame

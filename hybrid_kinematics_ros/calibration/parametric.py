@@ -456,7 +456,7 @@ def _identify(
     Position-only: ``T`` holds the measured target points and ``target`` (m, ``(3,)`` or ``(N, 3)``) their
     offset in the tip frame, which makes the flange's rotation observable. ``gravity``: m/s² in the base
     frame (None: −9.81 along z, a floor mount; a wall or ceiling mount needs its own). ``directions (N, n)``:
-    the joints' approach directions (:mod:`model.approach`); with the ``backlash`` kind, each joint seen
+    the joints' approach directions (:mod:`kinematics.approach`); with the ``backlash`` kind, each joint seen
     arriving both ways gets a backlash term (its angle shifted by ``b`` times its direction), which the served
     model applies with the directions it is given.
 

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from hybrid_kinematics_ros.io.pairs import Pairs
-from hybrid_kinematics_ros.model.approach import is_channel
+from hybrid_kinematics_ros.kinematics.approach import is_channel
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 # The verdict asks this share of the test poses to lie within the tolerance: the p95 a calibration is

@@ -23,8 +23,8 @@ from hybrid_kinematics_ros.cli.common import (
     gravity_from_args,
     payload_from_args,
 )
+from hybrid_kinematics_ros.kinematics import approach
 from hybrid_kinematics_ros.kinematics.chain import Chain
-from hybrid_kinematics_ros.model import approach
 
 PLAIN_INTERVAL_S = 5.0  # off a terminal: one progress line this often
 

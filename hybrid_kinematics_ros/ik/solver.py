@@ -46,7 +46,7 @@ composes the parts, with ``solve``, ``solve_many`` and ``solve_trajectory``.
    other closed-form branches get a few fixed-point rounds each (near a wrist singularity the seed's fixed
    point wanders among the members of a continuum, where the others converge in a few rounds): one that solves
    waits in reserve, and is the answer, said so, if the seed's branch finds nothing within the budget.
-4. A model whose nets take the joints' approach directions (:mod:`~hybrid_kinematics_ros.model.approach`)
+4. A model whose nets take the joints' approach directions (:mod:`~hybrid_kinematics_ros.kinematics.approach`)
    is refined with the directions the robot arrives in when it moves from the seed (where it is) to the
    solution, not with the last ones it moved in: the sign of each joint's move, the current direction for
    a joint that does not move. A trajectory's poses arrive from the pose before. As the solution fixes the
@@ -82,8 +82,7 @@ from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.lm import ChainFkJac, error6, joint_limits, lm_solve
 from hybrid_kinematics_ros.ik.refine import HybridRefiner
 from hybrid_kinematics_ros.ik.valley import valley_starts, warm_up
-from hybrid_kinematics_ros.kinematics import se3
-from hybrid_kinematics_ros.model import approach
+from hybrid_kinematics_ros.kinematics import approach, se3
 from hybrid_kinematics_ros.model.hybrid import COMPILED_ROWS, HybridModel
 
 # Budget shares. CLASSICAL_SHARE: a target the URDF model cannot reach exactly (near the edge of its

@@ -25,8 +25,8 @@ from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from hybrid_kinematics_ros.io.errors import DataError
+from hybrid_kinematics_ros.kinematics.approach import approach_directions, channel_names, is_channel
 from hybrid_kinematics_ros.kinematics.se3 import matrix_from_pose, pose_from_matrix
-from hybrid_kinematics_ros.model.approach import approach_directions, channel_names, is_channel
 
 JOINTS_TOPIC = "/calibration/joint_states"
 POSE_TOPIC = "/calibration/tracker_pose"
@@ -94,7 +94,7 @@ class Pairs:
         return np.tile(np.eye(4), (len(self), 1, 1)) if self.target is None else self.target
 
     def with_approach(self) -> Pairs:
-        """The same samples with each joint's approach direction (:mod:`model.approach`) as condition
+        """The same samples with each joint's approach direction (:mod:`kinematics.approach`) as condition
         channels ``approach_<joint>``, from the order of the samples: call it on one recording, in stamp
         order, before it is concatenated or split."""
         directions = approach_directions(self.q)

@@ -115,7 +115,7 @@ class ElasticChain:
 
     def approached(self, q: np.ndarray, directions: np.ndarray | None) -> np.ndarray:
         """Commanded joints ``(…, n)`` as the backlash leaves them, given the joints' approach directions
-        ``(…, n)`` (:mod:`model.approach`; None: unknown, no shift). The FK methods take joints shifted so: the
+        ``(…, n)`` (:mod:`kinematics.approach`; None: unknown, no shift). The FK methods take joints shifted so: the
         directions are not a function of the joints, so the caller, who knows them, applies them."""
         if self.backlash is None or directions is None:
             return q

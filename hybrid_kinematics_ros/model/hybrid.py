@@ -35,12 +35,12 @@ from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.io.model_dir import load_model_dir
-from hybrid_kinematics_ros.kinematics import fk
+from hybrid_kinematics_ros.kinematics import approach, fk
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
 from hybrid_kinematics_ros.kinematics.se3 import exp_so3, pose_errors, rodrigues_one, skew
 from hybrid_kinematics_ros.kinematics.unrolled import Rows, unrolled_fk
-from hybrid_kinematics_ros.model import approach, pose_kernel
+from hybrid_kinematics_ros.model import pose_kernel
 from hybrid_kinematics_ros.model.bounds import DISTANCE, Bounds, excess
 from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.model.nets import FastResidual
@@ -483,7 +483,7 @@ class HybridModel:
         self.condition_values[self.condition_names.index(name)] = float(value)
 
     def set_approach(self, directions: np.ndarray) -> None:
-        """The joints' current approach directions ``(n,)`` in {-1, 0, +1} (:mod:`model.approach`), used
+        """The joints' current approach directions ``(n,)`` in {-1, 0, +1} (:mod:`kinematics.approach`), used
         from now on; ignored by a model whose nets do not take them."""
         if self.approach_index is not None:
             self.condition_values[self.approach_index] = directions

@@ -36,14 +36,15 @@ from hybrid_kinematics_ros.ik.compensate import MAX_JOINT_CORRECTION_RAD, compen
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.solver import OTHER_BRANCH, IKOptions, IKSolver, freeze_heap, one_blas_thread
 from hybrid_kinematics_ros.io.errors import DataError
+from hybrid_kinematics_ros.kinematics import approach
+from hybrid_kinematics_ros.kinematics.approach import ApproachTracker
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
 from hybrid_kinematics_ros.kinematics.paths import resolve_path
 from hybrid_kinematics_ros.kinematics.ur_kinematics import BASE_LINK as UR_BASE_LINK
 from hybrid_kinematics_ros.kinematics.ur_kinematics import TIP_LINK as UR_TIP_LINK
 from hybrid_kinematics_ros.kinematics.ur_kinematics import chain_from_ur_kinematics, ur_urdf
-from hybrid_kinematics_ros.model import approach, range_policy
-from hybrid_kinematics_ros.model.approach import ApproachTracker
+from hybrid_kinematics_ros.model import range_policy
 from hybrid_kinematics_ros.model.errors import ModelError
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.model.range_policy import OUTSIDE

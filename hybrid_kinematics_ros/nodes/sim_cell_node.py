@@ -29,7 +29,7 @@ from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
 from hybrid_kinematics_ros.nodes.runtime import StartupError, read_only_parameter, run_node
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from hybrid_kinematics_ros.simulation.tracker import Tracker
-from hybrid_kinematics_ros.simulation.trajectory import JointStep, cube_waypoints, random_waypoints, through
+from hybrid_kinematics_ros.simulation.trajectory import JointStep, random_waypoints, through
 
 BLOCK_S = 0.01
 LATENESS_SAMPLES = 2_000_000
@@ -96,7 +96,13 @@ class SimCellNode(Node):
                 if cfg.name == "ur10"
                 else centre
             )
-            points = cube_waypoints(cfg.chain, centre)
+            from hybrid_kinematics_ros.ik.cube import cube_waypoints  # IK loads torch: only for this pattern
+            from hybrid_kinematics_ros.ik.errors import IKError
+
+            try:
+                points = cube_waypoints(cfg.chain, centre)
+            except IKError as exc:
+                raise StartupError(f"parameter pattern cube: {exc}") from exc
         else:
             points = random_waypoints(cfg.chain, int(waypoints), self.rng)
         self.trajectory = through(points, speed, dwell)

@@ -2,8 +2,8 @@
 
 Between waypoints every joint follows the same smoothstep profile (zero velocity at both ends), timed so
 the fastest joint moves at ``speed`` rad/s on average; the robot then dwells for ``dwell_s`` (still
-windows for static-mode recording). Patterns: ``random`` waypoints in a reduced joint range, and
-``cube``, the ISO 9283 test cube (its 8 corners and centre) reached through analytic IK.
+windows for static-mode recording). Waypoints: ``random`` ones in a reduced joint range here; the ISO 9283
+test cube's come from IK (:func:`hybrid_kinematics_ros.ik.cube.cube_waypoints`).
 """
 
 from __future__ import annotations
@@ -51,26 +51,6 @@ def through(waypoints: np.ndarray, speed: float, dwell_s: float) -> Trajectory:
 def random_waypoints(chain: Chain, count: int, rng: np.random.Generator, fraction: float = 0.6) -> np.ndarray:
     lo, hi = joint_range(chain, fraction)
     return rng.uniform(lo, hi, (count, chain.dof))
-
-
-def cube_waypoints(chain: Chain, centre_q: np.ndarray, side_m: float = 0.3) -> np.ndarray:
-    """ISO 9283 cube: centre and 8 corners around the tip pose at ``centre_q``, orientation kept."""
-    from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
-    from hybrid_kinematics_ros.kinematics import fk
-    from hybrid_kinematics_ros.model.hybrid import HybridModel
-
-    solver = IKSolver(HybridModel.analytic_only(chain), IKOptions(timeout_s=0.5))
-    centre = fk.fk_single(chain, centre_q)
-    out = [np.asarray(centre_q, dtype=float)]
-    half = side_m / 2
-    for corner in np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).T.reshape(-1, 3):
-        target = centre.copy()
-        target[:3, 3] += half * corner
-        result = solver.solve(target, out[-1], analytic=True)
-        if not result.success:
-            raise SimulationError(f"cube corner {corner * half} m is not reachable from the centre; use a smaller side")
-        out.append(result.q)
-    return np.array(out)
 
 
 @dataclass(frozen=True)

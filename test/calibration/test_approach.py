@@ -11,7 +11,7 @@ from hybrid_kinematics_ros.calibration.evaluate import evaluate
 from hybrid_kinematics_ros.calibration.fit import load_stations
 from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.io.pairs import write_pairs
-from hybrid_kinematics_ros.model.approach import ApproachTracker, approach_directions, channel_names
+from hybrid_kinematics_ros.kinematics.approach import ApproachTracker, approach_directions, channel_names
 from hybrid_kinematics_ros.simulation.backlash import play
 from test.conftest import backlash_pairs
 

@@ -11,8 +11,7 @@ import numpy as np
 import pytest
 
 from hybrid_kinematics_ros.io.pairs import Pairs, write_pairs
-from hybrid_kinematics_ros.kinematics import se3
-from hybrid_kinematics_ros.model import approach
+from hybrid_kinematics_ros.kinematics import approach, se3
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from hybrid_kinematics_ros.simulation.tracker import Tracker

@@ -9,7 +9,7 @@ from functools import partial
 import numpy as np
 
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
-from hybrid_kinematics_ros.model.approach import approach_directions, arrival_directions
+from hybrid_kinematics_ros.kinematics.approach import approach_directions, arrival_directions
 from hybrid_kinematics_ros.simulation.backlash import BacklashCell
 
 # a budget no loaded machine runs out of, and tolerances far below the tenths of a millimetre at stake
