@@ -192,12 +192,11 @@ def policies(label: str, tested: str, model, pairs) -> list:
     nets, and the coverage of the bounds it served. Leaves the model's policy at ``warn``."""
     errors = {}
     for policy in POLICIES:
-        model.range_policy = policy
-        errors[policy] = pose_errors_of(model, pairs)["hybrid"]
+        errors[policy] = pose_errors_of(model.with_range_policy(policy), pairs)["hybrid"]
     bound_pos, bound_rot = model.error_bounds(pairs.q)
-    served = model._nets_apply(model.same_turn(pairs.q))
+    bound = model.with_range_policy("bound")
+    served = bound._nets_apply(bound.same_turn(pairs.q))
     served = np.ones((len(pairs), 2)) if served is True else served
-    model.range_policy = "warn"
     pos_mm, rot_deg = errors["bound"]
     covered = f"{100 * np.mean(pos_mm <= 1e3 * bound_pos):.1f}"
     if bound_rot is not None:

@@ -165,8 +165,7 @@ def extrapolation(minutes: float) -> None:
         for policy in ("warn", "parametric", "bound"):
             if policy == "parametric" and not parametric:
                 continue
-            model.range_policy = policy
-            report = evaluate(model, te)
+            report = evaluate(model.with_range_policy(policy), te)
             for where in ("inside", "outside"):
                 stats = report[f"hybrid_{where}_range"]
                 rows.append(row(f"{label}, policy `{policy}`, {where} ({stats['count']} poses)", stats))

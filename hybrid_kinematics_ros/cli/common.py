@@ -76,9 +76,9 @@ def add_range_args(p: argparse.ArgumentParser) -> None:
     add_coverage_arg(p)
 
 
-def apply_range_args(model: HybridModel, args: argparse.Namespace) -> None:
-    model.range_policy = args.out_of_range
-    model.coverage_radius = args.coverage_radius
+def with_range_args(model: HybridModel, args: argparse.Namespace) -> HybridModel:
+    """``model`` serving outside its calibrated range as ``--out-of-range`` and ``--coverage-radius`` say."""
+    return model.with_range_policy(args.out_of_range).with_coverage_radius(args.coverage_radius)
 
 
 def robot_given(args: argparse.Namespace) -> bool:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hybrid_kinematics_ros.cli.common import add_range_args, apply_range_args, read_csv, write_csv
+from hybrid_kinematics_ros.cli.common import add_range_args, read_csv, with_range_args, write_csv
 from hybrid_kinematics_ros.ik.compensate import MAX_JOINT_CORRECTION_RAD, compensate
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
@@ -38,7 +38,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     model = HybridModel.load(args.model)
-    apply_range_args(model, args)
+    model = with_range_args(model, args)
     names = list(model.joint_names)
     header, _ = read_csv(args.joints)
     _, values = read_csv(args.joints, (TIME_COLUMN, *names))

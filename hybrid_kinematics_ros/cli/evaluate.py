@@ -25,7 +25,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     model = HybridModel.load(args.model)
     if args.coverage_radius is not None:  # evaluate the model as served with it: no nets beyond the radius
-        model.coverage_radius, model.range_policy = args.coverage_radius, "parametric"
+        model = model.with_coverage_radius(args.coverage_radius).with_range_policy("parametric")
     pairs = load_pairs(args.bag, model.chain, referencings=model.referencings)
     errors = pose_errors_of(model, pairs)  # for the statistics and the plots alike
     report = {"model": str(args.model), "bags": [str(b) for b in args.bag], **evaluate(model, pairs, errors)}

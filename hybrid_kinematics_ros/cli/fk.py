@@ -13,11 +13,11 @@ from hybrid_kinematics_ros.cli.common import (
     POSE_COLUMNS,
     add_range_args,
     add_robot_args,
-    apply_range_args,
     bound_columns,
     bound_names,
     chain_from_args,
     read_csv,
+    with_range_args,
     write_csv,
 )
 from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
@@ -43,7 +43,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     model = HybridModel.load(args.model) if args.model else HybridModel.analytic_only(chain_from_args(args))
-    apply_range_args(model, args)
+    model = with_range_args(model, args)
     _, q = read_csv(args.joints, model.joint_names)
     if not args.analytic:
         model.check_range(q)

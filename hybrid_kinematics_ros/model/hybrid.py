@@ -134,10 +134,10 @@ class HybridModel:
             np.array([self.condition_names.index(n) for n in names]) if names[0] in self.condition_names else None
         )
         section = self.manifest.get("bounds")
-        # a section of the first kind (grown with the distance to the nearest training configuration, before
-        # 2026-11-26) is not read: its numbers mean something else; such a model serves without bounds
+        # bounds of another distance measure are not read: their numbers mean something else; such a model
+        # serves without bounds
         self.bounds = Bounds.from_manifest(section) if section and section.get("distance") == DISTANCE else None
-        self.range_policy = range_policy
+        self._range_policy = self._checked_policy(range_policy)
         # the compiled one-configuration paths load (or, on a fresh checkout, compile) here, not in a first request
         mid = chain.mid_limits()
         self.fk_single(mid)
@@ -147,8 +147,13 @@ class HybridModel:
     def range_policy(self) -> str:
         return self._range_policy
 
-    @range_policy.setter
-    def range_policy(self, value: str) -> None:
+    def with_range_policy(self, value: str) -> HybridModel:
+        """This model serving outside its calibrated range by policy ``value`` (:data:`RANGE_POLICIES`)."""
+        clone = self._clone()
+        clone._range_policy = self._checked_policy(value)
+        return clone
+
+    def _checked_policy(self, value: str) -> str:
         if value not in RANGE_POLICIES:
             raise ModelError(f"range policy '{value}' is not one of {', '.join(RANGE_POLICIES)}")
         if value == "bound" and self.nets and (self.bounds is None or not self.bounds.has_stage):
@@ -156,7 +161,7 @@ class HybridModel:
                 f"range policy 'bound' compares the nets' error bounds with the parametric stage's, and model "
                 f"{self.path or ''} carries no bounds of its stage alone; retrain it with this version"
             )
-        self._range_policy = value
+        return value
 
     @property
     def coverage_radius(self) -> float | None:
@@ -164,8 +169,9 @@ class HybridModel:
         counts as outside the calibrated range; None: the per-joint trained range alone decides."""
         return self._coverage_radius
 
-    @coverage_radius.setter
-    def coverage_radius(self, value: float | None) -> None:
+    def with_coverage_radius(self, value: float | None) -> HybridModel:
+        """This model with the calibrated range within ``value`` rad of a training configuration (None: the
+        per-joint trained range)."""
         if value is not None:
             if not (np.isfinite(value) and value > 0):
                 raise ModelError(f"coverage radius {value} must be a positive number of radians")
@@ -174,7 +180,22 @@ class HybridModel:
                     f"model {self.path or ''} stores no training configurations (coverage.npy); "
                     "retrain it with this version to use a coverage radius"
                 )
-        self._coverage_radius = None if value is None else float(value)
+        clone = self._clone()
+        clone._coverage_radius = None if value is None else float(value)
+        return clone
+
+    def with_gravity(self, gravity: np.ndarray) -> HybridModel:
+        """This model with the parametric stage's gravity ``(3,)`` m/s² in the base frame (a wall or ceiling
+        mount)."""
+        clone = self._clone()
+        clone.base = replace(self.base, gravity=np.asarray(gravity, dtype=float))
+        return clone
+
+    def _clone(self) -> HybridModel:
+        """A shallow copy for a ``with_*`` value: it shares the loaded parts, not a thread's condition values."""
+        clone = copy.copy(self)
+        clone._local = threading.local()
+        return clone
 
     def coverage_distance(self, q: np.ndarray) -> np.ndarray | None:
         """``(B,)`` Euclidean joint-space distance (rad) to the nearest training configuration; None when
@@ -413,9 +434,8 @@ class HybridModel:
                 "the model has no elastic parametric stage (no compliance) to follow a payload; retrain it with "
                 "the payload the robot carries"
             )
-        clone = copy.copy(self)
+        clone = self._clone()
         clone.base = replace(self.base, payload_mass=float(mass), payload_com=com)
-        clone._local = threading.local()
         trained_mass, trained_com = self.trained_payload
         clone.payload_changed = not (mass == trained_mass and np.allclose(com, trained_com, rtol=0.0, atol=1e-9))
         return clone

@@ -16,7 +16,7 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict
 
 import numpy as np
 import rclpy
@@ -258,8 +258,8 @@ class KinematicsNode(Node):
                         )
             else:
                 model = HybridModel.analytic_only(self._analytic_chain())
-            model.range_policy = self.range_policy
-            model.coverage_radius = self.coverage_radius if self.coverage_radius > 0 else None
+            model = model.with_range_policy(self.range_policy)
+            model = model.with_coverage_radius(self.coverage_radius if self.coverage_radius > 0 else None)
             gravity = np.asarray(self.gravity, dtype=float)
             if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
                 raise StartupError(f"parameter gravity: {list(self.gravity)} is not three finite numbers (m/s²)")
@@ -270,7 +270,7 @@ class KinematicsNode(Node):
                     "was identified with; retrain with the robot config's gravity, or leave the parameter unset"
                 )
             if np.any(gravity):
-                model.base = replace(model.base, gravity=gravity)
+                model = model.with_gravity(gravity)
             model = self._carrying(
                 model, self.get_parameter("payload_mass").value, self.get_parameter("payload_com").value
             )

@@ -144,19 +144,19 @@ def test_the_bound_policy_serves_each_net_where_its_bound_beats_the_stage(should
     the bound of what served it, and far beyond, where the nets extrapolate worse than the stage, it beats
     ``warn`` and is as good as the stage alone."""
     out, _, inside, _ = shoulder_model
-    model = HybridModel.load(out)  # its own copy: the policy changes below stay here
+    model = HybridModel.load(out)
     far = VirtualCell.from_config(ur10, noise=False).pairs(shoulder_configurations(300, (1.0, 2.5), seed=3), seed=3)
     assert model.bounds.has_stage
     assert model.bounds.position.stage_quantile > model.bounds.position.quantile  # the nets help inside
     answers = {}
     for policy in ("warn", "bound"):
-        model.range_policy = policy
+        by = model.with_range_policy(policy)
         answers[policy] = {
-            name: (model.fk(p.q), model.error_bounds(p.q), pose_errors_of(model, p)["hybrid"])
+            name: (by.fk(p.q), by.error_bounds(p.q), pose_errors_of(by, p)["hybrid"])
             for name, p in (("inside", inside), ("far", far))
         }
     np.testing.assert_array_equal(answers["bound"]["inside"][0], answers["warn"]["inside"][0])
-    use = model._nets_apply(model.same_turn(far.q))
+    use = by._nets_apply(by.same_turn(far.q))
     assert 0 < use[:, 0].sum() < len(far)  # the position net is dropped where its bound is the larger
     stage_pose, hybrid_pose, served = model.fk(far.q, nets=False), answers["warn"]["far"][0], answers["bound"]["far"][0]
     np.testing.assert_allclose(served[~use[:, 0], :3, 3], stage_pose[~use[:, 0], :3, 3], atol=1e-12)
@@ -174,7 +174,7 @@ def test_the_bound_policy_serves_each_net_where_its_bound_beats_the_stage(should
     assert pos_mm["bound"].mean() < 1.03 * pose_errors_of(model, far)["parametric"][0].mean()
     assert np.mean(pos_mm["bound"] <= 1e3 * answers["bound"]["far"][1][0]) >= 0.9
     # another payload than the nets were trained with: their bound does not know it, so the stage serves
-    heavy = model.with_payload(12.0, np.array([0.0, 0.0, 0.1]))
+    heavy = model.with_range_policy("bound").with_payload(12.0, np.array([0.0, 0.0, 0.1]))
     np.testing.assert_array_equal(heavy.fk(inside.q[:20]), heavy.fk(inside.q[:20], nets=False))
     assert not np.array_equal(model.fk(inside.q[:20]), model.fk(inside.q[:20], nets=False))
 
@@ -207,18 +207,17 @@ def test_under_another_payload_the_bound_adds_what_no_measurement_checked(should
     moved_mm, moved_deg = se3.pose_errors(heavy.fk(q, nets=False), model.fk(q, nets=False))
     dp, w = heavy.residuals(q)
     for policy, nets in (("warn", 1.0), ("parametric", 0.0)):
-        heavy.range_policy = policy
-        position, orientation = heavy.error_bounds(pairs.q)
+        served = heavy.with_range_policy(policy)
+        position, orientation = served.error_bounds(pairs.q)
         np.testing.assert_allclose(position, stage[0] + 1e-3 * moved_mm + nets * np.linalg.norm(dp, axis=1), rtol=1e-9)
         np.testing.assert_allclose(
             orientation, stage[1] + np.radians(moved_deg) + nets * np.linalg.norm(w, axis=1), rtol=1e-9
         )
-        one = heavy.error_bounds(pairs.q[0])  # a service's single configuration: the same bound
+        one = served.error_bounds(pairs.q[0])  # a service's single configuration: the same bound
         np.testing.assert_allclose(one[0], position[:1], rtol=1e-6)  # the nets in float32 on either path
-        pos_mm, rot_deg = pose_errors_of(heavy, pairs)["hybrid"]
+        pos_mm, rot_deg = pose_errors_of(served, pairs)["hybrid"]
         covered = np.mean(pos_mm <= 1e3 * position), np.mean(rot_deg <= np.degrees(orientation))
         assert min(covered) >= 0.9, (policy, covered)
-    heavy.range_policy = "warn"
     pos_mm, rot_deg = pose_errors_of(heavy, pairs)["hybrid"]
     own = model.error_bounds(pairs.q)  # what the calibrated bounds claim: they do not hold here
     assert np.mean(pos_mm <= 1e3 * own[0]) < 0.5

@@ -73,11 +73,10 @@ def test_the_compiled_pose_is_the_batch_paths(trained, thermal_models, shoulder_
     path, _, inside, beyond = shoulder_model
     model = HybridModel.load(path)
     _compiled_against_batch(model, inside.q[:24])
-    model.range_policy = "bound"  # beyond the shoulder's range each net serves where its bound is the lower
-    serve = model._nets_apply(model.same_turn(beyond.q[:40]))
+    bound = model.with_range_policy("bound")  # beyond the shoulder's range each net serves where its bound is lower
+    serve = bound._nets_apply(bound.same_turn(beyond.q[:40]))
     assert serve is not True and serve.any() and not serve.all()  # some nets off, some on
-    _compiled_against_batch(model, beyond.q[:40])
-    model.range_policy = "warn"
+    _compiled_against_batch(bound, beyond.q[:40])
     before = model.fk_single(inside.q[0])
     heavier = model.with_payload(model.base.payload_mass + 5.0, model.base.payload_com)
     _compiled_against_batch(heavier, inside.q[:24])
@@ -221,18 +220,19 @@ def test_range_policies(trained):
     q = np.array([[0.1, -1.0, 1.0, -1.0, 1.0, 0.0], [0.1, -1.0, model.trained_upper[2] + 0.05, -1.0, 1.0, 0.0]])
     assert list(model.in_calibrated_range(q)) == [True, False]
     warn = model.fk(q)
-    model.range_policy = "parametric"
-    fallback = model.fk(q)
+    parametric = model.with_range_policy("parametric")
+    fallback = parametric.fk(q)
     np.testing.assert_array_equal(fallback[0], warn[0])
     np.testing.assert_array_equal(fallback[1], model.fk(q[1:], nets=False)[0])
-    np.testing.assert_allclose(model.fk_single(q[1]), fallback[1], atol=1e-12)
-    np.testing.assert_allclose(model.fk_and_jacobian(q)[0], fallback, atol=1e-12)
-    model.range_policy = "refuse"
-    model.check_range(q[:1])
+    np.testing.assert_allclose(parametric.fk_single(q[1]), fallback[1], atol=1e-12)
+    np.testing.assert_allclose(parametric.fk_and_jacobian(q)[0], fallback, atol=1e-12)
+    np.testing.assert_array_equal(model.fk(q), warn)  # the value it came from serves as before
+    refuse = model.with_range_policy("refuse")
+    refuse.check_range(q[:1])
     with pytest.raises(ModelError, match=f"configuration 1 lies outside.*{model.joint_names[2]}"):
-        model.check_range(q)
+        refuse.check_range(q)
     with pytest.raises(ModelError, match="range policy 'sometimes' is not one of"):
-        model.range_policy = "sometimes"
+        model.with_range_policy("sometimes")
 
 
 def test_coverage_radius_drops_the_nets_far_from_the_training_data(trained):
@@ -249,18 +249,17 @@ def test_coverage_radius_drops_the_nets_far_from_the_training_data(trained):
     q = np.stack([near, far])
     radius = 0.5 * float(model.coverage_distance(far[None])[0])
     assert list(model.in_calibrated_range(q)) == [True, True]  # the per-joint range alone
-    model.coverage_radius, model.range_policy = radius, "parametric"
-    assert list(model.in_calibrated_range(q)) == [True, False]
-    served = model.fk(q)
+    covered = model.with_coverage_radius(radius).with_range_policy("parametric")
+    assert list(covered.in_calibrated_range(q)) == [True, False]
+    served = covered.fk(q)
     np.testing.assert_array_equal(served[1], model.fk(q[1:], nets=False)[0])
     assert not np.allclose(served[0], model.fk(q[:1], nets=False)[0], atol=1e-9)  # the nets still correct near
-    model.range_policy = "refuse"
     with pytest.raises(ModelError, match=r"from the nearest training configuration \(coverage radius"):
-        model.check_range(q)
+        covered.with_range_policy("refuse").check_range(q)
     with pytest.raises(ModelError, match="positive number of radians"):
-        model.coverage_radius = -1.0
+        model.with_coverage_radius(-1.0)
     with pytest.raises(ModelError, match="stores no training configurations"):
-        HybridModel.analytic_only(model.chain).coverage_radius = 0.5
+        HybridModel.analytic_only(model.chain).with_coverage_radius(0.5)
 
 
 def test_coverage_report_finds_the_radius_where_the_nets_stop_helping():

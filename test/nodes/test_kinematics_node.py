@@ -354,8 +354,7 @@ def test_out_of_range_policy(ros, trained, policy):
             np.testing.assert_allclose(poses_of(resp)[1], model.fk(outside, nets=False)[0], atol=1e-12)
             np.testing.assert_allclose(poses_of(resp)[0], model.fk(inside)[0], atol=1e-9)
         else:
-            served = HybridModel.load(trained[0])
-            served.range_policy = "bound"
+            served = HybridModel.load(trained[0]).with_range_policy("bound")
             q = np.array([inside, outside])
             assert resp.success and list(resp.in_calibrated_range) == [True, False]
             assert "error bound is below the parametric stage's" in resp.message
