@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -76,6 +77,10 @@ def real(steps: int) -> None:
         beyond = [item for item in exported.left if item != LEFT_BEHIND and form != "dh"]
         notes = ["the file's notes name the parallel axes, the base and the tool frame"] if form == "dh" else []
         rows.append([f"exported {form}", "; ".join(beyond + notes), *_figures(errors["exported"])])
+        if form == "ur-kinematics":  # as a UR user deploys it: the file, and the printed TCP offset
+            with_tcp = replace(exported, chain=exported.chain.with_tool(exported.tip_correction))
+            errors = held_out_errors(model, with_tcp, [test])
+            rows.append(["exported ur-kinematics and its TCP offset", "", *_figures(errors["exported"])])
     head = ["model", "left behind besides the elastic terms and the nets", "pos. mean (mm)", "pos. p95 (mm)"]
     head.append("ori. mean (deg)")
     body = f"Real UR10, series A: {len(train_pairs)} poses to train, {len(test)} held out.\n\n" + table(head, rows)

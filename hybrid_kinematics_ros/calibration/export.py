@@ -13,7 +13,7 @@ from __future__ import annotations
 import hashlib
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -112,6 +112,7 @@ class Exported:
     text: str
     chain: Chain
     left: tuple[str, ...]
+    tip_correction: np.ndarray = field(default_factory=lambda: np.eye(4))  # what to append at the tip (a TCP)
 
 
 def export(model: HybridModel, form: str, convention: str = "standard") -> Exported:
@@ -172,7 +173,7 @@ def _ur_kinematics(model: HybridModel, urdf: str) -> Exported:
         "(append it to the TCP or to the end effector's fixed joint)",
         LEFT_BEHIND,
     )
-    return Exported(text, _chain_of(model, ET.tostring(root, encoding="unicode")), left)
+    return Exported(text, _chain_of(model, ET.tostring(root, encoding="unicode")), left, tip)
 
 
 def split_along_axis(correction: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

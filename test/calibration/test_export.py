@@ -47,6 +47,10 @@ def test_the_ur_file_differs_from_the_stage_only_by_the_flange_correction_across
     restored = fk.fk(exported.chain, te.q) @ se3.inverse(chain.post) @ across @ chain.post
     position, angle = se3.pose_errors(restored, geometry.fk(te.q))
     assert position.max() < 1e-6 and angle.max() < 1e-6  # mm, deg
+    # the correction it prints, appended at the tip as a TCP, restores the stage's geometry
+    with_tcp = fk.fk(exported.chain.with_tool(exported.tip_correction), te.q)
+    position, angle = se3.pose_errors(with_tcp, geometry.fk(te.q))
+    assert position.max() < 1e-6 and angle.max() < 1e-6
 
 
 def test_a_correction_splits_into_a_part_that_commutes_with_the_joint_and_one_across_its_axis():
