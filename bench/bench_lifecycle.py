@@ -9,6 +9,8 @@
 - ``lifecycle_monitor``: the tracker monitor on the simulated cell's raw streams (tracker clock 12.3 ms ahead,
   1 kHz, a station the model never saw): ten minutes of an unchanged robot, and the shoulder lift joint slipping
   by 0.2 mrad after five minutes, for five trajectories each.
+- ``lifecycle_verify`` (with ``lifecycle_monitor``, on its model): ``verify`` with 30 check poses, 100 draws
+  each of an unchanged robot, a 0.1 mrad joint offset and a tool moved by 0.1 mm.
 - ``lifecycle_sigma``: a virtual UR10 identified 20 times, each parameter's spread against its reported σ, over
   new poses and new noise (what σ claims), and over new noise on the same poses.
 
@@ -41,6 +43,7 @@ from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from hybrid_kinematics_ros.simulation.recording import PLACED, simulated_recording
 from hybrid_kinematics_ros.simulation.sampling import sample_joints
+from hybrid_kinematics_ros.simulation.tracker import Tracker
 from hybrid_kinematics_ros.simulation.trajectory import JointStep
 
 TOLERANCE_MM = 0.1
@@ -221,7 +224,12 @@ def monitor_section(steps: int, seeds: int = 5) -> None:
     cfg = load_robot_config("ur10")
     cell = VirtualCell.from_config(cfg)
     poses = cell.pairs(sample_joints(cfg.chain, 4000, np.random.default_rng(0), 0.6), seed=0)
-    model, *_ = fit_recipe(cfg, [poses], train.PRESETS["fast"], (), 10.0, steps)
+    with tempfile.TemporaryDirectory() as tmp:
+        model, *_ = fit_recipe(cfg, [poses], train.PRESETS["fast"], (), 10.0, steps, out=Path(tmp) / "m")
+        _monitor_rows(model, cell, seeds)
+
+
+def _monitor_rows(model: HybridModel, cell: VirtualCell, seeds: int) -> None:
     rows = []
     for seed in range(seeds):
         quiet = _monitored(model, None, seed)
@@ -248,6 +256,52 @@ def monitor_section(steps: int, seeds: int = 5) -> None:
         f"shoulder_lift_joint at {STREAM_S / 2:.0f} s.\n\n" + table(head, rows)
     )
     write_section("lifecycle_monitor", "The tracker monitor on a live stream (bench_lifecycle)", body)
+    verify_section(model, cell)
+
+
+CHECK_POSES = 30
+DRAWS = 100
+
+
+def verify_section(model: HybridModel, cell: VirtualCell) -> None:
+    """``verify`` over 100 draws of 30 check poses each: an unchanged robot, a joint offset and a moved tool."""
+    placed = VirtualCell(cell.config, cell.robot, Tracker.from_config({**cell.config.tracker, **PLACED}))
+    tool = np.eye(4)
+    rows = []
+    for label, check_cell, slip, shift in (
+        ("unchanged, a new station", placed, 0.0, 0.0),
+        ("shoulder_lift_joint +0.1 mrad, a new station", placed, 1e-4, 0.0),
+        ("tool moved 0.1 mm, the model's station", cell, 0.0, 1e-4),
+        ("tool moved 0.1 mm, a new station", placed, 0.0, 1e-4),
+    ):
+        drifted = named = 0
+        for draw in range(DRAWS):
+            rng = np.random.default_rng(1000 + draw)
+            q = sample_joints(cell.config.chain, CHECK_POSES, rng, 0.6)
+            reached = JointStep(1, slip, 0.0).reached(q, np.zeros(len(q)))
+            direction = rng.normal(size=3)
+            tool[:3, 3] = shift * direction / np.linalg.norm(direction)
+            tracker = check_cell.tracker
+            moved = Tracker(
+                tracker.position_noise,
+                tracker.orientation_noise,
+                tracker.base_to_tracker,
+                tracker.flange_to_target @ tool,
+                tracker.frame_id,
+            )
+            T = moved.measure(cell.robot.fk(reached), rng)
+            pairs = Pairs(q, T, 10**9 + 10**7 * np.arange(len(q)), cell.config.chain.joint_names, check_cell.frame_id)
+            result = verify(model, [pairs])
+            drifted += result.drifted
+            cause = result.diagnosis[0]["group"] if result.diagnosis else ""
+            named += result.drifted and ("shoulder_lift" in cause if slip else "tool" in cause)
+        rows.append([label, f"{100 * drifted / DRAWS:.0f}", f"{100 * named / DRAWS:.0f}" if slip or shift else "—"])
+    head = [f"check ({CHECK_POSES} poses, {DRAWS} draws)", "drifted (%)", "drifted and the right cause first (%)"]
+    body = (
+        "The virtual UR10 model of the monitor section. A new station is placed from every third check pose, "
+        "the target with it, so a tool that moved there is a target placed elsewhere.\n\n" + table(head, rows)
+    )
+    write_section("lifecycle_verify", "verify on the virtual cell (bench_lifecycle)", body)
 
 
 def _monitored(model: HybridModel, step: JointStep | None, seed: int) -> list:
