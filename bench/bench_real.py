@@ -25,18 +25,18 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from bench.report import table, write_section
 from hybrid_kinematics_ros.calibration import train
-from hybrid_kinematics_ros.calibration.evaluate import error_stats, measured_targets, target_errors
+from hybrid_kinematics_ros.calibration.evaluate import error_stats, target_errors
 from hybrid_kinematics_ros.calibration.fit import fit, reference_all, split
+from hybrid_kinematics_ros.calibration.floor import measurement_floor
 from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.calibration.report import net_label, repeated_poses
 from hybrid_kinematics_ros.io.import_spec import load_spec_dict, spec_from_dict
 from hybrid_kinematics_ros.io.importer import import_table
 from hybrid_kinematics_ros.io.pairs import Pairs
-from hybrid_kinematics_ros.kinematics import approach, fk, se3
+from hybrid_kinematics_ros.kinematics import approach
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.parametric import model_from_manifest
 from hybrid_kinematics_ros.model.referencing import to_base_frame
@@ -86,25 +86,10 @@ def repeatability_mm(pairs: Pairs) -> tuple[float, int]:
     return 1e3 * float(np.mean(spread)), groups
 
 
-def noise_floor(pairs: Pairs, chain, tolerance_rad: float = 1e-3) -> tuple[float, float, int]:
-    """What even a perfect model's mean error would be on one measurement: position (mm), orientation (deg)
-    and the pair count, from pairs of measurements of (nearly) the same joints: the mean of
-    ``|Δ residual| / √2``, the residual taken against the URDF model (its error barely changes over the
-    pair's joint difference). The spread of repeated poses about their mean (:func:`repeatability_mm`) is
-    smaller by about √2 for pairs: it is not this floor.
-    """
-    close = cKDTree(pairs.q).query_pairs(tolerance_rad, p=np.inf, output_type="ndarray")
-    if not len(close):
-        return float("nan"), float("nan"), 0
-    base = to_base_frame([pairs], chain, reference_all(chain, [pairs]))
-    model = fk.fk(chain, base.q) @ base.targets
-    measured = measured_targets(base)
-    residual = measured[:, :3, 3] - model[:, :3, 3]
-    diff = residual[close[:, 0]] - residual[close[:, 1]]
-    local = se3.inverse(model) @ measured  # the measured pose in the model's frame
-    _, angle_deg = se3.pose_errors(local[close[:, 0]], local[close[:, 1]])
-    root2 = np.sqrt(2.0)
-    return 1e3 * float(np.mean(np.linalg.norm(diff, axis=1))) / root2, float(np.mean(angle_deg)) / root2, len(close)
+def noise_floor(pairs: Pairs, chain) -> tuple[float, float, int]:
+    """The data's measurement floor (:func:`measurement_floor`): position (mm), orientation (deg), pairs."""
+    floor = measurement_floor([pairs], chain, reference_all(chain, [pairs]))
+    return (float("nan"), float("nan"), 0) if floor is None else (floor.position_mm, floor.orientation_deg, floor.pairs)
 
 
 def fit_recipe(

@@ -17,6 +17,7 @@ from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.alignment import align_raw
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import evaluate, pose_errors_of, target_errors
+from hybrid_kinematics_ros.calibration.floor import measurement_floor
 from hybrid_kinematics_ros.calibration.parametric import HARMONIC_PRIOR, ParametricResult, identify, linearise
 from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.calibration.referencing import (
@@ -290,6 +291,13 @@ def fit(
     # eager nets here; the saved TorchScript is checked against them. "analytic" is the rigid-only model
     errors = _test_errors(model, raw[2])
     manifest["metrics"] = {"test": evaluate(model, sets[2], errors) if errors else evaluate(model, sets[2])}
+    floor = measurement_floor(_by_frame(raw), chain, rigid_refs)
+    manifest["floor"] = None if floor is None else floor.manifest()
+    held_out = manifest["metrics"]["test"]["hybrid"].get("position_mm_mean")
+    if floor is not None and held_out is not None:
+        log(floor.line(held_out))
+    elif floor is None:
+        log("no measurement floor: no two poses repeat the same joints (within 1 mrad); repeat a few to know it")
     guard = None if errors is None else worse_than_rigid(errors["hybrid"][0], errors["analytic"][0])
     manifest["data"] = {
         **(data_summary or {}),
@@ -444,6 +452,15 @@ def _train_nets(
     for net in nets.values():
         net.drop_inputs(offered_columns)
     return Trained(nets, histories, inputs.without_offered(chain.dof), record)
+
+
+def _by_frame(raw: Sets) -> list[Pairs]:
+    """Every set's pairs gathered per tracker frame (train, validation and test of one station together)."""
+    frames: dict[str, list[Pairs]] = {}
+    for parts in raw:
+        for pairs in parts:
+            frames.setdefault(pairs.frame_id, []).append(pairs)
+    return [Pairs.concatenate(parts) for parts in frames.values()]
 
 
 def _model_manifest(chain: Chain, train_pairs: Pairs, trained: Trained, recipe: Recipe) -> dict[str, Any]:

@@ -415,6 +415,7 @@ def _summary_section(s: dict[str, Any]) -> list[str]:
             else "AP and RP: the test data repeats no pose.</p>"
         )
     )
+    parts.append(_floor_line(s.get("floor"), s["errors"].get("hybrid", {}).get("position_mm_mean")))
     capacity = "; ".join(s["capacity"]) or "nothing chosen (no parametric stage, no nets)"
     parts.append(f"<p><b>Capacity chosen from the data</b> {esc(capacity)}.</p>")
     wr = s["working_range"]
@@ -581,3 +582,17 @@ def _uncertainty_lines(uncertainty: dict | None) -> list[str]:
         f"Condition number (columns scaled to unit length): {uncertainty['condition_number']:.1f}. "
         f"Most correlated: {html.escape(pairs)}.</p>"
     ]
+
+
+def _floor_line(floor: dict | None, hybrid_mm: float | None) -> str:
+    """The training data's measurement floor, and how far the test error is above it."""
+    if not floor:
+        return (
+            "<p><b>Measurement floor</b> not known: the training data repeats no configuration "
+            "(repeat a few poses to learn it).</p>"
+        )
+    ratio = f": the test mean is {hybrid_mm / floor['position_mm']:.2f}× it" if hybrid_mm else ""
+    return (
+        f"<p><b>Measurement floor</b> {floor['position_mm']:.4f} mm, from {floor['pairs']} pairs of repeated "
+        f"joints in the training data{ratio}.</p>"
+    )

@@ -207,6 +207,7 @@ def summarise(
         "errors": {name: report[name] for name in MODELS if report.get(name, {}).get("count")},
         "iso9283": iso_summary(iso),
         "capacity": capacity_lines(model.manifest),
+        "floor": model.manifest.get("floor"),
         "working_range": {**working_range(model), "inside": report["inside_calibrated_range"]},
         "verdict": None if tolerance_mm is None else verdict(hybrid_pos, hybrid_rot, tolerance_mm, tolerance_deg),
     }

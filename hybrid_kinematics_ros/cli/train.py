@@ -312,6 +312,7 @@ def run(args: argparse.Namespace) -> int:
                 "test_analytic": test["analytic"],
                 **({"test_parametric": test["parametric"]} if "parametric" in test else {}),
                 "test_hybrid": test["hybrid"],
+                "floor": manifest.get("floor"),
             }
         )
     )
