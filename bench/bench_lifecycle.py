@@ -118,6 +118,9 @@ def real_section(model: HybridModel, train_pairs: Pairs, held_out: Pairs, steps:
         f"Real UR10: A's model from {len(train_pairs)} poses; D's check {len(check)} poses (every "
         f"{CHECK_EVERY}th), its test the other {len(test)}, in D's tracker frame at its probe.\n\n"
         + table(head, rows)
+        + "\n\nupdate's choice of the prior's weight, each judged on held-out blocks of the check (mean, mm; "
+        + "inf: the stations alone):\n\n"
+        + table(*_by_weight(updated.record))
         + "\n\nWhat update changed most (σ: the parent's):\n\n"
         + table(
             ["parameter", "from", "to", "unit", "change (σ)"],
@@ -132,6 +135,11 @@ def real_section(model: HybridModel, train_pairs: Pairs, held_out: Pairs, steps:
     write_section(
         "lifecycle_real", "A calibration met again: verify and update on the real UR10 (bench_lifecycle)", body
     )
+
+
+def _by_weight(record: dict) -> tuple[list[str], list[list[str]]]:
+    by = record["held_out_position_mm_mean_by_weight"]
+    return ["prior weight", *by], [["held-out mean (mm)", *(f"{v:.4f}" for v in by.values())]]
 
 
 def _changes(changed: list[dict]) -> list[list[str]]:

@@ -143,6 +143,7 @@ def update(model: HybridModel, stations: Sequence[Pairs]) -> Updated:
         "prior_weight": None if np.isinf(weight) else float(weight),
         "held_out_position_mm_mean": float(held_out[weight]),
         "stations_only_position_mm_mean": float(held_out[np.inf]),
+        "held_out_position_mm_mean_by_weight": {("inf" if np.isinf(w) else f"{w:g}"): v for w, v in held_out.items()},
         "position_mm_mean": float(np.mean(problem.position_mm(x))),
         "changed": changed,
     }
@@ -236,6 +237,8 @@ def _child_manifest(
     changed = []
     for i, u, value in zip(problem.params, problem.unit, x[: len(problem.params)], strict=True):
         entry, change = parameters[i], float(value * u)
+        if change == 0.0:  # held (the stations alone were chosen)
+            continue
         entry["value"] += change
         if entry["kind"] in GEOMETRY_KINDS:  # the geometry a URDF export carries moves with it
             entry["rigid_value"] += change
