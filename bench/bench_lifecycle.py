@@ -224,10 +224,6 @@ def sigma_section(draws: int = 20, count: int = 1000) -> None:
     write_section("lifecycle_sigma", "Parameter σ against repeated fits (bench_lifecycle)", body)
 
 
-if __name__ == "__main__":
-    main()
-
-
 def monitor_section(steps: int, seeds: int = 5) -> None:
     cfg = load_robot_config("ur10")
     cell = VirtualCell.from_config(cfg)
@@ -328,3 +324,7 @@ def _monitored(model: HybridModel, step: JointStep | None, seed: int) -> list:
         if status is not None:
             out.append(((stamp - joints[0]) * 1e-9, status))
     return out
+
+
+if __name__ == "__main__":
+    main()
