@@ -3,8 +3,9 @@ models' tip poses differ over the range both were trained on, and how each does 
 
 A parameter moved when the change exceeds ``CHANGE_SIGMAS`` times the σ of the difference (the two σ in
 quadrature, :class:`~hybrid_kinematics_ros.calibration.parametric.Uncertainty`). The tip difference is the full
-served models' (stage and nets), both in the robot's base frame, so the tracker stations they were referenced
-to do not enter it.
+served models' (stage and nets) over the joint range both were trained on, in the robot's base frame, so the
+tracker stations they were referenced to do not enter it. Where the two trained ranges of a joint do not overlap,
+it is the parametric stages' over both ranges: neither model's nets are calibrated in the other's.
 """
 
 from __future__ import annotations
@@ -36,13 +37,14 @@ class Comparison:
     position_mm: np.ndarray
     orientation_deg: np.ndarray
     checks: dict[str, Verification]
+    apart: tuple[str, ...] = ()  # joints whose trained ranges do not overlap: the tips are the stages' alone
 
     @property
     def flagged(self) -> list[dict[str, Any]]:
         return [p for p in self.parameters if p["flagged"]]
 
     def tip_stats(self) -> dict[str, float]:
-        out = {"configurations": len(self.q)}
+        out: dict[str, Any] = {"configurations": len(self.q), "stages_only_apart_in": list(self.apart)}
         for name, values in (("position_mm", self.position_mm), ("orientation_deg", self.orientation_deg)):
             out |= {f"{name}_max": float(values.max()), f"{name}_p95": float(np.percentile(values, 95))}
         return out
@@ -52,13 +54,21 @@ class Comparison:
         out = [
             f"{len(self.flagged)} of {len(self.parameters)} parameters moved by more than {CHANGE_SIGMAS:g} σ",
             *(f"  {p['name']}: {p['a']:+.4g} -> {p['b']:+.4g} {p['unit']} ({p['sigmas']:.1f} σ)" for p in self.flagged),
-            f"tip difference over {tip['configurations']} configurations of the shared trained range: position max "
+            f"tip difference over {tip['configurations']} configurations {self._where()}: position max "
             f"{tip['position_mm_max']:.4f} mm, p95 {tip['position_mm_p95']:.4f} mm; orientation max "
             f"{tip['orientation_deg_max']:.4f} deg, p95 {tip['orientation_deg_p95']:.4f} deg",
         ]
         for label, check in self.checks.items():
             out.append(f"{label} on the check: {'; '.join(check.lines()[:2])}")
         return out
+
+    def _where(self) -> str:
+        if not self.apart:
+            return "of the range both were trained on"
+        return (
+            f"of both trained ranges (they do not overlap in {', '.join(self.apart)}), the parametric stages alone: "
+            "neither model's nets know the other's range"
+        )
 
     def manifest(self) -> dict[str, Any]:
         return {
@@ -78,22 +88,23 @@ def compare(
             f"the models move different joints ({', '.join(a.chain.joint_names)} against "
             f"{', '.join(b.chain.joint_names)}): compare two calibrations of one robot"
         )
-    q = _shared_range(a, b, count, seed)
-    position_mm, orientation_deg = se3.pose_errors(b.fk(q), a.fk(q))
+    q, apart = _shared_range(a, b, count, seed)
+    nets = not apart  # the nets are not compared where neither was trained
+    position_mm, orientation_deg = se3.pose_errors(b.fk(q, nets=nets), a.fk(q, nets=nets))
     checks = {"A": verify(a, check), "B": verify(b, check)} if check else {}
-    return Comparison(_parameters(a.manifest, b.manifest), q, position_mm, orientation_deg, checks)
+    return Comparison(_parameters(a.manifest, b.manifest), q, position_mm, orientation_deg, checks, apart)
 
 
-def _shared_range(a: HybridModel, b: HybridModel, count: int, seed: int) -> np.ndarray:
-    """``count`` configurations drawn uniformly where both models were trained."""
+def _shared_range(a: HybridModel, b: HybridModel, count: int, seed: int) -> tuple[np.ndarray, tuple[str, ...]]:
+    """``count`` configurations drawn uniformly where both models were trained; where their ranges of a joint
+    do not overlap, over both ranges together, and those joints."""
     ranges = [m.manifest.get("trained_range") or {"lower": m.chain.lower, "upper": m.chain.upper} for m in (a, b)]
-    lower = np.maximum(*(np.asarray(r["lower"], float) for r in ranges))
-    upper = np.minimum(*(np.asarray(r["upper"], float) for r in ranges))
-    empty = np.flatnonzero(lower >= upper)
-    if len(empty):
-        names = ", ".join(a.chain.joint_names[j] for j in empty)
-        raise CalibrationError(f"the models were trained on ranges that do not overlap in {names}: nothing to compare")
-    return np.random.default_rng(seed).uniform(lower, upper, (count, len(lower)))
+    lows, highs = (np.array([r[k] for r in ranges], dtype=float) for k in ("lower", "upper"))
+    lower, upper = lows.max(axis=0), highs.min(axis=0)
+    apart = lower >= upper
+    lower[apart], upper[apart] = lows.min(axis=0)[apart], highs.max(axis=0)[apart]
+    q = np.random.default_rng(seed).uniform(lower, upper, (count, len(lower)))
+    return q, tuple(a.chain.joint_names[j] for j in np.flatnonzero(apart))
 
 
 def _parameters(a: dict[str, Any], b: dict[str, Any]) -> list[dict[str, Any]]:

@@ -55,7 +55,7 @@ def test_the_cli_verifies_both_on_a_check_and_writes_json_and_a_page(shoulder_mo
     assert (out / "tip_difference.png").stat().st_size > 5000 and "flagged" in (out / "index.html").read_text()
 
 
-def test_models_trained_on_ranges_that_do_not_overlap_get_one_line_and_exit_2(shoulder_model, tmp_path):
+def test_models_of_ranges_that_do_not_overlap_are_compared_by_their_stages(shoulder_model, tmp_path):
     model_dir, *_ = shoulder_model
     elsewhere = tmp_path / "elsewhere"
     shutil.copytree(model_dir, elsewhere)
@@ -63,6 +63,18 @@ def test_models_trained_on_ranges_that_do_not_overlap_get_one_line_and_exit_2(sh
     manifest["trained_range"]["lower"][0] = manifest["trained_range"]["upper"][0] + 0.5
     manifest["trained_range"]["upper"][0] += 1.0
     (elsewhere / "model.json").write_text(json.dumps(manifest))
-    result = cli("compare", str(model_dir), str(elsewhere))
-    assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
-    assert "shoulder_pan_joint" in result.stderr and "do not overlap" in result.stderr
+    result = compare(HybridModel.load(model_dir), HybridModel.load(elsewhere), count=200)
+    assert result.apart == ("shoulder_pan_joint",)
+    assert result.tip_stats()["position_mm_max"] < 1e-9  # the same stage: the nets are not compared
+    assert "the parametric stages alone" in " ".join(result.lines())
+
+
+def test_models_of_other_joints_get_one_line_and_exit_2(shoulder_model, tmp_path):
+    model_dir, *_ = shoulder_model
+    other = tmp_path / "other"
+    shutil.copytree(model_dir, other)
+    manifest = json.loads((other / "model.json").read_text())
+    manifest["joint_names"] = [f"{name}_renamed" for name in manifest["joint_names"]]
+    (other / "model.json").write_text(json.dumps(manifest))
+    result = cli("compare", str(model_dir), str(other))
+    assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1, result.stderr
