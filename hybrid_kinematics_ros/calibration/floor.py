@@ -1,10 +1,11 @@
 """The measurement floor of a data set: what even a perfect model's mean error would be on one measurement.
 
-Two measurements of (nearly) the same joints, from one tracker station, differ by the measurement's own scatter
-(tracker noise, encoder noise, what the robot does not repeat) and by the model's error change over their joint
-difference, which ``FLOOR_TOLERANCE_RAD`` keeps negligible. So the floor is the mean of ``|Δ residual| / √2``
-over such pairs, the residual taken against the URDF model with its own referencing. The spread of repeated
-poses about their mean is smaller by about √2 for pairs, so it is not this floor. Data that never repeats a
+Two measurements of (nearly) the same joints, from one tracker station and separate visits, differ by the
+measurement's own scatter (tracker noise, encoder noise, what the robot does not repeat) and by the model's
+error change over their joint difference, which ``FLOOR_TOLERANCE_RAD`` keeps negligible. So the floor is the
+mean of ``|Δ residual| / √2`` over such pairs, the residual taken against the URDF model with its own
+referencing. The spread of repeated poses about their mean is smaller by about √2 for pairs, so it is not this
+floor. Data that never repeats a
 configuration has no floor to tell.
 """
 
@@ -24,6 +25,7 @@ from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.model.referencing import Referencing, to_base_frame
 
 FLOOR_TOLERANCE_RAD = 1e-3  # two poses this close in every joint count as a repeat
+FLOOR_APART_S = 1.0  # ... when measured this far apart: samples of one stop repeat the tracker, not the robot
 
 
 @dataclass(frozen=True)
@@ -53,6 +55,8 @@ def measurement_floor(stations: Sequence[Pairs], chain: Chain, referencings: Map
     position, orientation = [], []
     for pairs in stations:
         close = cKDTree(pairs.q).query_pairs(FLOOR_TOLERANCE_RAD, p=np.inf, output_type="ndarray")
+        if len(close):
+            close = close[np.abs(pairs.stamps[close[:, 0]] - pairs.stamps[close[:, 1]]) > FLOOR_APART_S * 1e9]
         if not len(close):
             continue
         base = to_base_frame([pairs], chain, referencings)

@@ -8,10 +8,11 @@ run gives one pose.
 
 A tracker station the model does not know is placed from the first ``reference_poses`` poses, through the
 model (:func:`~hybrid_kinematics_ros.calibration.verify.place_station`); the poses after them are judged. Each
-judged pose is compared with the model's own error bound at its configuration, as ``verify`` does, over the last
-``window`` poses. "Drifted" needs more poses beyond the bound than the bound's validation pairs had, with a
-significance of ``p_value`` (Fisher's exact test, :func:`~.verify.excess_p_value`). The test is repeated at
-every pose, so its level is stricter than ``verify``'s.
+judged pose is compared with the model's own error bounds at its configuration, over the last ``window`` poses.
+As in ``verify``, "drifted" needs more poses beyond a bound than the bound's validation pairs had, with a
+significance of ``p_value`` (Fisher's exact test, :func:`~.verify.excess_p_value`; position and orientation
+each on its own, Bonferroni over the two). The test is repeated at every pose, so its level is stricter than
+``verify``'s.
 """
 
 from __future__ import annotations
@@ -58,7 +59,7 @@ class MonitorStatus:
     state: str
     poses: int  # still poses seen, placing ones included
     judged: int  # poses judged in the window
-    over_bound: int  # of those, beyond the model's bound
+    over_bound: int  # of those, beyond the model's position bound or, when more, its orientation bound
     p_value: float
     position_mm_mean: float  # the window's mean error at the target (NaN before any is judged)
     last_position_mm: float
@@ -93,10 +94,11 @@ class DriftMonitor:
         self._sampled = False
         self._frame: str | None = None
         self._position_only = False
-        self._placing: list[tuple[np.ndarray, np.ndarray]] = []
+        self._placing: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
         self._reference: Referencing | None = None
         self._how = ""
-        self._errors: deque[tuple[float, bool]] = deque(maxlen=options.window)
+        # per judged pose: its position error (mm), beyond the position bound, beyond the orientation bound
+        self._errors: deque[tuple[float, bool, bool]] = deque(maxlen=options.window)
         self._poses = 0
         self._last = float("nan")
 
@@ -108,12 +110,15 @@ class DriftMonitor:
             raise CalibrationError(
                 f"tracker pose in frame '{frame_id}', the monitor follows '{self._frame}': one station at a time"
             )
+        elif not self._position_only and not np.any(quat_xyzw):
+            raise CalibrationError("a tracker pose without orientation in a stream of 6-D poses: pose left out")
         self._tracker.append((stamp_ns, np.asarray(position, float), np.asarray(quat_xyzw, float)))
         while self._tracker and self._tracker[0][0] < stamp_ns - TRACKER_KEPT_S / NS:
             self._tracker.popleft()
 
-    def joints(self, stamp_ns: int, q: np.ndarray) -> MonitorStatus | None:
-        """A joint state; returns the new status when it completed a still pose, else None."""
+    def joints(self, stamp_ns: int, q: np.ndarray, conditions: np.ndarray | None = None) -> MonitorStatus | None:
+        """A joint state and the model's condition values now (its channels' order; None: its defaults);
+        returns the new status when it completed a still pose, else None."""
         q = np.asarray(q, dtype=float)
         o = self.options
         if self._first is None or np.max(np.abs(q - self._first)) > o.still_tolerance_rad:
@@ -127,7 +132,7 @@ class DriftMonitor:
         pose = self._tracker_pose(self._run_start + o.clock_margin_s / NS, stamp_ns - o.clock_margin_s / NS)
         if pose is None:
             return None
-        self._judge(self._sum / self._count, pose)
+        self._judge(self._sum / self._count, pose, None if conditions is None else np.asarray(conditions, float))
         return self.status()
 
     def _tracker_pose(self, start_ns: float, end_ns: float) -> np.ndarray | None:
@@ -141,37 +146,46 @@ class DriftMonitor:
             out[:3, :3] = Rotation.from_quat([quat for _, quat in inside]).mean().as_matrix()
         return out
 
-    def _judge(self, q: np.ndarray, measured: np.ndarray) -> None:
+    def _judge(self, q: np.ndarray, measured: np.ndarray, conditions: np.ndarray | None) -> None:
         self._poses += 1
         if self._reference is None:
             self._reference = self.model.referencings.get(self._frame)
             self._how = "the model's referencing" if self._reference is not None else ""
         if self._reference is None:
-            self._placing.append((q, measured))
+            self._placing.append((q, measured, conditions))
             if len(self._placing) >= self.options.reference_poses:
                 self._reference, self._how = place_station(self.model, self._pairs(self._placing))
             return
-        pairs = self._reference.to_base(self._pairs([(q, measured)]), self.model.chain.base_link)
-        pos_mm, rot_deg = target_errors(pairs, self.model.fk(pairs.q))
+        pairs = self._reference.to_base(self._pairs([(q, measured, conditions)]), self.model.chain.base_link)
+        values = self.model.conditions_of(pairs.conditions, 1)
+        pos_mm, rot_deg = target_errors(pairs, self.model.fk(pairs.q, conditions=values))
         self._last = float(pos_mm[0])
-        bounds = self.model.error_bounds(pairs.q)
-        beyond = False
+        bounds = self.model.error_bounds(pairs.q, values)
+        over_position = over_orientation = False
         if bounds is not None:
-            beyond = bool(pos_mm[0] > 1e3 * bounds[0][0])
+            over_position = bool(pos_mm[0] > 1e3 * bounds[0][0])
             if bounds[1] is not None and not self._position_only:
-                beyond |= bool(rot_deg[0] > np.degrees(bounds[1][0]))
-        self._errors.append((self._last, beyond))
+                over_orientation = bool(rot_deg[0] > np.degrees(bounds[1][0]))
+        self._errors.append((self._last, over_position, over_orientation))
 
-    def _pairs(self, poses: list[tuple[np.ndarray, np.ndarray]]) -> Pairs:
+    def _pairs(self, poses: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]]) -> Pairs:
+        """The still poses as pairs, with the model's condition channels (its defaults where none were given)."""
         q = np.array([p[0] for p in poses])
         T = np.array([p[1] for p in poses])
+        names = self.model.condition_names
+        defaults = self.model.condition_values
+        values = np.array([defaults if p[2] is None else p[2] for p in poses]).reshape(len(poses), len(names))
+        conditions = {name: values[:, k] for k, name in enumerate(names)}
         stamps = np.arange(len(poses), dtype=np.int64)
-        return Pairs(q, T, stamps, self.model.joint_names, self._frame, position_only=self._position_only)
+        return Pairs(
+            q, T, stamps, self.model.joint_names, self._frame, position_only=self._position_only, conditions=conditions
+        )
 
     def status(self) -> MonitorStatus:
         judged = len(self._errors)
-        over = sum(beyond for _, beyond in self._errors)
-        mean = float(np.mean([e for e, _ in self._errors])) if judged else float("nan")
+        counts = [sum(e[k] for e in self._errors) for k in (1, 2)]
+        over = max(counts)
+        mean = float(np.mean([e[0] for e in self._errors])) if judged else float("nan")
         bounds = self.model.bounds
         if self._reference is None:
             state = "placing" if self._poses else "waiting"
@@ -179,6 +193,8 @@ class DriftMonitor:
         if bounds is None or not judged:
             state = "no bounds" if bounds is None else "ok"
             return MonitorStatus(state, self._poses, judged, over, 1.0, mean, self._last, self._how)
-        p = excess_p_value(over, judged, bounds.level, bounds.figures.get("validation_pairs"))
+        kinds = 1 if self._position_only or not self.model.has_orientation else 2  # Bonferroni, as verify
+        validation = bounds.figures.get("validation_pairs")
+        p = min(1.0, kinds * min(excess_p_value(c, judged, bounds.level, validation) for c in counts[:kinds]))
         state = "drifted" if p < self.options.p_value else "ok"
         return MonitorStatus(state, self._poses, judged, over, p, mean, self._last, self._how)

@@ -699,7 +699,8 @@ def _covariance(jac: np.ndarray, res: np.ndarray, pose_rows: int, width: int) ->
 @dataclass(frozen=True)
 class Uncertainty:
     """How well the data pin the fitted parameters down: each one's σ (SI, NaN where not fitted), the
-    condition number of the problem with every column scaled to unit length, and the most correlated pairs.
+    condition number of their correlation matrix (the stations' corrections included), and the most correlated
+    pairs of the chain's parameters.
 
     σ takes the residuals left after the fit, tracker noise and what the stage does not model, as independent
     from pose to pose: it is the spread expected between calibrations on new poses. Measuring the same poses

@@ -579,7 +579,7 @@ def _uncertainty_lines(uncertainty: dict | None) -> list[str]:
     pairs = "; ".join(f"{c['a']} and {c['b']} ({c['correlation']:+.2f})" for c in uncertainty["correlated"])
     return [
         "<p>σ: the spread expected between calibrations on new poses, from the residuals the stage leaves. "
-        f"Condition number (columns scaled to unit length): {uncertainty['condition_number']:.1f}. "
+        f"Condition number (of the parameters' correlation matrix): {uncertainty['condition_number']:.1f}. "
         f"Most correlated: {html.escape(pairs)}.</p>"
     ]
 

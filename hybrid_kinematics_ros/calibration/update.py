@@ -30,7 +30,7 @@ from scipy.spatial.transform import Rotation
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.parametric import GEOMETRY_KINDS, ORIENTATION_LENGTH, SCALE
 from hybrid_kinematics_ros.calibration.referencing import reference_stations
-from hybrid_kinematics_ros.calibration.verify import place_station
+from hybrid_kinematics_ros.calibration.verify import MIN_REFERENCE_POSES, place_station
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -183,6 +183,12 @@ def _problem(model: HybridModel, section: dict[str, Any], stations: Sequence[Pai
     position_only = stations[0].position_only
     if any(p.position_only != position_only for p in stations):
         raise CalibrationError("the new poses mix 6-D and position-only stations: update with one kind at a time")
+    for pairs in stations:
+        if pairs.frame_id not in model.referencings and len(pairs) < MIN_REFERENCE_POSES:
+            raise CalibrationError(
+                f"frame '{pairs.frame_id}': {len(pairs)} poses; a station the model does not know needs at least "
+                f"{MIN_REFERENCE_POSES} to place it"
+            )
     refs = [model.referencings.get(p.frame_id) or place_station(model, p)[0] for p in stations]
     pairs = Pairs.concatenate(
         [p.with_poses(ref.base_to_tracker @ p.T, p.frame_id) for ref, p in zip(refs, stations, strict=True)]

@@ -195,6 +195,7 @@ class HybridModel:
         """A shallow copy for a ``with_*`` value: it shares the loaded parts, not a thread's condition values."""
         clone = copy.copy(self)
         clone._local = threading.local()
+        clone._shared = self._shared.copy()
         return clone
 
     def coverage_distance(self, q: np.ndarray) -> np.ndarray | None:

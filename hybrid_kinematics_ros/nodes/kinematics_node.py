@@ -349,6 +349,8 @@ class KinematicsNode(Node):
                 return SetParametersResult(successful=False, reason="the model was reloaded meanwhile; set it again")
             if solvers is not None:
                 self.model, (self.solver, self.compensator) = serving, solvers
+                if self.monitor is not None:  # another payload: its model is judged afresh
+                    self.monitor, self._drifted = DriftMonitor(serving, self._monitor_options), False
             self._conditions = values
             self._unset = [n for n in self._unset if n not in conditions]
         return SetParametersResult(successful=True)
@@ -392,8 +394,6 @@ class KinematicsNode(Node):
             )
             return
         self._latest = q
-        if self.monitor is not None:
-            self._watch(self.monitor.joints(stamp_ns(msg.header.stamp), q))
         with self._lock:
             model, values = self.model, self._conditions
             # a model with approach inputs follows the joints' directions of motion (a reload starts afresh)
@@ -405,6 +405,12 @@ class KinematicsNode(Node):
         if self.pose_pub is not None:
             with model.using(values):
                 self._publish_corrected_pose(model, q, msg)
+        monitor = self.monitor
+        if monitor is not None:
+            try:
+                self._watch(monitor.joints(stamp_ns(msg.header.stamp), q, values))
+            except (CalibrationError, ModelError) as exc:
+                self.get_logger().error(f"tracker monitor: {exc}", throttle_duration_sec=5.0)
 
     def _on_tracker_pose(self, msg: PoseStamped) -> None:
         p, o = msg.pose.position, msg.pose.orientation

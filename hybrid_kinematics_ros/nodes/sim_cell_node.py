@@ -83,6 +83,10 @@ class SimCellNode(Node):
             raise StartupError(f"parameter slip: {list(slip)} is not [joint index, rad, after s]")
         self.slip = JointStep(int(slip[0]), float(slip[1]), float(slip[2])) if slip[1] else None
         cfg = load_robot_config(robot)
+        if self.slip is not None and not (
+            0 <= self.slip.joint < cfg.chain.dof and np.isfinite(self.slip.rad) and self.slip.after_s >= 0
+        ):
+            raise StartupError(f"parameter slip: {list(slip)}: give a joint index below {cfg.chain.dof}, rad, s >= 0")
         self.cell = VirtualCell.from_config(cfg, noise=noise)
         if any(np.any(np.asarray(v, dtype=float) != 0.0) for f in frames.values() for v in f.values()):
             tracker = Tracker.from_config({**cfg.tracker, **frames}, noise=noise)

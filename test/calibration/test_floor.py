@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -32,10 +34,13 @@ def test_the_floor_of_a_tracker_with_known_noise_is_what_its_noise_gives(ur10):
 
 
 def test_without_noise_the_floor_is_nothing_and_without_repeats_it_is_unknown(ur10):
-    quiet = _measured_twice(ur10, 100, noise=False)
+    quiet = _measured_twice(ur10, 200, noise=False)  # each pose again 2 s later
     assert measurement_floor([quiet], ur10.chain, reference_all(ur10.chain, [quiet])).position_mm < 1e-6
-    once = quiet.subset(np.arange(100))
+    once = quiet.subset(np.arange(200))
     assert measurement_floor([once], ur10.chain, reference_all(ur10.chain, [once])) is None
+    # the same joints read again within a second are one stop, not a repeat
+    stop = replace(quiet, stamps=quiet.stamps // 1000)
+    assert measurement_floor([stop], ur10.chain, reference_all(ur10.chain, [stop])) is None
 
 
 def test_a_model_of_data_without_repeats_records_no_floor(trained):
