@@ -154,7 +154,8 @@ class DriftMonitor:
         if self._reference is None:
             self._placing.append((q, measured, conditions))
             if len(self._placing) >= self.options.reference_poses:
-                self._reference, self._how = place_station(self.model, self._pairs(self._placing))
+                self._reference, target = place_station(self.model, self._pairs(self._placing))
+                self._how = f"placed from {len(self._placing)} poses, {target}"
             return
         pairs = self._reference.to_base(self._pairs([(q, measured, conditions)]), self.model.chain.base_link)
         values = self.model.conditions_of(pairs.conditions, 1)

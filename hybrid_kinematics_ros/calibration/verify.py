@@ -2,8 +2,9 @@
 and does it meet the tolerance?
 
 A check is a recording of some poses, often from a new tracker station after a crash, a gear change or months
-of wear. A station the model does not know is referenced from the check itself: every ``REFERENCE_EVERY``-th
-pose places the tracker (through the model, so what is judged is the model), and the others are judged. Each
+of wear. A station the model does not know is referenced from the check itself, through the model (so what is
+judged is the model), and cross-fitted: each fifth of the poses is judged with the tracker placed from the
+other four, so every pose is judged and none placed its own station. Each
 judged pose is compared with the model's own 95 % bound at its configuration. Five poses in a hundred may lie
 beyond it by design, and the bound's coverage is itself known only from the validation pairs that set it, so
 "drifted" needs more poses beyond it than those pairs had, with significance (a one-sided Fisher exact
@@ -32,7 +33,7 @@ from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.model.referencing import Referencing
 
-REFERENCE_EVERY = 10  # an unknown station is placed with every tenth check pose, spread over the run
+FOLDS = 5  # an unknown station is cross-fitted: placed from four fifths, the other fifth judged, in turn
 MIN_REFERENCE_POSES = 10  # the least squares that place a station with its target need this many
 DRIFT_P_VALUE = 0.01  # "drifted" when the share of poses over their bound is this unlikely for a good model
 STEP = 1e-6  # m or rad: the finite difference of the diagnosis's columns
@@ -111,8 +112,8 @@ def verify(model: HybridModel, stations: Sequence[Pairs], tolerance: Tolerance =
     """Judge ``model`` on the check pairs ``stations`` (one :class:`Pairs` per frame)."""
     judged, how = [], {}
     for pairs in stations:
-        ref, rest, how[pairs.frame_id] = _station(model, pairs)
-        judged.append(rest if ref is None else ref.to_base(rest, model.chain.base_link))
+        base, how[pairs.frame_id] = _in_base_frame(model, pairs)
+        judged.append(base)
     pairs = Pairs.concatenate(judged)
     tip = model.fk(pairs.q, conditions=model.conditions_of(pairs.conditions, len(pairs)))
     pos_mm, rot_deg = target_errors(pairs, tip)
@@ -126,34 +127,40 @@ def verify(model: HybridModel, stations: Sequence[Pairs], tolerance: Tolerance =
     return result
 
 
-def _station(model: HybridModel, pairs: Pairs) -> tuple[Referencing | None, Pairs, str]:
-    """The referencing that brings ``pairs`` into the base frame, the pairs left to judge, and how it was
-    found: the model's own for a station it knows, else placed from every ``REFERENCE_EVERY``-th pose."""
-    if pairs.frame_id == model.chain.base_link:
-        return None, pairs, "the base frame"
+def _in_base_frame(model: HybridModel, pairs: Pairs) -> tuple[Pairs, str]:
+    """The check pairs of one station in the base frame, and how the station was found: the model's own
+    referencing for a station it knows; else cross-fitted, each of ``FOLDS`` interleaved parts placed from the
+    others, so that no judged pose placed its own station."""
+    base_link = model.chain.base_link
+    if pairs.frame_id == base_link:
+        return pairs, "the base frame"
     if pairs.frame_id in model.referencings:
-        return model.referencings[pairs.frame_id], pairs, "the model's referencing"
-    pick = np.zeros(len(pairs), dtype=bool)
-    pick[:: max(1, min(REFERENCE_EVERY, len(pairs) // MIN_REFERENCE_POSES))] = True
-    if pick.sum() < MIN_REFERENCE_POSES or len(pairs) - pick.sum() < 1:
+        return model.referencings[pairs.frame_id].to_base(pairs, base_link), "the model's referencing"
+    if len(pairs) < 2 * MIN_REFERENCE_POSES:
         raise CalibrationError(
             f"frame '{pairs.frame_id}': {len(pairs)} check poses; a station the model does not know needs at "
-            f"least {MIN_REFERENCE_POSES} to place it and more to judge (give {2 * MIN_REFERENCE_POSES} or more)"
+            f"least {2 * MIN_REFERENCE_POSES} (each part is judged with the station placed from the others)"
         )
-    place, rest = pairs.subset(np.flatnonzero(pick)), pairs.subset(np.flatnonzero(~pick))
-    ref, how = place_station(model, place)
-    return ref, rest, how
+    fold = np.arange(len(pairs)) % FOLDS
+    parts, targets = [], set()
+    for k in range(FOLDS):
+        ref, target = place_station(model, pairs.subset(np.flatnonzero(fold != k)))
+        parts.append(ref.to_base(pairs.subset(np.flatnonzero(fold == k)), base_link))
+        targets.add(target)
+    where = " or ".join(sorted(targets))
+    return Pairs.concatenate(parts), f"placed from the other {FOLDS - 1} fifths for each fifth judged, {where}"
 
 
 def place_station(model: HybridModel, pairs: Pairs) -> tuple[Referencing, str]:
     """A station the model does not know, placed through the model from ``pairs``: with a 6-D probe the
-    target too, unless the poses leave it undetermined; else at the model's target. Also says how."""
+    target too, unless the poses leave it undetermined; else at the model's target. Also says where the
+    target is."""
     tips = model.fk(pairs.q, conditions=model.conditions_of(pairs.conditions, len(pairs)))
     if not pairs.position_only:  # the probe's orientation places the target too
         (ref,) = reference_stations(model.chain, [pairs], [tips])
         if not ref.undetermined:
-            return ref, f"placed from {len(pairs)} of its poses, the target with it"
-    return _placed_with_target(model, pairs, tips), f"placed from {len(pairs)} of its poses with the model's target"
+            return ref, "the target with it"
+    return _placed_with_target(model, pairs, tips), "the target at the model's"
 
 
 def _placed_with_target(model: HybridModel, place: Pairs, tips: np.ndarray) -> Referencing:
