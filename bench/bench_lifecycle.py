@@ -192,8 +192,8 @@ def compare_section(model: HybridModel, steps: int) -> None:
     rows = [[p["name"], f"{p['a']:.4g}", f"{p['b']:.4g}", p["unit"], f"{p['sigmas']:.1f}"] for p in result.flagged[:10]]
     body = (
         f"A's model against C's: {len(result.flagged)} of {len(result.parameters)} parameters both identified "
-        f"moved by more than 3 σ. Tip difference over {tip['configurations']} configurations of the range both "
-        f"were trained on: position max {tip['position_mm_max']:.4f} mm, p95 {tip['position_mm_p95']:.4f} mm; "
+        f"moved by more than 3 σ. Tip difference over {tip['configurations']} configurations {result.where()}: "
+        f"position max {tip['position_mm_max']:.4f} mm, p95 {tip['position_mm_p95']:.4f} mm; "
         f"orientation max {tip['orientation_deg_max']:.4f} deg, p95 {tip['orientation_deg_p95']:.4f} deg.\n\n"
         + table(["parameter (the ten largest changes)", "A", "C", "unit", "change (σ)"], rows)
     )

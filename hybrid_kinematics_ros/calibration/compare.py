@@ -54,7 +54,7 @@ class Comparison:
         out = [
             f"{len(self.flagged)} of {len(self.parameters)} parameters moved by more than {CHANGE_SIGMAS:g} σ",
             *(f"  {p['name']}: {p['a']:+.4g} -> {p['b']:+.4g} {p['unit']} ({p['sigmas']:.1f} σ)" for p in self.flagged),
-            f"tip difference over {tip['configurations']} configurations {self._where()}: position max "
+            f"tip difference over {tip['configurations']} configurations {self.where()}: position max "
             f"{tip['position_mm_max']:.4f} mm, p95 {tip['position_mm_p95']:.4f} mm; orientation max "
             f"{tip['orientation_deg_max']:.4f} deg, p95 {tip['orientation_deg_p95']:.4f} deg",
         ]
@@ -62,7 +62,8 @@ class Comparison:
             out.append(f"{label} on the check: {'; '.join(check.lines()[:2])}")
         return out
 
-    def _where(self) -> str:
+    def where(self) -> str:
+        """Where the tips were compared."""
         if not self.apart:
             return "of the range both were trained on"
         return (
