@@ -76,7 +76,7 @@ def client_round_trip(model_dir: Path, out: Path, radius: float | None) -> dict:
 
     model = HybridModel.load(model_dir)
     if radius is not None:
-        model.coverage_radius, model.range_policy = radius, "parametric"
+        model = model.with_coverage_radius(radius).with_range_policy("parametric")
     rclpy.init()
     node = rclpy.create_node("demo_client")
     try:
