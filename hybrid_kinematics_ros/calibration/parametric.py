@@ -720,9 +720,9 @@ class Uncertainty:
         correlation = covariance / np.outer(sd, sd)
         eig = np.linalg.eigvalsh(correlation)
         chain = np.flatnonzero(keep[cols])
-        upper = [(abs(correlation[i, j]), i, j) for a, i in enumerate(chain) for j in chain[a + 1 :]]
-        top = sorted(upper, reverse=True)[:CORRELATED_PAIRS]
-        pairs = tuple((params[cols[i]].name, params[cols[j]].name, float(correlation[i, j])) for _, i, j in top)
+        a, b = (chain[k] for k in np.triu_indices(len(chain), 1))
+        top = np.argsort(-np.abs(correlation[a, b]), kind="stable")[:CORRELATED_PAIRS]
+        pairs = tuple((params[cols[a[t]]].name, params[cols[b[t]]].name, float(correlation[a[t], b[t]])) for t in top)
         return cls(sigma[keep], float(np.sqrt(eig.max() / max(eig.min(), 1e-300))), pairs)
 
     def manifest(self) -> dict[str, Any]:

@@ -190,8 +190,9 @@ def _problem(model: HybridModel, section: dict[str, Any], stations: Sequence[Pai
                 f"{MIN_REFERENCE_POSES} to place it"
             )
     refs = [model.referencings.get(p.frame_id) or place_station(model, p)[0] for p in stations]
+    base_link = model.chain.base_link
     pairs = Pairs.concatenate(
-        [p.with_poses(ref.base_to_tracker @ p.T, p.frame_id) for ref, p in zip(refs, stations, strict=True)]
+        [p.with_poses(ref.base_to_tracker @ p.T, base_link) for ref, p in zip(refs, stations, strict=True)]
     )
     station = np.repeat(np.arange(len(stations)), [len(p) for p in stations])
     conditions = model.conditions_of(pairs.conditions, len(pairs))
@@ -219,8 +220,8 @@ def _problem(model: HybridModel, section: dict[str, Any], stations: Sequence[Pai
     nominal = model_from_manifest(model.chain, section).fk(pairs.q)
     columns = []
     for i, u in zip(params, unit, strict=True):
-        moved = copy.deepcopy(section["parameters"])
-        moved[i]["value"] += STEP * u
+        moved = list(section["parameters"])  # one entry replaced, the others shared
+        moved[i] = {**moved[i], "value": moved[i]["value"] + STEP * u}
         shifted = model_from_manifest(model.chain, dict(section, parameters=moved)).fk(pairs.q)
         columns.append((r0 - residual(shifted @ se3.inverse(nominal) @ stage)) / STEP)  # left motion of the tip
     for k in range(len(refs)):
