@@ -4,7 +4,9 @@ and does it meet the tolerance?
 A check is a recording of some poses, often from a new tracker station after a crash, a gear change or months
 of wear. A station the model does not know is referenced from the check itself, through the model (so what is
 judged is the model), and cross-fitted: each fifth of the poses is judged with the tracker placed from the
-other four, so every pose is judged and none placed its own station. Each
+other four, so every pose is judged and none placed its own station. The target stays where the model has it,
+so a tool that moved is seen; when the target was re-mounted on purpose, ``refit_target`` places it from the
+check too, and a tool that moved is then a target placed elsewhere. Each
 judged pose is compared with the model's own 95 % bound at its configuration. Five poses in a hundred may lie
 beyond it by design, and the bound's coverage is itself known only from the validation pairs that set it, so
 "drifted" needs more poses beyond it than those pairs had, with significance (a one-sided Fisher exact
@@ -108,14 +110,17 @@ class Verification:
         }
 
 
-def verify(model: HybridModel, stations: Sequence[Pairs], tolerance: Tolerance = Tolerance()) -> Verification:
-    """Judge ``model`` on the check pairs ``stations`` (one :class:`Pairs` per frame)."""
+def verify(
+    model: HybridModel, stations: Sequence[Pairs], tolerance: Tolerance = Tolerance(), refit_target: bool = False
+) -> Verification:
+    """Judge ``model`` on the check pairs ``stations`` (one :class:`Pairs` per frame). ``refit_target``: at a
+    station the model does not know, place the target from the check too (it was re-mounted)."""
     judged, how = [], {}
     for pairs in stations:
-        base, how[pairs.frame_id] = _in_base_frame(model, pairs)
+        base, how[pairs.frame_id] = _in_base_frame(model, pairs, refit_target)
         judged.append(base)
     pairs = Pairs.concatenate(judged)
-    tip = model.fk(pairs.q, conditions=model.conditions_of(pairs.conditions, len(pairs)))
+    tip = _tips(model, pairs)
     pos_mm, rot_deg = target_errors(pairs, tip)
     over, level, p_value = _bound_test(model, pairs, pos_mm, rot_deg)
     checked = None
@@ -127,10 +132,10 @@ def verify(model: HybridModel, stations: Sequence[Pairs], tolerance: Tolerance =
     return result
 
 
-def _in_base_frame(model: HybridModel, pairs: Pairs) -> tuple[Pairs, str]:
+def _in_base_frame(model: HybridModel, pairs: Pairs, refit_target: bool) -> tuple[Pairs, str]:
     """The check pairs of one station in the base frame, and how the station was found: the model's own
     referencing for a station it knows; else cross-fitted, each of ``FOLDS`` interleaved parts placed from the
-    others, so that no judged pose placed its own station."""
+    others (with the target, when ``refit_target``), so that no judged pose placed its own station."""
     base_link = model.chain.base_link
     if pairs.frame_id == base_link:
         return pairs, "the base frame"
@@ -144,7 +149,11 @@ def _in_base_frame(model: HybridModel, pairs: Pairs) -> tuple[Pairs, str]:
     fold = np.arange(len(pairs)) % FOLDS
     parts, targets = [], set()
     for k in range(FOLDS):
-        ref, target = place_station(model, pairs.subset(np.flatnonzero(fold != k)))
+        place = pairs.subset(np.flatnonzero(fold != k))
+        if refit_target:
+            ref, target = place_station(model, place)
+        else:
+            ref, target = _placed_with_target(model, place, _tips(model, place)), "the target at the model's"
         parts.append(ref.to_base(pairs.subset(np.flatnonzero(fold == k)), base_link))
         targets.add(target)
     where = " or ".join(sorted(targets))
@@ -155,12 +164,16 @@ def place_station(model: HybridModel, pairs: Pairs) -> tuple[Referencing, str]:
     """A station the model does not know, placed through the model from ``pairs``: with a 6-D probe the
     target too, unless the poses leave it undetermined; else at the model's target. Also says where the
     target is."""
-    tips = model.fk(pairs.q, conditions=model.conditions_of(pairs.conditions, len(pairs)))
+    tips = _tips(model, pairs)
     if not pairs.position_only:  # the probe's orientation places the target too
         (ref,) = reference_stations(model.chain, [pairs], [tips])
         if not ref.undetermined:
             return ref, "the target with it"
     return _placed_with_target(model, pairs, tips), "the target at the model's"
+
+
+def _tips(model: HybridModel, pairs: Pairs) -> np.ndarray:
+    return model.fk(pairs.q, conditions=model.conditions_of(pairs.conditions, len(pairs)))
 
 
 def _placed_with_target(model: HybridModel, place: Pairs, tips: np.ndarray) -> Referencing:

@@ -21,6 +21,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bag", required=True, nargs="+", help="the check's pairs bag(s) or raw recordings")
     p.add_argument("--tolerance-mm", type=float, help="PASS when 95 %% of the poses are within it")
     p.add_argument("--tolerance-deg", type=float, help="and within this orientation error (with --tolerance-mm)")
+    p.add_argument(
+        "--refit-target",
+        action="store_true",
+        help="the target was re-mounted: at a new station, place it from the check too (a moved tool is then not seen)",
+    )
     p.add_argument("--json", type=Path, help="write the outcome as JSON here")
     p.add_argument("--out", type=Path, help="write an HTML page of the outcome into this folder")
     p.set_defaults(run=run)
@@ -30,7 +35,8 @@ def run(args: argparse.Namespace) -> int:
     if args.tolerance_deg is not None and args.tolerance_mm is None:
         raise DataError("--tolerance-deg needs --tolerance-mm")
     model = HybridModel.load(args.model)
-    result = verify(model, load_stations(args.bag, model.chain), Tolerance(args.tolerance_mm, args.tolerance_deg))
+    tolerance = Tolerance(args.tolerance_mm, args.tolerance_deg)
+    result = verify(model, load_stations(args.bag, model.chain), tolerance, refit_target=args.refit_target)
     lines = result.lines()
     print("\n".join(lines))
     if args.json:

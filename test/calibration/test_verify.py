@@ -53,6 +53,19 @@ def test_a_drifted_zero_offset_is_caught_and_named(ur10, shoulder_model, station
     assert result.manifest()["causes"][0]["joint"] == ur10.chain.joint_names[ELBOW]
 
 
+def test_a_moved_tool_is_seen_from_a_new_station_unless_the_target_is_refitted(ur10, shoulder_model):
+    _, model, _, _ = shoulder_model
+    pairs = in_new_station(check_pairs(ur10))
+    shift = np.eye(4)
+    shift[:3, 3] = [2e-4, -1e-4, 1e-4]  # in the target's frame, which rides on the flange
+    moved = replace(pairs, T=pairs.T @ shift)
+    held = verify(model, [moved])
+    assert held.drifted and held.diagnosis[0]["group"].startswith("the tool"), held.diagnosis
+    assert "the target at the model's" in held.stations["tracker_new"]
+    refitted = verify(model, [moved], refit_target=True)
+    assert not refitted.drifted and "the target with it" in refitted.stations["tracker_new"]
+
+
 def test_verify_exits_with_its_verdict_and_writes_json_and_html(ur10, shoulder_model, tmp_path):
     model_dir, _, _, _ = shoulder_model
     for name, drift in (("good", 0.0), ("drifted", np.radians(0.02))):
