@@ -129,17 +129,11 @@ def real_section(model: HybridModel, train_pairs: Pairs, held_out: Pairs, steps:
         f"Real UR10: A's model from {len(train_pairs)} poses; D's check {len(check)} poses (every "
         f"{CHECK_EVERY}th), its test the other {len(test)}, in D's tracker frame at its probe.\n\n"
         + table(head, rows)
-        + "\n\nupdate's choice of the prior's weight, each judged on held-out blocks of the check (mean, mm; "
-        + "inf: the stations alone):\n\n"
+        + "\n\nupdate's choice of the prior's weight, each judged on 4 held-out blocks of the check by the error "
+        + "the fit weighs (position and orientation × the orientation length); means; inf: the stations alone:\n\n"
         + table(*_by_weight(updated.record))
         + "\n\nWhat update changed most (σ: the parent's):\n\n"
-        + table(
-            ["parameter", "from", "to", "unit", "change (σ)"],
-            [
-                [c["name"], f"{c['from']:.4g}", f"{c['to']:.4g}", c["unit"], f"{c['sigmas']:.1f}"]
-                for c in updated.record["changed"][:6]
-            ],
-        )
+        + table(["parameter", "from", "to", "unit", "change (σ)"], _changes(updated.record["changed"][:6]))
     )
     write_section(
         "lifecycle_real", "A calibration met again: verify and update on the real UR10 (bench_lifecycle)", body
@@ -147,8 +141,17 @@ def real_section(model: HybridModel, train_pairs: Pairs, held_out: Pairs, steps:
 
 
 def _by_weight(record: dict) -> tuple[list[str], list[list[str]]]:
-    by = record["held_out_position_mm_mean_by_weight"]
-    return ["prior weight", *by], [["held-out mean (mm)", *(f"{v:.4f}" for v in by.values())]]
+    """Every other weight tried, the chosen one and the stations alone, with their held-out means."""
+    by = record["held_out_by_weight"]
+    chosen = "inf" if record["prior_weight"] is None else f"{record['prior_weight']:.3g}"
+    keep = [w for k, w in enumerate(by) if k % 2 == 0 or w in (chosen, "inf")]
+    head = ["prior weight", "weighed (mm)", "position (mm)", "orientation (deg)"]
+    rows = []
+    for w in keep:
+        e = by[w]
+        mark = " (chosen)" if w == chosen else ""
+        rows.append([w + mark, f"{e['weighed_mm']:.4f}", f"{e['position_mm']:.4f}", f"{e['orientation_deg']:.4f}"])
+    return head, rows
 
 
 def _changes(changed: list[dict]) -> list[list[str]]:

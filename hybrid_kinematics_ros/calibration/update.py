@@ -1,13 +1,15 @@
 """Update a calibration from a few new poses, in seconds, without retraining.
 
-The parent model is kept whole (its nets, bounds and cyclic terms); what moves is its parametric stage's
-identified parameters and the tracker stations. The stations of the new poses are placed through the parent
-(:func:`~hybrid_kinematics_ros.calibration.verify.place_station`) when it does not know them, and each gets a
-small correction of its tracker placement and target. The stage's parameters change from the parent's values
-against a prior that holds each by its σ (the parent's :class:`~.parametric.Uncertainty`), weighted by a
-factor. A few poses cannot say how much the robot changed since the parent's calibration, so the factor is
-chosen from the new poses themselves: each candidate is fitted on all but one of ``FOLDS`` contiguous blocks and
-judged on the one left out; an infinite factor, the stations alone, is among the candidates.
+The parent model is kept whole (its nets, bounds and joint error map); what moves is its parametric stage's
+identified parameters, the cyclic joint errors among them, and the tracker stations. The stations of the new
+poses are placed through the parent (:func:`~hybrid_kinematics_ros.calibration.verify.place_station`) when it
+does not know them, and each gets a small correction of its tracker placement and target. The stage's
+parameters change from the parent's values against a prior that holds each by its σ (the parent's
+:class:`~.parametric.Uncertainty`), weighted by a factor. A few poses cannot say how much the robot changed
+since the parent's calibration, so the factor is chosen from the new poses themselves: each candidate is fitted
+on all but one of ``FOLDS`` contiguous blocks and judged on the one left out, by the error the fit weighs
+(position and orientation × ``ORIENTATION_LENGTH``); an infinite factor, the stations alone, is among the
+candidates.
 
 The problem is linear: the nets depend on the joints only, and the stage's parameters and the stations'
 corrections are small, so the poses move linearly in them about the parent.
@@ -39,7 +41,7 @@ from hybrid_kinematics_ros.model.referencing import Referencing
 
 FOLDS = 4  # contiguous blocks of the new poses that choose the prior's weight
 MIN_POSES = 20  # fewer cannot place a station and leave blocks to judge on
-PRIOR_WEIGHTS = (*10.0 ** np.arange(-6, 4), np.inf)  # the prior's weight, in units of the parent's information
+PRIOR_WEIGHTS = (*10.0 ** np.arange(-6, 3.1, 0.25), np.inf)  # the prior's weight, in the parent's information
 STEP = 1e-3  # of each parameter's scaled unit: the finite difference of the stage's columns
 STATION_STEP = 1e-6  # m or rad: the same for the stations' corrections
 CHANGES_LISTED = 10  # the largest changes (in σ) that model.json and the summary name
@@ -75,10 +77,15 @@ class Problem:
         out[free] = np.linalg.lstsq(stacked, target, rcond=None)[0]
         return out
 
-    def position_mm(self, x: np.ndarray, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
-        """Each pose's position error (mm) at the target after the columns' values ``x``."""
+    def errors(self, x: np.ndarray, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """``(N, 3)``: each pose's error after the columns' values ``x``: the weighed one (position and
+        orientation × ``ORIENTATION_LENGTH``, mm), position (mm) and orientation (deg; nan for position only)."""
         left = self.residual[rows] - self.jacobian[rows] @ x
-        return 1e3 * np.linalg.norm(left[:, :3], axis=1)
+        position = 1e3 * np.linalg.norm(left[:, :3], axis=1)
+        if self.position_only:
+            return np.column_stack([position, position, np.full(len(left), np.nan)])
+        turn = np.degrees(np.linalg.norm(left[:, 3:], axis=1) / ORIENTATION_LENGTH)
+        return np.column_stack([1e3 * np.linalg.norm(left, axis=1), position, turn])
 
     def stations_moved(self, x: np.ndarray) -> list[Referencing]:
         """The stations' referencings with their corrections ``x`` applied."""
@@ -109,16 +116,22 @@ class Updated:
 
     def lines(self) -> list[str]:
         r = self.record
-        weight = "the stations alone" if r["prior_weight"] is None else f"prior weight {r['prior_weight']:g}"
+        weight = "the stations alone" if r["prior_weight"] is None else f"prior weight {r['prior_weight']:.3g}"
+        chosen = r["held_out_by_weight"]["inf" if r["prior_weight"] is None else f"{r['prior_weight']:.3g}"]
+        alone = r["held_out_by_weight"]["inf"]
         out = [
-            f"{r['poses']} poses; {weight}, chosen on {FOLDS} held-out blocks "
-            f"({r['held_out_position_mm_mean']:.4f} mm mean against {r['stations_only_position_mm_mean']:.4f} mm "
-            "with the stations alone)"
+            f"{r['poses']} poses; {weight}, chosen on {FOLDS} held-out blocks of them (means: {_means(chosen)}; "
+            f"the stations alone: {_means(alone)})"
         ]
         out += [
             f"  {c['name']}: {c['from']:+.4g} -> {c['to']:+.4g} {c['unit']} ({c['sigmas']:.1f} σ)" for c in r["changed"]
         ]
         return out
+
+
+def _means(errors: dict[str, float | None]) -> str:
+    turn = "" if errors["orientation_deg"] is None else f", {errors['orientation_deg']:.4f} deg"
+    return f"{errors['position_mm']:.4f} mm{turn}"
 
 
 def update(model: HybridModel, stations: Sequence[Pairs]) -> Updated:
@@ -133,18 +146,21 @@ def update(model: HybridModel, stations: Sequence[Pairs]) -> Updated:
         raise CalibrationError(f"{count} new poses; an update needs at least {MIN_POSES}")
     problem = _problem(model, section, stations)
     blocks = np.array_split(np.arange(count), FOLDS)
-    held_out = {w: _held_out_mm(problem, w, blocks) for w in PRIOR_WEIGHTS}
-    weight = min(held_out, key=held_out.get)
+    held_out = {w: _held_out(problem, w, blocks) for w in PRIOR_WEIGHTS}  # weighed, position, orientation
+    weight = min(held_out, key=lambda w: held_out[w][0])
     x = problem.solve(weight)
     manifest, changed = _child_manifest(model, stations, problem, x)
     record = {
         "poses": count,
         "stations": [ref.frame_id for ref in problem.refs],
         "prior_weight": None if np.isinf(weight) else float(weight),
-        "held_out_position_mm_mean": float(held_out[weight]),
-        "stations_only_position_mm_mean": float(held_out[np.inf]),
-        "held_out_position_mm_mean_by_weight": {("inf" if np.isinf(w) else f"{w:g}"): v for w, v in held_out.items()},
-        "position_mm_mean": float(np.mean(problem.position_mm(x))),
+        "held_out_position_mm_mean": float(held_out[weight][1]),
+        "stations_only_position_mm_mean": float(held_out[np.inf][1]),
+        "held_out_by_weight": {
+            ("inf" if np.isinf(w) else f"{w:.3g}"): {"weighed_mm": e[0], "position_mm": e[1], "orientation_deg": e[2]}
+            for w, e in held_out.items()
+        },
+        "position_mm_mean": float(np.mean(problem.errors(x)[:, 1])),
         "changed": changed,
     }
     manifest["parent"] = {"path": str(model.path), "sha256": _digest(model)}
@@ -170,12 +186,14 @@ def _digest(model: HybridModel) -> str:
     return hashlib.sha256((Path(model.path) / "model.json").read_bytes()).hexdigest()
 
 
-def _held_out_mm(problem: Problem, weight: float, blocks: list[np.ndarray]) -> float:
+def _held_out(problem: Problem, weight: float, blocks: list[np.ndarray]) -> list[float]:
+    """The mean held-out errors (weighed mm, position mm, orientation deg) of ``weight`` over the blocks."""
     errors = []
     for k, block in enumerate(blocks):
         rest = np.concatenate([b for j, b in enumerate(blocks) if j != k])
-        errors.append(problem.position_mm(problem.solve(weight, rest), block))
-    return float(np.mean(np.concatenate(errors)))
+        errors.append(problem.errors(problem.solve(weight, rest), block))
+    mean = np.mean(np.concatenate(errors), axis=0)
+    return [float(v) if np.isfinite(v) else None for v in mean]
 
 
 def _problem(model: HybridModel, section: dict[str, Any], stations: Sequence[Pairs]) -> Problem:
@@ -215,7 +233,7 @@ def _problem(model: HybridModel, section: dict[str, Any], stations: Sequence[Pai
         return np.hstack([out, ORIENTATION_LENGTH * turn])
 
     r0 = residual()
-    params = [i for i, p in enumerate(section["parameters"]) if "sigma" in p and p["kind"] != "harmonic"]
+    params = [i for i, p in enumerate(section["parameters"]) if "sigma" in p]
     unit = np.array([SCALE[section["parameters"][i]["kind"]] for i in params])
     nominal = model_from_manifest(model.chain, section).fk(pairs.q)
     columns = []
