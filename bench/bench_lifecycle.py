@@ -298,6 +298,7 @@ def verify_section(model: HybridModel, cell: VirtualCell) -> None:
     remounted = Tracker.from_config({**cell.config.tracker, **PLACED})
     rows = []
     for label, station, slip, shift, refit in (
+        ("unchanged, the model's station", tracker, 0.0, 0.0, False),
         ("unchanged, a new station", new_station, 0.0, 0.0, False),
         ("shoulder_lift_joint +0.1 mrad, a new station", new_station, 1e-4, 0.0, False),
         ("tool moved 0.1 mm, the model's station", tracker, 0.0, 1e-4, False),

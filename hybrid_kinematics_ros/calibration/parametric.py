@@ -104,6 +104,12 @@ STATION_SCALE = 1e-3  # m or rad: the scaled unit of a station's correction
 GEOMETRY_KINDS = ("zero", "translation", "rotation")
 
 
+def orientation_length(manifest: dict[str, Any]) -> float:
+    """m per rad: the orientation residuals' weight a model's stage was fitted with (chosen from its data)."""
+    chosen = (manifest.get("capacity") or {}).get("chosen") or {}
+    return float(chosen.get("orientation_length", ORIENTATION_LENGTH))
+
+
 def parameter_list(chain: Chain, harmonics: int = 0) -> list[Parameter]:
     """Every candidate parameter, in the order identification keeps them when two are equivalent (earlier wins).
 

@@ -8,7 +8,7 @@ parameters change from the parent's values against a prior that holds each by it
 :class:`~.parametric.Uncertainty`), weighted by a factor. A few poses cannot say how much the robot changed
 since the parent's calibration, so the factor is chosen from the new poses themselves: each candidate is fitted
 on all but one of ``FOLDS`` contiguous blocks and judged on the one left out, by the error the fit weighs
-(position and orientation × ``ORIENTATION_LENGTH``); an infinite factor, the stations alone, is among the
+(position and orientation × the parent's orientation length); an infinite factor, the stations alone, is among the
 candidates.
 
 The problem is linear: the nets depend on the joints only, and the stage's parameters and the stations'
@@ -30,7 +30,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.calibration.parametric import GEOMETRY_KINDS, ORIENTATION_LENGTH, SCALE
+from hybrid_kinematics_ros.calibration.parametric import GEOMETRY_KINDS, SCALE, orientation_length
 from hybrid_kinematics_ros.calibration.referencing import reference_stations
 from hybrid_kinematics_ros.calibration.verify import MIN_REFERENCE_POSES, place_station
 from hybrid_kinematics_ros.io.pairs import Pairs
@@ -50,7 +50,7 @@ CHANGES_LISTED = 10  # the largest changes (in σ) that model.json and the summa
 @dataclass(frozen=True)
 class Problem:
     """The new poses' residuals about the parent (``residual`` ``(N, w)``, position m then orientation rad ×
-    ``ORIENTATION_LENGTH``, at the target in the base frame) and how they change per unit of each column
+    ``length``, at the target in the base frame) and how they change per unit of each column
     (``jacobian`` ``(N, w, P)``): first the stage's parameters (``params``, indices into the manifest's list, per
     ``unit`` SI), then each station's corrections (its tracker's placement, its target's offset and, with a 6-D
     probe, turn). ``information`` ``(P,)``: the parent's, for a weight of one (zero for the stations)."""
@@ -63,6 +63,7 @@ class Problem:
     refs: list[Referencing]
     station: np.ndarray  # (N,) which of ``refs`` each pose was measured from
     position_only: bool
+    length: float  # m per rad: the orientation residuals' weight, as the parent's stage was fitted with
 
     def solve(self, weight: float, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
         """The columns' values for the prior ``weight`` (inf: the stations alone), fitted on pose ``rows``."""
@@ -79,12 +80,12 @@ class Problem:
 
     def errors(self, x: np.ndarray, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
         """``(N, 3)``: each pose's error after the columns' values ``x``: the weighed one (position and
-        orientation × ``ORIENTATION_LENGTH``, mm), position (mm) and orientation (deg; nan for position only)."""
+        orientation × ``length``, mm), position (mm) and orientation (deg; nan for position only)."""
         left = self.residual[rows] - self.jacobian[rows] @ x
         position = 1e3 * np.linalg.norm(left[:, :3], axis=1)
         if self.position_only:
             return np.column_stack([position, position, np.full(len(left), np.nan)])
-        turn = np.degrees(np.linalg.norm(left[:, 3:], axis=1) / ORIENTATION_LENGTH)
+        turn = np.degrees(np.linalg.norm(left[:, 3:], axis=1) / self.length)
         return np.column_stack([1e3 * np.linalg.norm(left, axis=1), position, turn])
 
     def stations_moved(self, x: np.ndarray) -> list[Referencing]:
@@ -199,6 +200,7 @@ def _held_out(problem: Problem, weight: float, blocks: list[np.ndarray]) -> list
 def _problem(model: HybridModel, section: dict[str, Any], stations: Sequence[Pairs]) -> Problem:
     """The update's linear problem about the parent, its stations placed."""
     position_only = stations[0].position_only
+    length = orientation_length(model.manifest)
     if any(p.position_only != position_only for p in stations):
         raise CalibrationError("the new poses mix 6-D and position-only stations: update with one kind at a time")
     for pairs in stations:
@@ -230,7 +232,7 @@ def _problem(model: HybridModel, section: dict[str, Any], stations: Sequence[Pai
         if position_only:
             return out
         turn = Rotation.from_matrix(measured[:, :3, :3] @ np.swapaxes(predicted[:, :3, :3], 1, 2)).as_rotvec()
-        return np.hstack([out, ORIENTATION_LENGTH * turn])
+        return np.hstack([out, length * turn])
 
     r0 = residual()
     params = [i for i, p in enumerate(section["parameters"]) if "sigma" in p]
@@ -250,7 +252,8 @@ def _problem(model: HybridModel, section: dict[str, Any], stations: Sequence[Pai
     sigma = np.array([section["parameters"][i]["sigma"] for i in params])
     information = np.zeros(len(columns))
     information[: len(params)] = (unit / sigma) ** 2 * np.mean(r0**2)
-    return Problem(r0, np.stack(columns, axis=-1), information, params, unit, refs, station, position_only)
+    jacobian = np.stack(columns, axis=-1)
+    return Problem(r0, jacobian, information, params, unit, refs, station, position_only, length)
 
 
 def _child_manifest(

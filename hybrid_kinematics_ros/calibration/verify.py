@@ -27,6 +27,7 @@ from scipy import stats
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import target_errors
+from hybrid_kinematics_ros.calibration.parametric import orientation_length
 from hybrid_kinematics_ros.calibration.referencing import reference_stations
 from hybrid_kinematics_ros.calibration.summary import verdict
 from hybrid_kinematics_ros.io.pairs import Pairs
@@ -177,11 +178,23 @@ def _tips(model: HybridModel, pairs: Pairs) -> np.ndarray:
 
 
 def _placed_with_target(model: HybridModel, place: Pairs, tips: np.ndarray) -> Referencing:
-    """The tracker placed by the measured target points against the model's, the target where the model has it."""
+    """The tracker placed by the measured targets against the model's, the target where the model has it: by
+    their points, and with a 6-D probe also by points one orientation length along each of their axes, so
+    that position and orientation weigh as in the stage's fit."""
     target = np.eye(4) if model.referencing is None else model.referencing.flange_to_target
-    predicted = (tips @ target)[:, :3, 3]
-    base, _ = se3.fit_rigid(place.T[:, :3, 3], predicted[None])
+    predicted, measured = tips @ target, place.T
+    if place.position_only:
+        base, _ = se3.fit_rigid(measured[:, :3, 3], predicted[None, :, :3, 3])
+    else:
+        base, _ = se3.fit_rigid(_frame_points(measured, model), _frame_points(predicted, model)[None])
     return Referencing(place.frame_id, base[0], target, place.position_only, method="placed by the check")
+
+
+def _frame_points(T: np.ndarray, model: HybridModel) -> np.ndarray:
+    """``(4N, 3)``: each frame's origin and the points one orientation length along its axes."""
+    length = orientation_length(model.manifest)
+    origin = T[:, None, :3, 3]
+    return np.concatenate([origin, origin + length * np.swapaxes(T[:, :3, :3], 1, 2)], axis=1).reshape(-1, 3)
 
 
 def _bound_test(
