@@ -54,7 +54,7 @@ def single_moves(cell: BacklashCell, models: dict[str, HybridModel], count: int)
         for way in WAYS:
             model = models["plain" if way == WAYS[0] else "approach"]
             if way != WAYS[0]:
-                model.set_approach(-arrive)  # the joints last moved the other way
+                model = model.with_approach(-arrive)  # the joints last moved the other way
             result = IKSolver(model, replace(OPTIONS, arrive_from_seed=way == WAYS[2])).solve(target, seed)
             directions = arrival_directions(seed, result.q, -arrive)
             out[way][0].append(cell.miss_mm(result.q, directions, target)[0] if result.success else np.nan)
@@ -81,7 +81,7 @@ def trajectories(cell: BacklashCell, models: dict[str, HybridModel], count: int)
         for way in WAYS:
             model = models["plain" if way == WAYS[0] else "approach"]
             if way != WAYS[0]:
-                model.set_approach(np.zeros(chain.dof))
+                model = model.with_approach(np.zeros(chain.dof))
             start = time.perf_counter()
             results = IKSolver(model, replace(OPTIONS, arrive_from_seed=way == WAYS[2])).solve_trajectory(targets, seed)
             seconds = (time.perf_counter() - start) / len(targets)

@@ -14,6 +14,7 @@ hybrid model over the whole joint range finishes (:meth:`HybridRefiner.unbounded
 
 from __future__ import annotations
 
+import copy
 import time
 
 import numpy as np
@@ -73,6 +74,13 @@ class HybridRefiner:
             float(np.radians(orientation_tolerance_deg)) * INNER_TOLERANCE_SHARE,
         )
         self.polish_tol = (POLISH_SHARE * self.inner_tol[0], POLISH_SHARE * self.inner_tol[1])
+
+    def with_model(self, model: HybridModel) -> HybridRefiner:
+        """This refinement over ``model``, another value of the same calibration (other condition values)."""
+        clone = copy.copy(self)
+        clone.model = model
+        clone.chord = chord(model)
+        return clone
 
     def errors(self, q: np.ndarray, target: np.ndarray, analytic: bool = False) -> tuple[float, float]:
         """Position (mm) and orientation (deg) errors of the model's pose at ``q``."""

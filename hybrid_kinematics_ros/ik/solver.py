@@ -65,6 +65,7 @@ corrections (or ``analytic=True``) has no hybrid stages: its classical stage get
 
 from __future__ import annotations
 
+import copy
 import functools
 import gc
 import math
@@ -251,6 +252,20 @@ class IKSolver:
             if model.chain.dof == 6:  # and the valley trace's step (valley.warm_up)
                 warm_up(model, self._mid)
 
+    def with_model(self, model: HybridModel) -> IKSolver:
+        """This solver over ``model``, another value of the same calibration (its condition values or approach
+        directions): the tables and kernels are shared, nothing is rebuilt."""
+        if model is self.model:
+            return self
+        clone = copy.copy(self)
+        clone.model = model
+        clone.refiner = self.refiner.with_model(model)
+        return clone
+
+    def _approaching(self, directions: np.ndarray | None) -> IKSolver:
+        """This solver over the model with the approach ``directions`` (None: the model's own)."""
+        return self.with_model(self.model.with_approach(directions))
+
     def branches(self, target: np.ndarray, seed: np.ndarray) -> np.ndarray:
         """The closed forms' branches within the limits, nearest the seed first; none without closed forms."""
         if self.closed_form is None:
@@ -380,7 +395,9 @@ class IKSolver:
             # the hybrid model reaches the target on some of these branches only (the edge of its workspace
             # moved by the corrections): the cheap fixed point on each first, nearest the seed first
             for q in near:
-                result = self._from_branch(target, q, analytic, start, deadline, stats, origin, self._fixed_point_only)
+                result = self._from_branch(
+                    target, q, analytic, start, deadline, stats, origin, IKSolver._fixed_point_only
+                )
                 if result.success:
                     return self._singular(result)
                 if nearest_miss is None or result.position_error_mm < nearest_miss.position_error_mm:
@@ -413,7 +430,9 @@ class IKSolver:
             if missed is not None and _same_start(missed[0], [q0]):  # the same fixed point: its miss, not a second run
                 first = missed[1]
             else:
-                first = self._from_branch(target, q0, analytic, start, deadline, stats, origin, self._fixed_point_only)
+                first = self._from_branch(
+                    target, q0, analytic, start, deadline, stats, origin, IKSolver._fixed_point_only
+                )
             first = self._near_miss_lm(target, first, analytic, start, deadline, origin, lm_starts)
             if first.success:
                 return self._singular(first)
@@ -429,11 +448,11 @@ class IKSolver:
                     target, first, closed_q, closed, analytic, start, deadline, stats, origin, lm_starts
                 )
             if reserve is None:
-                valley = functools.partial(self._valley_only, nearest=closed_q)
+                valley = functools.partial(IKSolver._valley_only, nearest=closed_q)
                 found = self._from_branch(target, q0, analytic, start, deadline, stats, origin, valley)
                 if found.success:
                     return self._singular(found)
-            refine = functools.partial(self._refine_branch, fixed=first, valley=False)
+            refine = functools.partial(IKSolver._refine_branch, fixed=first, valley=False)
             if not beyond:
                 reserve = self._reserve(
                     target, first, closed_q, closed, analytic, start, deadline, stats, origin, lm_starts
@@ -624,7 +643,7 @@ class IKSolver:
         tried = [q0]
         misses: list[IKResult] = []  # the branches' fixed points that missed, for _near_miss_lm in their order
         stalled = [(first.position_error_mm, q0)] if first.stats.get("beyond_branch_reach") else []
-        probe = functools.partial(self._fixed_point_only, rounds=PROBE_ROUNDS)  # converging ones take 3
+        probe = functools.partial(IKSolver._fixed_point_only, rounds=PROBE_ROUNDS)  # converging ones take 3
         for q in closed:
             if time.perf_counter() > deadline or not seeding.is_new_branch(q, tried):
                 continue
@@ -633,7 +652,7 @@ class IKSolver:
             if not result.success and not result.stats.get("beyond_branch_reach"):
                 # undecided after its probe: the rest of its fixed point says whether it converges or stalls
                 result = self._from_branch(
-                    target, result.q, analytic, start, deadline, stats, origin, self._fixed_point_only
+                    target, result.q, analytic, start, deadline, stats, origin, IKSolver._fixed_point_only
                 )
             if result.success:
                 return result
@@ -649,7 +668,9 @@ class IKSolver:
                 if time.perf_counter() > deadline or not seeding.is_new_branch(q, tried):
                     continue
                 tried.append(q)  # the whole fixed point: a copy that reaches converges more slowly there
-                result = self._from_branch(target, q, analytic, start, deadline, stats, origin, self._fixed_point_only)
+                result = self._from_branch(
+                    target, q, analytic, start, deadline, stats, origin, IKSolver._fixed_point_only
+                )
                 if result.success:
                     return result
         for result in [m for m in misses if m.stats.get("beyond_branch_reach")]:
@@ -678,9 +699,9 @@ class IKSolver:
         if result.success or result.position_error_mm >= NEAR_MISS_MM or _same_start(result.q, starts):
             return result
         starts.append(result.q)
-        with self.model.approaching(self._arrival(origin, result.q)):
-            q, *_ = self.refiner.unbounded(target, result.q, deadline)
-            return self.result(q, target, analytic, start, dict(result.stats, hybrid_lm=1))
+        solver = self._approaching(self._arrival(origin, result.q))
+        q, *_ = solver.refiner.unbounded(target, result.q, deadline)
+        return solver.result(q, target, analytic, start, dict(result.stats, hybrid_lm=1))
 
     def _nearest_exact(
         self, target: np.ndarray, seed: np.ndarray, analytic: bool, start: float, stats: dict
@@ -724,7 +745,7 @@ class IKSolver:
         if q is None:
             return None, None
         stats["attempts"] = 1
-        result = self._from_branch(target, q, analytic, start, deadline, stats, origin, self._fixed_point_only)
+        result = self._from_branch(target, q, analytic, start, deadline, stats, origin, IKSolver._fixed_point_only)
         return (self._singular(result), None) if result.success else (None, (q, result))
 
     def _beyond_reach(self, target: np.ndarray, seed: np.ndarray, closed: np.ndarray) -> np.ndarray:
@@ -811,18 +832,18 @@ class IKSolver:
         limits can stall LM in the wrist's valley, where the valley through it holds the solution."""
         if analytic or not self.model.is_corrected:
             return self.result(q0, target, analytic, start, dict(stats))
-        with self.model.approaching(self._arrival(origin, q0)):
-            q0, errors, beyond = self.fixed_point(target, q0, deadline)
-            result = self.result(q0, target, analytic, start, dict(stats), errors)
-            if result.success or (beyond and not lm_beyond):
-                return result
-            if valleys is not None and seeding.is_new_branch(q0, valleys) and self.closed_form is not None:
-                valleys.append(q0)  # where nothing was searched (not singular, too late), it would not be again
-                found = self._valley_rows(target, q0[None], start, deadline, stats)
-                if found is not None:
-                    return found
-            q, *_ = self.refiner.unbounded(target, q0, deadline, chord_first=True)
-            return self.result(q, target, analytic, start, dict(stats))
+        solver = self._approaching(self._arrival(origin, q0))
+        q0, errors, beyond = solver.fixed_point(target, q0, deadline)
+        result = solver.result(q0, target, analytic, start, dict(stats), errors)
+        if result.success or (beyond and not lm_beyond):
+            return result
+        if valleys is not None and seeding.is_new_branch(q0, valleys) and solver.closed_form is not None:
+            valleys.append(q0)  # where nothing was searched (not singular, too late), it would not be again
+            found = solver._valley_rows(target, q0[None], start, deadline, stats)
+            if found is not None:
+                return found
+        q, *_ = solver.refiner.unbounded(target, q0, deadline, chord_first=True)
+        return solver.result(q, target, analytic, start, dict(stats))
 
     def _from_branch(
         self,
@@ -835,19 +856,18 @@ class IKSolver:
         origin: np.ndarray | None = None,
         refine: Callable[..., IKResult] | None = None,
     ) -> IKResult:
-        """:meth:`_refine_branch` (or ``refine``, with its arguments) with the directions of the move from
-        ``origin`` (4.): once more if the refinement moved a joint to the other side of the origin."""
-        refine = refine or self._refine_branch
+        """:meth:`_refine_branch` (or ``refine``, a function of the solver and its arguments) over the model with
+        the directions of the move from ``origin`` (4.): once more if the refinement moved a joint to the other
+        side of the origin."""
+        refine = refine or IKSolver._refine_branch
         directions = self._arrival(origin, q0)
-        with self.model.approaching(directions):
-            result = refine(target, q0, analytic, start, deadline, stats)
+        result = refine(self._approaching(directions), target, q0, analytic, start, deadline, stats)
         if directions is None:
             return result
         again = self._arrival(origin, result.q)
         if not np.array_equal(again, directions):
             directions = again
-            with self.model.approaching(directions):
-                result = refine(target, result.q, analytic, start, deadline, stats)
+            result = refine(self._approaching(directions), target, result.q, analytic, start, deadline, stats)
         result.stats["approach"] = directions.tolist()
         return result
 
@@ -1181,15 +1201,15 @@ class IKSolver:
         for k, q0 in enumerate(found):
             if k not in fixed and time.perf_counter() > end:  # a fixed point run before the deadline is kept
                 break
-            with self.model.approaching(arrivals[k]):
-                result = None
-                beyond = False
-                if corrected and self.closed_form is not None:
-                    q0, errors, beyond = fixed[k] if k in fixed else self.fixed_point(target, q0, end)
-                    result = self.result(q0, target, analytic, start, {"method": "closed-form fixed point"}, errors)
-                if result is None or (not (result.success or beyond) and time.perf_counter() <= end):
-                    q, stats = self.refiner.refine(target, q0, deadline=end) if corrected else (q0, {})
-                    result = self.result(q, target, analytic, start, stats, stats.pop("errors", None))
+            solver = self._approaching(arrivals[k])
+            result = None
+            beyond = False
+            if corrected and solver.closed_form is not None:
+                q0, errors, beyond = fixed[k] if k in fixed else solver.fixed_point(target, q0, end)
+                result = solver.result(q0, target, analytic, start, {"method": "closed-form fixed point"}, errors)
+            if result is None or (not (result.success or beyond) and time.perf_counter() <= end):
+                q, stats = solver.refiner.refine(target, q0, deadline=end) if corrected else (q0, {})
+                result = solver.result(q, target, analytic, start, stats, stats.pop("errors", None))
             result.stats["path"] = self.path
             if result.success:
                 results.append(result)
@@ -1249,8 +1269,8 @@ class IKSolver:
                 result = self.result(q[i], targets[i], False, start, {"method": "batch chord"}, tuple(errors[i]))
             else:  # from the pose before (its answer: the chord step leaves an unconverged pose's last iterate
                 # in q), on the side its joints arrived from
-                with self.model.approaching(None if arrive is None or not i else arrive[i - 1]):
-                    result = self.solve(targets[i], results[i - 1].q if i else seed)
+                solver = self._approaching(None if arrive is None or not i else arrive[i - 1])
+                result = solver.solve(targets[i], results[i - 1].q if i else seed)
             results.append(result)
         per_pose = (time.perf_counter() - start) / max(n, 1)
         for result in results:

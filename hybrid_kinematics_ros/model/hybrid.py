@@ -11,19 +11,18 @@ stage's alone, see :meth:`HybridModel.error_bounds`; no radius to choose). A tra
 that box, and away from it the nets extrapolate; with ``coverage_radius`` set, the calibrated range is the
 configurations within that distance of a training configuration instead.
 
-Condition channels (temperature, the joints' approach directions) are per thread: a caller that serves
-several threads (the kinematics node) keeps the current values itself and computes each answer inside
-:meth:`HybridModel.using` with a snapshot of them; :meth:`HybridModel.approaching` (IK's trial directions)
-changes only its own thread's. Without either, every thread reads the model's own values.
+A loaded model is a value: nothing changes it after load. Its condition channels (temperature, the joints'
+approach directions) hold the values it computes with by default; a call can give its own per row
+(``conditions``), and :meth:`HybridModel.with_conditions`, :meth:`HybridModel.with_condition` and
+:meth:`HybridModel.with_approach` give another value that shares every loaded part. A caller that serves
+several threads (the kinematics node) keeps the current values itself and computes each answer with a model of
+them.
 """
 
 from __future__ import annotations
 
 import copy
 import math
-import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -124,8 +123,7 @@ class HybridModel:
         )
         conditions = self.manifest.get("conditions") or {}
         self.condition_names = tuple(conditions)  # condition channels the nets take after the joints
-        self._shared = np.array([float(conditions[c]["default"]) for c in self.condition_names])
-        self._local = threading.local()  # a thread's own condition values (see the module text)
+        self._values = _frozen([float(conditions[c]["default"]) for c in self.condition_names])
         self.payload_changed = False  # serving another payload than the nets were trained with (with_payload)
         self._trained_base = self.base  # the stage under the calibrated payload (what its bounds hold for)
         # where the joints' approach directions sit among them, in joint order (None: the nets take none)
@@ -192,11 +190,8 @@ class HybridModel:
         return clone
 
     def _clone(self) -> HybridModel:
-        """A shallow copy for a ``with_*`` value: it shares the loaded parts, not a thread's condition values."""
-        clone = copy.copy(self)
-        clone._local = threading.local()
-        clone._shared = self._shared.copy()
-        return clone
+        """A shallow copy for a ``with_*`` value: it shares the loaded parts."""
+        return copy.copy(self)
 
     def coverage_distance(self, q: np.ndarray) -> np.ndarray | None:
         """``(B,)`` Euclidean joint-space distance (rad) to the nearest training configuration; None when
@@ -493,63 +488,54 @@ class HybridModel:
             return True
         return bool(self.in_calibrated_range(np.array(values))[0])  # another turn of a revolute joint
 
-    def set_condition(self, name: str, value: float) -> None:
-        """The current value of a condition channel (e.g. the cell's temperature), used from now on."""
+    def with_condition(self, name: str, value: float) -> HybridModel:
+        """This model computing with ``value`` for the condition channel ``name`` (e.g. the cell's temperature)."""
         if name not in self.condition_names:
             raise ModelError(
                 f"the model takes no condition '{name}' (it takes {', '.join(self.condition_names) or 'none'})"
             )
         if not np.isfinite(value):
             raise ModelError(f"condition '{name}' = {value} is not a finite number")
-        self.condition_values[self.condition_names.index(name)] = float(value)
+        values = self._values.copy()
+        values[self.condition_names.index(name)] = float(value)
+        return self.with_conditions(values)
 
-    def set_approach(self, directions: np.ndarray) -> None:
-        """The joints' current approach directions ``(n,)`` in {-1, 0, +1} (:mod:`kinematics.approach`), used
-        from now on; ignored by a model whose nets do not take them."""
-        if self.approach_index is not None:
-            self.condition_values[self.approach_index] = directions
+    def with_conditions(self, values: np.ndarray | list[float]) -> HybridModel:
+        """This model computing with the condition values ``(k,)``, one per :attr:`condition_names`."""
+        values = np.array(values, dtype=float)
+        if values.shape != self._values.shape:
+            raise ModelError(f"{len(values)} condition values given; the model takes {len(self._values)}")
+        if np.array_equal(values, self._values):
+            return self
+        clone = self._clone()
+        clone._values = _frozen(values)
+        return clone
+
+    def with_approach(self, directions: np.ndarray | None) -> HybridModel:
+        """This model computing with the joints' approach directions ``(n,)`` in {-1, 0, +1}
+        (:mod:`kinematics.approach`); itself for None or a model whose nets do not take them."""
+        if directions is None or self.approach_index is None:
+            return self
+        values = self._values.copy()
+        values[self.approach_index] = directions
+        return self.with_conditions(values)
 
     @property
     def approach(self) -> np.ndarray | None:
-        """The joints' current approach directions ``(n,)``, or None for a model whose nets do not take them."""
-        return None if self.approach_index is None else self.condition_values[self.approach_index].copy()
+        """The joints' approach directions ``(n,)`` this model computes with, or None for a model whose nets do
+        not take them."""
+        return None if self.approach_index is None else self._values[self.approach_index].copy()
 
     @property
     def condition_values(self) -> np.ndarray:
-        """``(k,)``: the condition channels this thread computes with (its own inside :meth:`using` or
-        :meth:`approaching`, else the model's)."""
-        values = getattr(self._local, "values", None)
-        return self._shared if values is None else values
+        """``(k,)``: the condition values this model computes with (read-only)."""
+        return self._values
 
     @property
     def condition_defaults(self) -> dict[str, float]:
         """What each condition channel is when nobody sets it: the training mean (an approach direction: 0)."""
         conditions = self.manifest.get("conditions") or {}
         return {name: float(conditions[name]["default"]) for name in self.condition_names}
-
-    @contextmanager
-    def using(self, values: np.ndarray) -> Iterator[None]:
-        """Within the block, this thread computes with these condition values ``(k,)`` (a copy is taken);
-        other threads, and this one afterwards, are unaffected."""
-        values = np.array(values, dtype=float)
-        if values.shape != self._shared.shape:
-            raise ModelError(f"{len(values)} condition values given; the model takes {len(self._shared)}")
-        saved = getattr(self._local, "values", None)
-        self._local.values = values
-        try:
-            yield
-        finally:
-            self._local.values = saved
-
-    @contextmanager
-    def approaching(self, directions: np.ndarray | None) -> Iterator[None]:
-        """Within the block, this thread computes with these approach directions (None: the current ones);
-        then the current ones return. IK uses it for the directions a solution is reached in."""
-        values = self.condition_values.copy()
-        if directions is not None and self.approach_index is not None:
-            values[self.approach_index] = directions
-        with self.using(values):
-            yield
 
     def conditions_with_approach(self, directions: np.ndarray) -> np.ndarray | None:
         """``(N, k)``: the current condition values, with the approach directions ``(N, n)`` per row; None
@@ -774,3 +760,10 @@ class HybridModel:
     @classmethod
     def analytic_only(cls, chain: Chain) -> HybridModel:
         return cls(chain)
+
+
+def _frozen(values: np.ndarray | list[float]) -> np.ndarray:
+    """A read-only copy of condition values: a model's own never change."""
+    out = np.array(values, dtype=float)
+    out.flags.writeable = False
+    return out

@@ -282,15 +282,14 @@ class KinematicsNode(Node):
         """The condition values ``model`` serves with (its defaults, then the conditions.* parameters), and
         the channels no parameter sets (approach directions aside: the joint states set those)."""
         unset = []
-        with model.using(model.condition_values):
-            for name in model.condition_names:
-                key = f"conditions.{name}"
-                value = self.get_parameter(key).value if self.has_parameter(key) else float("nan")
-                if value is not None and np.isfinite(value):
-                    model.set_condition(name, float(value))
-                elif not approach.is_channel(name):
-                    unset.append(name)
-            values = model.condition_values.copy()
+        for name in model.condition_names:
+            key = f"conditions.{name}"
+            value = self.get_parameter(key).value if self.has_parameter(key) else float("nan")
+            if value is not None and np.isfinite(value):
+                model = model.with_condition(name, float(value))
+            elif not approach.is_channel(name):
+                unset.append(name)
+        values = model.condition_values.copy()
         for name in unset:
             self.get_logger().warning(
                 f"parameter conditions.{name} is not set: the model uses its training mean "
@@ -337,10 +336,10 @@ class KinematicsNode(Node):
             conditions = {n.removeprefix("conditions."): v for n, v in given.items() if n.startswith("conditions.")}
             with self._lock:
                 values = self._conditions.copy()
-            with serving.using(values):  # checked by the model, applied to this copy
-                for name, value in conditions.items():
-                    serving.set_condition(name, float(value))
-                values = serving.condition_values.copy()
+            checked = serving.with_conditions(values)  # each value checked by the model
+            for name, value in conditions.items():
+                checked = checked.with_condition(name, float(value))
+            values = checked.condition_values.copy()
         except (ModelError, TypeError, ValueError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         solvers = (self._solver(serving), self._compensator(serving)) if serving is not model else None
@@ -403,8 +402,7 @@ class KinematicsNode(Node):
                 values[model.approach_index] = self._approach[1].update(q)
             values = values.copy()
         if self.pose_pub is not None:
-            with model.using(values):
-                self._publish_corrected_pose(model, q, msg)
+            self._publish_corrected_pose(model.with_conditions(values), q, msg)
         monitor = self.monitor
         if monitor is not None:
             try:
@@ -454,8 +452,7 @@ class KinematicsNode(Node):
         where each numpy call costs microseconds: one configuration takes a path of few numpy calls."""
         start = time.perf_counter()
         model, _, _, values = self._snapshot()
-        with model.using(values):
-            return self._fk(request, response, model, start)
+        return self._fk(request, response, model.with_conditions(values), start)
 
     def _fk(self, request: ComputeFK.Request, response: ComputeFK.Response, model: HybridModel, start: float):
         try:
@@ -519,8 +516,8 @@ class KinematicsNode(Node):
     def _on_ik(self, request: ComputeIK.Request, response: ComputeIK.Response) -> ComputeIK.Response:
         start = time.perf_counter()
         model, solver, _, values = self._snapshot()
-        with model.using(values):
-            return self._ik(request, response, model, solver, start)
+        model = model.with_conditions(values)
+        return self._ik(request, response, model, solver.with_model(model), start)
 
     def _ik(
         self,
@@ -604,8 +601,8 @@ class KinematicsNode(Node):
     ) -> CompensateTrajectory.Response:
         """The corrected trajectory; on failure, the points before ``failed_index``."""
         model, _, solver, values = self._snapshot()
-        with model.using(values):
-            return self._compensate(request, response, model, solver)
+        model = model.with_conditions(values)
+        return self._compensate(request, response, model, solver.with_model(model))
 
     def _compensate(
         self,

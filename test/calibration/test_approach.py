@@ -69,16 +69,16 @@ def test_served_paths_follow_the_current_directions(backlash_models):
     model = loaded["approach"]
     q = test.q[:4]
     directions = np.array([1.0, -1.0, 1.0, 1.0, -1.0, 1.0])
-    model.set_approach(directions)
-    batch = model.fk(q)
+    toward = model.with_approach(directions)
+    batch = toward.fk(q)
     np.testing.assert_allclose(batch, model.fk(q, conditions=np.tile(directions, (4, 1))), atol=1e-12)
     for i in range(4):
-        np.testing.assert_allclose(model.fk_single(q[i]), batch[i], atol=5e-9)
-    model.set_approach(-directions)
-    moved = np.linalg.norm(model.fk(q)[:, :3, 3] - batch[:, :3, 3], axis=1).mean()
+        np.testing.assert_allclose(toward.fk_single(q[i]), batch[i], atol=5e-9)
+    moved = np.linalg.norm(model.with_approach(-directions).fk(q)[:, :3, 3] - batch[:, :3, 3], axis=1).mean()
     assert moved > 0.2e-3  # m: about the two sides of the shoulder's backlash
-    loaded["plain"].set_approach(directions)  # a model without the inputs ignores them
-    assert loaded["plain"].approach_index is None
+    np.testing.assert_array_equal(model.approach, np.zeros(6))  # the loaded model keeps its own
+    plain = loaded["plain"]
+    assert plain.approach_index is None and plain.with_approach(directions) is plain  # no inputs: ignored
 
 
 def test_directions_are_derived_when_read_not_stored(ur10, tmp_path):

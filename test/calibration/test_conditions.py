@@ -29,23 +29,23 @@ def test_served_paths_use_the_current_value(thermal_models):
     loaded, test = thermal_models
     model = loaded["thermal"]
     q = test.q[:5]
-    model.set_condition("temperature", 27.0)
-    batch = model.fk(q)
+    warm = model.with_condition("temperature", 27.0)
+    batch = warm.fk(q)
     np.testing.assert_allclose(batch, model.fk(q, conditions=np.full((5, 1), 27.0)), atol=1e-12)
     for i in range(5):  # the node's single-pose paths: numpy inference on joints plus the current value
-        np.testing.assert_allclose(model.fk_single(q[i]), batch[i], atol=5e-9)
-        T, J = model.fk_and_jacobian_single(q[i])
+        np.testing.assert_allclose(warm.fk_single(q[i]), batch[i], atol=5e-9)
+        T, J = warm.fk_and_jacobian_single(q[i])
         np.testing.assert_allclose(T, batch[i], atol=5e-9)
-        _, Jb = model.fk_and_jacobian(q[i : i + 1])
+        _, Jb = warm.fk_and_jacobian(q[i : i + 1])
         np.testing.assert_allclose(J, Jb[0], atol=1e-6)
         assert J.shape == (6, 6)
-    warm = model.fk(q)
-    model.set_condition("temperature", 19.0)
-    assert np.linalg.norm(model.fk(q)[:, :3, 3] - warm[:, :3, 3], axis=1).mean() > 0.3e-3  # m
+    cool = warm.with_condition("temperature", 19.0)
+    assert np.linalg.norm(cool.fk(q)[:, :3, 3] - batch[:, :3, 3], axis=1).mean() > 0.3e-3  # m
+    np.testing.assert_array_equal(warm.fk(q), batch)  # a value: the other one left it as it was
     with pytest.raises(ModelError, match="no condition 'humidity'"):
-        model.set_condition("humidity", 40.0)
+        model.with_condition("humidity", 40.0)
     with pytest.raises(ModelError, match="not a finite number"):
-        model.set_condition("temperature", float("nan"))
+        model.with_condition("temperature", float("nan"))
 
 
 def test_training_on_a_channel_the_pairs_lack_says_so(ur10, tmp_path):

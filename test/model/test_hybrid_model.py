@@ -68,8 +68,7 @@ def test_the_compiled_pose_is_the_batch_paths(trained, thermal_models, shoulder_
     thermal = models["thermal"]
     assert thermal.base.is_elastic and thermal.base.has_joint_error and thermal.condition_names == ("temperature",)
     for temperature in (19.0, 27.0):
-        with thermal.using(np.array([temperature])):
-            _compiled_against_batch(thermal, thermal_test.q[:24])
+        _compiled_against_batch(thermal.with_conditions([temperature]), thermal_test.q[:24])
     path, _, inside, beyond = shoulder_model
     model = HybridModel.load(path)
     _compiled_against_batch(model, inside.q[:24])

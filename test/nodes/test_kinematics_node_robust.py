@@ -240,14 +240,13 @@ def test_condition_channels_come_from_parameters_settable_at_run_time(ros, therm
     try:
         fk = client.service(ComputeFK, "/thermal/compute_fk")
         params = client.service(SetParameters, "/thermal/set_parameters")
-        core.set_condition("temperature", 27.0)
-        np.testing.assert_allclose(served(), core.fk(q)[0], atol=1e-9)
+        np.testing.assert_allclose(served(), core.with_condition("temperature", 27.0).fk(q)[0], atol=1e-9)
         assert set_temperature(19.0).successful
-        core.set_condition("temperature", 19.0)
-        np.testing.assert_allclose(served(), core.fk(q)[0], atol=1e-9)
+        at_19 = core.with_condition("temperature", 19.0).fk(q)[0]
+        np.testing.assert_allclose(served(), at_19, atol=1e-9)
         refused = set_temperature(float("nan"))
         assert not refused.successful and "not a finite number" in refused.reason
-        np.testing.assert_allclose(served(), core.fk(q)[0], atol=1e-9)  # still 19 °C
+        np.testing.assert_allclose(served(), at_19, atol=1e-9)  # still 19 °C
     finally:
         client.close()
         node.destroy_node()
@@ -255,9 +254,9 @@ def test_condition_channels_come_from_parameters_settable_at_run_time(ros, therm
 
 def test_a_condition_set_during_an_ik_call_is_kept_and_the_ik_answers_for_its_own(ros, thermal_models, monkeypatch):
     """The node's threads share no mutable model: a temperature set while an IK runs (here from inside
-    the solver, so the interleaving is certain) serves every later answer, and the IK itself answers for
-    the temperature it was asked with. The IK used to put the old value back when it ended, while the
-    parameter read the new one. An unset condition is named in every answer and in /diagnostics."""
+    the call, once it has taken its model, so the interleaving is certain) serves every later answer, and the
+    IK itself answers for the temperature it was asked with. An unset condition is named in every answer and
+    in /diagnostics."""
     from hybrid_kinematics_ros.model.hybrid import HybridModel
 
     path = thermal_models[0]["thermal"].path
@@ -269,25 +268,23 @@ def test_a_condition_set_during_an_ik_call_is_kept_and_the_ik_answers_for_its_ow
         answer = client.call(fk, fk_request([q], core.joint_names))
         assert answer.success and "conditions.temperature is not set, its training mean" in answer.message
         node.set_parameters([rclpy.parameter.Parameter("conditions.temperature", value=27.0)])
-        solve = node.solver.solve
+        with_model = node.solver.with_model
 
-        def solve_while_the_temperature_changes(*args, **kwargs):
+        def bind_while_the_temperature_changes(model):
             node.set_parameters([rclpy.parameter.Parameter("conditions.temperature", value=19.0)])
-            return solve(*args, **kwargs)
+            return with_model(model)
 
-        monkeypatch.setattr(node.solver, "solve", solve_while_the_temperature_changes)
-        with core.using([27.0]):
-            target = core.fk(q + 0.02)[0]
+        monkeypatch.setattr(node.solver, "with_model", bind_while_the_temperature_changes)
+        at_27, at_19 = core.with_conditions([27.0]), core.with_conditions([19.0])
+        target = at_27.fk(q + 0.02)[0]
         answer = client.call(client.service(ComputeIK, "/midway/compute_ik"), ik_request(target, q, core.joint_names))
         assert answer.success and "not set" not in answer.message, answer.message
-        with core.using([27.0]):  # the IK answers for the 27 °C it was asked at
-            reached = core.fk(np.array(answer.solutions[0].position))[0]
+        reached = at_27.fk(np.array(answer.solutions[0].position))[0]  # the IK answers for the 27 °C asked at
         assert np.linalg.norm(reached[:3, 3] - target[:3, 3]) < 1e-6
         answer = client.call(fk, fk_request([q], core.joint_names))
-        with core.using([19.0]):  # and the temperature set meanwhile serves from then on
-            np.testing.assert_allclose(poses_of(answer)[0], core.fk(q)[0], atol=1e-9)
-        with core.using([27.0]):
-            assert np.abs(poses_of(answer)[0] - core.fk(q)[0]).max() > 1e-6  # the two temperatures differ
+        # and the temperature set meanwhile serves from then on
+        np.testing.assert_allclose(poses_of(answer)[0], at_19.fk(q)[0], atol=1e-9)
+        assert np.abs(poses_of(answer)[0] - at_27.fk(q)[0]).max() > 1e-6  # the two temperatures differ
     finally:
         client.close()
         node.destroy_node()
@@ -384,28 +381,27 @@ def test_payload_set_at_run_time_moves_the_stage_and_flags_the_nets(ros, thermal
 
 def test_concurrent_callers_each_get_the_answer_for_their_own_conditions(thermal_models):
     """Threads computing with different temperatures, and one trying approach directions over and over,
-    on one model: each answer equals the one computed alone for its temperature."""
+    each with its own value of one loaded model: each answer equals the one computed alone for its
+    temperature, and the loaded model never changes."""
     import threading
 
     model = thermal_models[0]["thermal"]
     q = np.random.default_rng(3).uniform(-1.0, 0.0, (50, 6))
     expected = {}
+    before = model.fk(q)
     for t in (15.0, 30.0):
-        with model.using([t]):
-            expected[t] = model.fk(q)
+        expected[t] = model.with_conditions([t]).fk(q)
     wrong: list[float] = []
     stop_at = time.monotonic() + 2.0
 
     def caller(t: float) -> None:
         while time.monotonic() < stop_at:
-            with model.using([t]):
-                if not np.array_equal(model.fk(q), expected[t]):
-                    wrong.append(t)
+            if not np.array_equal(model.with_conditions([t]).fk(q), expected[t]):
+                wrong.append(t)
 
     def trier() -> None:
         while time.monotonic() < stop_at:
-            with model.approaching(np.ones(6)):
-                model.fk(q[:1])
+            model.with_approach(np.ones(6)).fk(q[:1])
 
     threads = [threading.Thread(target=caller, args=(t,)) for t in (15.0, 30.0)] + [threading.Thread(target=trier)]
     for th in threads:
@@ -414,6 +410,9 @@ def test_concurrent_callers_each_get_the_answer_for_their_own_conditions(thermal
         th.join()
     assert not wrong
     assert not np.allclose(expected[15.0], expected[30.0])
+    np.testing.assert_array_equal(model.fk(q), before)
+    with pytest.raises(ValueError):
+        model.condition_values[0] = 99.0  # read-only: a value, not a setting
 
 
 def test_approach_directions_follow_the_joint_states(ros, backlash_models):
@@ -449,25 +448,22 @@ def test_approach_directions_follow_the_joint_states(ros, backlash_models):
         fk = client.service(ComputeFK, "/approach/compute_fk")
         reach(q - 0.01)
         reach(q)  # every joint came up from below
-        core.set_approach(np.ones(6))
+        up, down = core.with_approach(np.ones(6)), core.with_approach(-np.ones(6))
         rising = served()
-        np.testing.assert_allclose(rising, core.fk(q)[0], atol=1e-9)
+        np.testing.assert_allclose(rising, up.fk(q)[0], atol=1e-9)
         reach(q + 0.01)
         reach(q)  # and now from above
-        core.set_approach(-np.ones(6))
         falling = served()
-        np.testing.assert_allclose(falling, core.fk(q)[0], atol=1e-9)
+        np.testing.assert_allclose(falling, down.fk(q)[0], atol=1e-9)
         assert np.linalg.norm(falling[:3, 3] - rising[:3, 3]) > 0.2e-3  # m: the shoulder's backlash
         # IK from where the joints are (no seed: the latest joint states) answers for the directions the robot
         # will arrive in, every joint rising to a goal above, not for the falling ones it last moved in
-        with core.approaching(np.ones(6)):
-            target = core.fk(q + 0.05)[0]
+        target = up.fk(q + 0.05)[0]
         answer = client.call(client.service(ComputeIK, "/approach/compute_ik"), ik_request(target))
         assert answer.success, answer.message
         solution = np.array(answer.solutions[0].position)
-        with core.approaching(np.ones(6)):
-            assert se3.pose_errors(core.fk_single(solution), target)[0] < 1e-3  # mm
-        assert se3.pose_errors(core.fk_single(solution), target)[0] > 0.1  # with the falling directions
+        assert se3.pose_errors(up.fk_single(solution), target)[0] < 1e-3  # mm
+        assert se3.pose_errors(down.fk_single(solution), target)[0] > 0.1  # with the falling directions
         np.testing.assert_array_equal(served(), falling)  # and the node still serves the joints' own directions
     finally:
         client.close()
