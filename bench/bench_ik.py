@@ -18,9 +18,10 @@ from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.fit import fit
 from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.ik.baselines import scipy_refine_solver, wang_baseline
-from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, freeze_heap, one_blas_thread
+from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.hybrid import HybridModel
+from hybrid_kinematics_ros.nodes.process import freeze_heap, one_blas_thread
 
 # the hard targets (at singularities) need many branches: one RX160 target took 0.65 s; most take a few ms
 LONG_BUDGET_S = 1.0

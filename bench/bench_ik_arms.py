@@ -17,10 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from bench.report import table, write_section
-from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, freeze_heap, one_blas_thread
+from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.hybrid import HybridModel
+from hybrid_kinematics_ros.nodes.process import freeze_heap, one_blas_thread
 
 ROBOTS = Path(sysconfig.get_paths()["purelib"]) / "cmeel.prefix/share/example-robot-data/robots"
 # name: (URDF below ROBOTS, base link, tip link); the tips stop before grippers and fingers

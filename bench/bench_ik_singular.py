@@ -23,10 +23,11 @@ from scipy.optimize import minimize_scalar
 
 from bench.bench_ik import trained_model
 from bench.report import table, write_section
-from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, freeze_heap, one_blas_thread
+from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.hybrid import HybridModel
+from hybrid_kinematics_ros.nodes.process import freeze_heap, one_blas_thread
 
 BUDGET_S = 0.05
 

@@ -67,14 +67,12 @@ from __future__ import annotations
 
 import copy
 import functools
-import gc
 import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from hybrid_kinematics_ros.ik import round_kernel
 from hybrid_kinematics_ros.ik import seeds as seeding
@@ -128,29 +126,6 @@ NEAR_MISS_MM = 5e-2
 SAME_START_RAD = 1e-5
 SINGULAR = 1e-6  # the URDF Jacobian's smallest singular value (m or rad per rad) at a singular target's answer
 OTHER_BRANCH = "on another branch than the seed's, which found no solution within the budget"  # said with it
-
-
-def freeze_heap() -> None:
-    """Exempt what the process holds now from the garbage collector's full collections: call it once the model
-    and its solver are loaded, and again after a reload (what was frozen before is collected first). torch and
-    a model leave hundreds of thousands of objects on the heap, and a full collection walks every one, for
-    longer than a request's budget, inside whichever request's allocations trigger it. Frozen, they are never
-    walked again; what requests allocate is collected as usual. A reload pays one such collection (holding the
-    interpreter lock, so the node's other services wait for it) instead of a request."""
-    gc.unfreeze()
-    gc.collect()
-    gc.freeze()
-
-
-def one_blas_thread() -> None:
-    """Set the thread pools of the process's BLAS libraries loaded by now (numpy's, and scipy's, which the compiled
-    nets' batches call) to one thread, for the rest of the process: call it where answers must come in time, as
-    :func:`freeze_heap` (``make`` and the tests set OPENBLAS_NUM_THREADS=1 for the same reason; a node started by
-    ``ros2 run`` or a launch file does not). Their pools of one thread per core spin after each call, and on a
-    two-core machine a pool's thread waiting for the other core can stall the next small product by tens of
-    milliseconds, past a request's budget. The IK's products are at most 64 x 256 x 256, where one thread costs
-    a small fraction of a millisecond."""
-    threadpool_limits(limits=1, user_api="blas")
 
 
 def _same_start(q: np.ndarray, starts: list[np.ndarray]) -> bool:

@@ -47,16 +47,15 @@ from hybrid_kinematics_ros.model.parametric import model_from_manifest
 from hybrid_kinematics_ros.model.range_policy import RANGE_POLICIES
 from hybrid_kinematics_ros.model.referencing import Referencing
 
-# Batches up to this many rows run the nets' compiled evaluators (one matrix product a layer) instead of TorchScript
-# (bench, RX160 and UR10 256x3 nets, both nets, TorchScript on 2 threads: 4 rows 0.07 against 0.23 ms, 16 rows
-# 0.29-0.34 against 0.62-0.76 ms, 64 rows 0.77-0.80 against 0.86-1.04 ms, even at 128): the batches of the IK's
-# valley search (a valley's 20-40 traced points) and of several solutions, and a service's few configurations.
+# Batches up to this many rows run the nets' compiled evaluators (one matrix product a layer) instead of TorchScript,
+# which spends small batches on operator dispatch: the batches of the IK's valley search (a valley's 20-40 traced
+# points) and of several solutions, and a service's few configurations.
 COMPILED_ROWS = 64
 
 
 def left_jacobian_so3(w: np.ndarray) -> np.ndarray:
     """``(B, 3, 3)``: maps d(ω) to the angular velocity of ``exp(ω)`` in the base frame; ``(3, 3)`` for one
-    vector ``(3,)``, in Python floats (6 against 15 µs)."""
+    vector ``(3,)``, in Python floats (faster than numpy for one)."""
     if w.shape == (3,):
         x, y, z = w.tolist()
         t = math.sqrt(x * x + y * y + z * z)

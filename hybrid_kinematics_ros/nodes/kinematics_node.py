@@ -34,7 +34,7 @@ from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.monitor import DriftMonitor, MonitorOptions, MonitorStatus
 from hybrid_kinematics_ros.ik.compensate import MAX_JOINT_CORRECTION_RAD, compensate
 from hybrid_kinematics_ros.ik.errors import IKError
-from hybrid_kinematics_ros.ik.solver import OTHER_BRANCH, IKOptions, IKSolver, freeze_heap, one_blas_thread
+from hybrid_kinematics_ros.ik.solver import OTHER_BRANCH, IKOptions, IKSolver
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics import approach
 from hybrid_kinematics_ros.kinematics.approach import ApproachTracker
@@ -65,6 +65,7 @@ from hybrid_kinematics_ros.nodes.convert import (
     trajectory_msg,
     transform_msg_of_pose,
 )
+from hybrid_kinematics_ros.nodes.process import freeze_heap, one_blas_thread
 from hybrid_kinematics_ros.nodes.runtime import StartupError, read_only_parameter, run_node
 from hybrid_kinematics_ros.nodes.stats import RequestStats
 

@@ -7,7 +7,8 @@ from __future__ import annotations
 import gc
 import weakref
 
-from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, freeze_heap
+from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
+from hybrid_kinematics_ros.nodes.process import freeze_heap
 
 
 class Cyclic:

@@ -13,7 +13,7 @@ import pytest
 PROBE = """
 import json
 from threadpoolctl import threadpool_info
-from hybrid_kinematics_ros.ik.solver import one_blas_thread
+from hybrid_kinematics_ros.nodes.process import one_blas_thread
 blas = lambda: {d["filepath"]: d["num_threads"] for d in threadpool_info() if d["user_api"] == "blas"}
 before = blas()
 one_blas_thread()
