@@ -423,264 +423,359 @@ class Linearisation:
 
 def linearise(chain: Chain, q: np.ndarray, T: np.ndarray, **options: Any) -> Linearisation:
     """The stage's problem for :func:`identify`'s arguments, linearised at the nominal model, unsolved."""
-    return _identify(chain, q, T, linear=True, **options)
+    return Stage.of(chain, q, T, **options).linearise()
 
 
-def identify(chain: Chain, q: np.ndarray, T: np.ndarray, *args: Any, **options: Any) -> ParametricResult:
-    """Identify the elasto-geometric parameters from joints ``q (N, n)`` and measured base-frame poses ``T``;
-    see :func:`_identify` for the options."""
-    return _identify(chain, q, T, *args, linear=False, **options)
-
-
-def _identify(
+def identify(
     chain: Chain,
     q: np.ndarray,
     T: np.ndarray,
     payload_mass: float = 0.0,
     payload_com: np.ndarray | None = None,
-    position_only: bool = False,
-    max_pairs: int = 5000,
-    seed: int = 0,
-    target: np.ndarray | None = None,
-    max_nfev: int = 30,
-    kinds: Sequence[str] | None = None,
-    harmonics: int = HARMONICS,
-    harmonic_prior: float = HARMONIC_PRIOR,
-    orientation_length: float = ORIENTATION_LENGTH,
-    robust_scale: float = ROBUST_SCALE,
-    map_step: float = MAP_STEP,
-    placement: np.ndarray | None = None,
-    mount: np.ndarray | None = None,
-    map_smoothness: float = MAP_SMOOTHNESS,
-    linear: bool = False,
-    gravity: np.ndarray | None = None,
-    directions: np.ndarray | None = None,
-) -> ParametricResult | Linearisation:
+    **options: Any,
+) -> ParametricResult:
     """Identify the elasto-geometric parameters from joints ``q (N, n)`` and measured base-frame poses ``T``
-    (``linear``: only linearise the problem, see :class:`Linearisation`).
+    (the options: :class:`StageOptions`, and :class:`Stage`'s per-pair ``target``, ``placement``, ``mount`` and
+    ``directions``)."""
+    return Stage.of(chain, q, T, payload_mass=payload_mass, payload_com=payload_com, **options).identify()
 
-    Position-only: ``T`` holds the measured target points and ``target`` (m, ``(3,)`` or ``(N, 3)``) their
-    offset in the tip frame, which makes the flange's rotation observable. ``gravity``: m/s² in the base
-    frame (None: −9.81 along z, a floor mount; a wall or ceiling mount needs its own). ``directions (N, n)``:
-    the joints' approach directions (:mod:`kinematics.approach`); with the ``backlash`` kind, each joint seen
-    arriving both ways gets a backlash term (its angle shifted by ``b`` times its direction), which the served
-    model applies with the directions it is given.
 
-    At most ``max_pairs`` pairs (drawn reproducibly, evenly from each ``placement``) enter the fit: a few
-    thousand pin down the parameters far below the tracker noise, and the cost grows with the count.
+@dataclass(frozen=True)
+class StageOptions:
+    """How the stage is identified.
+
+    ``payload_mass`` (kg) and ``payload_com`` (m, tip frame): the payload the arm carried. ``gravity``: m/s² in
+    the base frame (None: −9.81 along z, a floor mount; a wall or ceiling mount needs its own).
+    ``position_only``: the measurements are target points. At most ``max_pairs`` pairs (drawn reproducibly
+    from ``seed``, evenly from each tracker placement) enter the fit: a few thousand pin the parameters down far
+    below the tracker noise, and the cost grows with the count; ``max_nfev``: Gauss-Newton's evaluations.
 
     ``kinds``: the kinds of parameter to fit (default all of :data:`KINDS`; :data:`GEOMETRY_KINDS` is a
-    geometry-only calibration); the others stay zero. ``harmonics``: how many harmonics of the cyclic
-    joint errors (0: none), each coefficient held towards zero by ``harmonic_prior`` (in pairs).
-    ``map_step``: the joint error map's knot spacing (0: no map), fitted last from all the pairs (at most
-    :data:`MAP_MAX_PAIRS`).
+    geometry-only calibration); the others stay zero. ``harmonics``: how many harmonics of the cyclic joint
+    errors (0: none), each coefficient held towards zero by ``harmonic_prior`` (in pairs). ``map_step``: the
+    joint error map's knot spacing (0: no map), fitted last from all the pairs (at most
+    :data:`MAP_MAX_PAIRS`), with ``map_smoothness``. ``orientation_length`` (m per rad) weighs the orientation
+    residuals against the position ones; ``robust_scale`` (m): residuals well above it are down-weighted."""
 
-    ``placement`` and ``mount`` (``(N,)`` ints): which tracker placement and which target mount each pair
-    was measured with, -1 for the reference ones that get no correction (the first station's; see the
-    module text). The corrections come back as :attr:`ParametricResult.placements` and ``mounts``.
-    """
-    com = np.zeros(3) if payload_com is None else np.asarray(payload_com, dtype=float)
-    if len(q) < 20:
-        raise CalibrationError(f"only {len(q)} pairs: the parametric stage needs at least 20")
-    chosen = KINDS if kinds is None else tuple(kinds)
-    unknown = sorted(set(chosen) - set(KINDS))
-    if unknown:
-        raise CalibrationError(f"unknown parameter kinds {unknown}; choose from {list(KINDS)}")
-    if "harmonic" not in chosen:
-        harmonics = 0
-    every_target = None if target is None else np.asarray(target, dtype=float)  # (3,), or (N, 3): one per pair
-    placement = np.full(len(q), -1) if placement is None else np.asarray(placement, dtype=int)
-    mount = np.full(len(q), -1) if mount is None else np.asarray(mount, dtype=int)
-    pick = _draw(placement, max_pairs, np.random.default_rng(seed))
-    q_fit = q[pick]
-    counts = (int(placement.max()) + 1, int(mount.max()) + 1)
-    geometric_params = parameter_list(chain, 0)
-    params = geometric_params + _station_parameters(*counts) + parameter_list(chain, harmonics)[len(geometric_params) :]
-    if directions is not None and "backlash" in chosen:
-        d_fit = np.asarray(directions, dtype=float)[pick]
-        both = np.flatnonzero(np.any(d_fit > 0, axis=0) & np.any(d_fit < 0, axis=0))
-        params += [Parameter(f"backlash {chain.joint_names[j]}", "backlash", int(j), 0) for j in both]
-    scale = np.array([SCALE.get(p.kind, STATION_SCALE) for p in params])
-    movable = np.array([p.kind in STATION_KINDS for p in params])
-    chain_params = [p for p, m in zip(params, movable, strict=True) if not m]
-    cyclic = np.array([p.kind in ("harmonic", "backlash") for p in params])  # shifts of the joints, fitted so
-    harmonic = np.array([p.kind == "harmonic" for p in params])
-    joints = np.array([p.index for p in params])
-    components = np.array([p.component for p in params])
-    prior = np.where(harmonic, np.sqrt(harmonic_prior), 0.0) * scale  # residual (m) per scaled unit, × 1 m
-    held_back = prior > 0
-    # Each cyclic coefficient's basis function at the fitted joints, (N, m): computed once, not per evaluation.
-    f = components[cyclic] // 2 + 1
-    phase = q_fit[:, joints[cyclic]] * f
-    basis = np.where(components[cyclic] % 2 == 0, np.sin(phase), np.cos(phase))
-    shifting = np.array([p.kind == "backlash" for p in params])[cyclic]
-    if shifting.any():  # a backlash term shifts its joint by its value times the direction
-        basis[:, shifting] = d_fit[:, joints[cyclic][shifting]]
-    position = np.cumsum(cyclic) - 1  # column of a cyclic parameter in ``basis``
+    payload_mass: float = 0.0
+    payload_com: np.ndarray | None = None
+    gravity: np.ndarray | None = None
+    position_only: bool = False
+    max_pairs: int = 5000
+    seed: int = 0
+    max_nfev: int = 30
+    kinds: Sequence[str] | None = None
+    harmonics: int = HARMONICS
+    harmonic_prior: float = HARMONIC_PRIOR
+    orientation_length: float = ORIENTATION_LENGTH
+    robust_scale: float = ROBUST_SCALE
+    map_step: float = MAP_STEP
+    map_smoothness: float = MAP_SMOOTHNESS
 
-    def values_at(z: np.ndarray, active: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+
+@dataclass(frozen=True)
+class _Start:
+    """The problem at the nominal model: its pose residual (flat), the Jacobian (pose rows, then the priors'),
+    the identifiable columns and why the others are not."""
+
+    r0: np.ndarray
+    jacobian: np.ndarray
+    active: np.ndarray
+    reasons: dict[str, str]
+
+
+class Stage:
+    """The stage's least-squares problem over the drawn pairs: its parameters (the chain's, the stations'
+    corrections, then the cyclic terms) in scaled units, and the residual and Jacobian at any values of them.
+
+    Per pair: ``target`` (m, ``(3,)`` or ``(N, 3)``), position-only, the target's offset in the tip frame, which
+    makes the flange's rotation observable; ``placement`` and ``mount`` (``(N,)`` ints), which tracker placement
+    and which target mount it was measured with, -1 for the reference ones that get no correction (the first
+    station's; see the module text), whose corrections come back as :attr:`ParametricResult.placements` and
+    ``mounts``; ``directions (N, n)``, the joints' approach directions (:mod:`kinematics.approach`): with the
+    ``backlash`` kind, each joint seen arriving both ways gets a backlash term (its angle shifted by ``b`` times
+    its direction), which the served model applies with the directions it is given."""
+
+    @classmethod
+    def of(
+        cls,
+        chain: Chain,
+        q: np.ndarray,
+        T: np.ndarray,
+        target: np.ndarray | None = None,
+        placement: np.ndarray | None = None,
+        mount: np.ndarray | None = None,
+        directions: np.ndarray | None = None,
+        **options: Any,
+    ) -> Stage:
+        """The problem of :func:`identify`'s arguments."""
+        return cls(chain, q, T, StageOptions(**options), target, placement, mount, directions)
+
+    def __init__(
+        self,
+        chain: Chain,
+        q: np.ndarray,
+        T: np.ndarray,
+        options: StageOptions,
+        target: np.ndarray | None = None,
+        placement: np.ndarray | None = None,
+        mount: np.ndarray | None = None,
+        directions: np.ndarray | None = None,
+    ) -> None:
+        if len(q) < 20:
+            raise CalibrationError(f"only {len(q)} pairs: the parametric stage needs at least 20")
+        o = options
+        self.chosen = KINDS if o.kinds is None else tuple(o.kinds)
+        unknown = sorted(set(self.chosen) - set(KINDS))
+        if unknown:
+            raise CalibrationError(f"unknown parameter kinds {unknown}; choose from {list(KINDS)}")
+        self.chain, self.q, self.T, self.o = chain, q, T, o
+        self.com = np.zeros(3) if o.payload_com is None else np.asarray(o.payload_com, dtype=float)
+        self.every_target = None if target is None else np.asarray(target, dtype=float)  # (3,), or one per pair
+        self.every_direction = None if directions is None else np.asarray(directions, dtype=float)
+        self.placement = np.full(len(q), -1) if placement is None else np.asarray(placement, dtype=int)
+        self.mount = np.full(len(q), -1) if mount is None else np.asarray(mount, dtype=int)
+        self.pick = _draw(self.placement, o.max_pairs, np.random.default_rng(o.seed))
+        self.q_fit = q[self.pick]
+        self.counts = (int(self.placement.max()) + 1, int(self.mount.max()) + 1)
+        self.params = self._parameters()
+        self.scale = np.array([SCALE.get(p.kind, STATION_SCALE) for p in self.params])
+        self.movable = np.array([p.kind in STATION_KINDS for p in self.params])
+        self.chain_params = [p for p, m in zip(self.params, self.movable, strict=True) if not m]
+        self.cyclic = np.array([p.kind in ("harmonic", "backlash") for p in self.params])  # shifts of the joints
+        harmonic = np.array([p.kind == "harmonic" for p in self.params])
+        self.joints = np.array([p.index for p in self.params])
+        self.prior = np.where(harmonic, np.sqrt(o.harmonic_prior), 0.0) * self.scale  # m per scaled unit, × 1 m
+        self.held_back = self.prior > 0
+        self.basis = self._cyclic_basis()
+        self.column = np.cumsum(self.cyclic) - 1  # column of a cyclic parameter in ``basis``
+        self.width = 3 if o.position_only else 6
+
+    def _parameters(self) -> list[Parameter]:
+        """The chain's, the stations' corrections, the cyclic errors', then the backlash terms of the joints
+        seen arriving both ways."""
+        chain = self.chain
+        harmonics = self.o.harmonics if "harmonic" in self.chosen else 0
+        geometric = parameter_list(chain, 0)
+        params = geometric + _station_parameters(*self.counts) + parameter_list(chain, harmonics)[len(geometric) :]
+        if self.every_direction is not None and "backlash" in self.chosen:
+            d_fit = self.every_direction[self.pick]
+            both = np.flatnonzero(np.any(d_fit > 0, axis=0) & np.any(d_fit < 0, axis=0))
+            params += [Parameter(f"backlash {chain.joint_names[j]}", "backlash", int(j), 0) for j in both]
+        return params
+
+    def _cyclic_basis(self) -> np.ndarray:
+        """Each cyclic coefficient's basis function at the fitted joints, ``(N, m)``: computed once, not per
+        evaluation; a backlash term shifts its joint by its value times the direction."""
+        cyclic = self.cyclic
+        components = np.array([p.component for p in self.params])[cyclic]
+        phase = self.q_fit[:, self.joints[cyclic]] * (components // 2 + 1)
+        basis = np.where(components % 2 == 0, np.sin(phase), np.cos(phase))
+        shifting = np.array([p.kind == "backlash" for p in self.params])[cyclic]
+        if shifting.any():
+            basis[:, shifting] = self.every_direction[self.pick][:, self.joints[cyclic][shifting]]
+        return basis
+
+    def values_at(self, z: np.ndarray, active: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+        """SI values: ``fixed``, with the ``active`` ones at ``z`` (scaled units)."""
         values = fixed.copy()
-        values[active] = z * scale[active]
+        values[active] = z * self.scale[active]
         return values
 
-    def chain_model(values: np.ndarray, joint_map: JointMap | None = None) -> ElasticChain:
-        return build_model(chain, chain_params, values[~movable], payload_mass, com, joint_map, gravity)
+    def chain_model(self, values: np.ndarray, joint_map: JointMap | None = None) -> ElasticChain:
+        o = self.o
+        chain_values = values[~self.movable]
+        return build_model(self.chain, self.chain_params, chain_values, o.payload_mass, self.com, joint_map, o.gravity)
 
-    def measurements(values: np.ndarray, rows: np.ndarray | slice = pick) -> tuple[np.ndarray, np.ndarray | None]:
-        """The measured poses of pairs ``rows`` and their target offsets, moved by the station corrections."""
-        offsets = every_target if every_target is None or np.ndim(every_target) == 1 else every_target[rows]
-        if not movable.any():
-            return T[rows], offsets
-        moves = (station_moves(params, values, kind, n) for kind, n in zip(STATION_KINDS, counts, strict=True))
-        return _moved_measurements(T[rows], offsets, position_only, placement[rows], mount[rows], *moves)
+    def measurements(self, values: np.ndarray, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """The measured poses of pairs ``rows`` (the drawn ones by default) and their target offsets, moved by the
+        station corrections."""
+        rows = self.pick if rows is None else rows
+        every = self.every_target
+        offsets = every if every is None or np.ndim(every) == 1 else every[rows]
+        if not self.movable.any():
+            return self.T[rows], offsets
+        moves = (station_moves(self.params, values, k, n) for k, n in zip(STATION_KINDS, self.counts, strict=True))
+        return _moved_measurements(
+            self.T[rows], offsets, self.o.position_only, self.placement[rows], self.mount[rows], *moves
+        )
 
-    def shifted_joints(values: np.ndarray, active: np.ndarray) -> np.ndarray:
+    def shifted_joints(self, values: np.ndarray, active: np.ndarray) -> np.ndarray:
         """The fitted joints shifted by the cyclic errors (the model itself is then built without them)."""
-        on = active & cyclic
+        on = active & self.cyclic
         if not on.any():
-            return q_fit
-        return q_fit + (basis[:, position[on]] * values[on]) @ (joints[on][:, None] == np.arange(chain.dof))
+            return self.q_fit
+        shift = (self.basis[:, self.column[on]] * values[on]) @ (self.joints[on][:, None] == np.arange(self.chain.dof))
+        return self.q_fit + shift
 
-    def model_at(z: np.ndarray, active: np.ndarray, fixed: np.ndarray) -> tuple[ElasticChain, np.ndarray, np.ndarray]:
+    def model_at(
+        self, z: np.ndarray, active: np.ndarray, fixed: np.ndarray
+    ) -> tuple[ElasticChain, np.ndarray, np.ndarray]:
         """The model without its cyclic errors, the joints they shift the fitted ones to, and the values."""
-        values = values_at(z, active, fixed)
-        return chain_model(np.where(cyclic, 0.0, values)), shifted_joints(values, active), values
+        values = self.values_at(z, active, fixed)
+        return self.chain_model(np.where(self.cyclic, 0.0, values)), self.shifted_joints(values, active), values
 
-    def pose_part(model: ElasticChain, shifted: np.ndarray, values: np.ndarray) -> np.ndarray:
-        measured, offsets = measurements(values)
-        return pose_residuals(model, shifted, measured, position_only, offsets, orientation_length).ravel()
+    def pose_part(self, model: ElasticChain, shifted: np.ndarray, values: np.ndarray) -> np.ndarray:
+        measured, offsets = self.measurements(values)
+        o = self.o
+        return pose_residuals(model, shifted, measured, o.position_only, offsets, o.orientation_length).ravel()
 
-    def residual(z: np.ndarray, active: np.ndarray, fixed: np.ndarray) -> np.ndarray:
-        pulled = prior[active & held_back] * z[held_back[active]]
-        return np.concatenate([pose_part(*model_at(z, active, fixed)), pulled])
+    def residual(self, z: np.ndarray, active: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+        """The pose rows, then the priors' rows of the active held-back parameters."""
+        pulled = self.prior[active & self.held_back] * z[self.held_back[active]]
+        return np.concatenate([self.pose_part(*self.model_at(z, active, fixed)), pulled])
 
-    def jacobian(z: np.ndarray, active: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+    def jacobian(self, z: np.ndarray, active: np.ndarray, fixed: np.ndarray) -> np.ndarray:
         """Forward differences for the geometric, elastic and station parameters, closed form for the cyclic."""
-        model, shifted, values = model_at(z, active, fixed)
-        r0 = pose_part(model, shifted, values)
+        model, shifted, values = self.model_at(z, active, fixed)
+        r0 = self.pose_part(model, shifted, values)
         cols = np.flatnonzero(active)
-        jac = np.zeros((len(r0) + int(np.sum(active & held_back)), len(cols)))
-        back = np.flatnonzero(held_back[cols])
-        jac[len(r0) + np.arange(len(back)), back] = prior[cols[back]]
+        jac = np.zeros((len(r0) + int(np.sum(active & self.held_back)), len(cols)))
+        back = np.flatnonzero(self.held_back[cols])
+        jac[len(r0) + np.arange(len(back)), back] = self.prior[cols[back]]
         step = 1e-3
         for i, c in enumerate(cols):
-            if cyclic[c]:
+            if self.cyclic[c]:
                 continue
             zi = z.copy()
             zi[i] += step
-            moved_values = values_at(zi, active, fixed)
-            moved = model if movable[c] else chain_model(np.where(cyclic, 0.0, moved_values))
-            jac[: len(r0), i] = (pose_part(moved, shifted, moved_values) - r0) / step
-        on = cyclic[cols]
+            moved_values = self.values_at(zi, active, fixed)
+            moved = model if self.movable[c] else self.chain_model(np.where(self.cyclic, 0.0, moved_values))
+            jac[: len(r0), i] = (self.pose_part(moved, shifted, moved_values) - r0) / step
+        on = self.cyclic[cols]
         if on.any():
+            o = self.o
             block = _joint_error_jacobian(
                 model,
                 shifted,
-                basis[:, position[cols[on]]],
-                joints[cols[on]],
-                position_only,
-                measurements(values)[1],
-                orientation_length,
+                self.basis[:, self.column[cols[on]]],
+                self.joints[cols[on]],
+                o.position_only,
+                self.measurements(values)[1],
+                o.orientation_length,
             )
             first = int(np.argmax(on))  # the cyclic parameters come last
-            jac[: len(r0), first:] = block * scale[cols[on]]
+            jac[: len(r0), first:] = block * self.scale[cols[on]]
         return jac
 
-    everything = np.ones(len(params), dtype=bool)
-    nothing = np.zeros(len(params))
-    r0 = pose_part(*model_at(nothing, everything, nothing))
-    full_jac = jacobian(nothing, everything, nothing)
-    jac = full_jac[: len(r0)]
-    wanted = np.array([p.kind in chosen for p in params]) | movable
-    active, reasons = _identifiable(
-        jac[:, wanted], [p for p, w in zip(params, wanted, strict=True) if w], position_only
-    )
-    active = _expand(active, wanted)
-    reasons.update({p.name: "not fitted (kinds)" for p, w in zip(params, wanted, strict=True) if not w})
-    width = 3 if position_only else 6
-    if linear:
-        return Linearisation(
-            pick=pick,
-            q=q_fit,
-            params=params,
-            residual=r0.reshape(-1, width),
-            jacobian=jac.reshape(len(pick), width, -1),
-            identifiable=active,
-            scale=scale,
-            joint_rows=_joint_rows(
-                chain_model(nothing), q_fit, position_only, measurements(nothing)[1], orientation_length
-            ),
-            orientation_length=float(orientation_length),
-        )
-
     def solve(
-        subset: np.ndarray, start: np.ndarray, fixed: np.ndarray = nothing, first_jac: np.ndarray | None = None
+        self, subset: np.ndarray, start: np.ndarray, fixed: np.ndarray, first_jac: np.ndarray | None = None
     ) -> np.ndarray:
+        """The ``subset`` of parameters fitted from ``start`` (scaled units), the others at ``fixed``."""
         return robust_gauss_newton(
-            lambda z: residual(z, subset, fixed),
-            lambda z: jacobian(z, subset, fixed),
+            lambda z: self.residual(z, subset, fixed),
+            lambda z: self.jacobian(z, subset, fixed),
             start,
-            robust_scale,
-            max_nfev,
+            self.o.robust_scale,
+            self.o.max_nfev,
             first_jac,
         )
 
-    # the Jacobian at zero, already computed, starts the fit: its pose rows, then the active priors' rows
-    start_rows = np.r_[np.arange(len(r0)), len(r0) + np.flatnonzero(active[held_back])]
-    start_jac = full_jac[np.ix_(start_rows, np.flatnonzero(active))]
-    z = solve(active, np.zeros(int(active.sum())), first_jac=start_jac)
-    values = values_at(z, active, nothing)
-    cols = np.flatnonzero(active)
-    covariance = _covariance(jacobian(z, active, nothing), residual(z, active, nothing), len(r0), width)
-    uncertainty = Uncertainty.of(covariance * np.outer(scale[cols], scale[cols]), cols, params, ~movable)
-    model = chain_model(values)
-    every_direction = None if directions is None else np.asarray(directions, dtype=float)
+    def start(self) -> _Start:
+        """The problem at the nominal model, and which parameters the pairs identify."""
+        everything = np.ones(len(self.params), dtype=bool)
+        nothing = np.zeros(len(self.params))
+        r0 = self.pose_part(*self.model_at(nothing, everything, nothing))
+        full_jac = self.jacobian(nothing, everything, nothing)
+        wanted = np.array([p.kind in self.chosen for p in self.params]) | self.movable
+        fitted = [p for p, w in zip(self.params, wanted, strict=True) if w]
+        active, reasons = _identifiable(full_jac[: len(r0), wanted], fitted, self.o.position_only)
+        reasons.update({p.name: "not fitted (kinds)" for p, w in zip(self.params, wanted, strict=True) if not w})
+        return _Start(r0, full_jac, _expand(active, wanted), reasons)
 
-    def reached(rows: np.ndarray | slice) -> np.ndarray:
-        """The pairs' joints shifted by the backlash terms (the joint error map is fitted on top of them)."""
-        return model.approached(q[rows], None if every_direction is None else every_direction[rows])
-
-    joint_map = None
-    if map_step > 0 and "harmonic" in chosen:
-        draw = np.sort(np.random.default_rng(seed).permutation(len(q))[:MAP_MAX_PAIRS])
-        measured, offsets = measurements(values, draw)
-        joint_map = fit_joint_map(
-            model,
-            reached(draw),
-            measured,
-            position_only,
-            offsets,
-            map_step,
-            map_smoothness,
-            orientation_length=orientation_length,
+    def linearise(self) -> Linearisation:
+        """The problem linearised at the nominal model, unsolved (:class:`Linearisation`)."""
+        start, o = self.start(), self.o
+        nothing = np.zeros(len(self.params))
+        joint_rows = _joint_rows(
+            self.chain_model(nothing), self.q_fit, o.position_only, self.measurements(nothing)[1], o.orientation_length
         )
-        model = chain_model(values, joint_map)
-    # The same with the geometry alone, for a URDF export: the geometry then absorbs what it can, with
-    # the station corrections held (the referencings carry them for both).
-    geometric = active & np.array([p.kind in GEOMETRY_KINDS for p in params])
-    held = np.where(movable, values, 0.0)
-    rigid_values = held.copy()
-    rigid_values[geometric] = (
-        solve(geometric, values[geometric] / scale[geometric], held, jac[:, geometric]) * scale[geometric]
-    )
-    keep = ~movable
-    measured, offsets = measurements(values)
-    return ParametricResult(
-        model=model,
-        params=chain_params,
-        values=values[keep],
-        rigid_values=rigid_values[keep],
-        identifiable=active[keep],
-        reasons={name: why for name, why in reasons.items() if not name.startswith(("placement ", "mount "))},
-        rms_before=_rms(r0.reshape(-1, width)),
-        rms_after=_rms(pose_residuals(model, reached(pick), measured, position_only, offsets, orientation_length)),
-        position_only=position_only,
-        nominal=chain,
-        joint_map=joint_map,
-        placements=station_moves(params, values, "placement", counts[0])[:-1],
-        mounts=station_moves(params, values, "mount", counts[1])[:-1],
-        uncertainty=uncertainty,
-    )
+        return Linearisation(
+            pick=self.pick,
+            q=self.q_fit,
+            params=self.params,
+            residual=start.r0.reshape(-1, self.width),
+            jacobian=start.jacobian[: len(start.r0)].reshape(len(self.pick), self.width, -1),
+            identifiable=start.active,
+            scale=self.scale,
+            joint_rows=joint_rows,
+            orientation_length=float(o.orientation_length),
+        )
+
+    def identify(self) -> ParametricResult:
+        """The fitted stage: the identifiable parameters, the joint error map on top, and the geometry alone."""
+        start = self.start()
+        r0, active = start.r0, start.active
+        nothing = np.zeros(len(self.params))
+        # the Jacobian at zero, already computed, starts the fit: its pose rows, then the active priors' rows
+        start_rows = np.r_[np.arange(len(r0)), len(r0) + np.flatnonzero(active[self.held_back])]
+        start_jac = start.jacobian[np.ix_(start_rows, np.flatnonzero(active))]
+        z = self.solve(active, np.zeros(int(active.sum())), nothing, first_jac=start_jac)
+        values = self.values_at(z, active, nothing)
+        cols = np.flatnonzero(active)
+        covariance = _covariance(
+            self.jacobian(z, active, nothing), self.residual(z, active, nothing), len(r0), self.width
+        )
+        scales = self.scale[cols]
+        uncertainty = Uncertainty.of(covariance * np.outer(scales, scales), cols, self.params, ~self.movable)
+        model = self.chain_model(values)
+        joint_map = self._joint_map(model, values)
+        if joint_map is not None:
+            model = self.chain_model(values, joint_map)
+        keep, o = ~self.movable, self.o
+        measured, offsets = self.measurements(values)
+        after = pose_residuals(
+            model, self._reached(model, self.pick), measured, o.position_only, offsets, o.orientation_length
+        )
+        return ParametricResult(
+            model=model,
+            params=self.chain_params,
+            values=values[keep],
+            rigid_values=self._rigid_values(start, values)[keep],
+            identifiable=active[keep],
+            reasons={n: why for n, why in start.reasons.items() if not n.startswith(("placement ", "mount "))},
+            rms_before=_rms(r0.reshape(-1, self.width)),
+            rms_after=_rms(after),
+            position_only=o.position_only,
+            nominal=self.chain,
+            joint_map=joint_map,
+            placements=station_moves(self.params, values, "placement", self.counts[0])[:-1],
+            mounts=station_moves(self.params, values, "mount", self.counts[1])[:-1],
+            uncertainty=uncertainty,
+        )
+
+    def _reached(self, model: ElasticChain, rows: np.ndarray) -> np.ndarray:
+        """The pairs' joints shifted by the backlash terms (the joint error map is fitted on top of them)."""
+        return model.approached(self.q[rows], None if self.every_direction is None else self.every_direction[rows])
+
+    def _joint_map(self, model: ElasticChain, values: np.ndarray) -> JointMap | None:
+        """The joint error map fitted to what the stage leaves, from all the pairs (at most MAP_MAX_PAIRS)."""
+        o = self.o
+        if not (o.map_step > 0 and "harmonic" in self.chosen):
+            return None
+        draw = np.sort(np.random.default_rng(o.seed).permutation(len(self.q))[:MAP_MAX_PAIRS])
+        measured, offsets = self.measurements(values, draw)
+        return fit_joint_map(
+            model,
+            self._reached(model, draw),
+            measured,
+            o.position_only,
+            offsets,
+            o.map_step,
+            o.map_smoothness,
+            orientation_length=o.orientation_length,
+        )
+
+    def _rigid_values(self, start: _Start, values: np.ndarray) -> np.ndarray:
+        """The same fit with the geometry alone, for a URDF export: the geometry then absorbs what it can, with
+        the station corrections held (the referencings carry them for both)."""
+        geometric = start.active & np.array([p.kind in GEOMETRY_KINDS for p in self.params])
+        held = np.where(self.movable, values, 0.0)
+        rigid = held.copy()
+        scale = self.scale[geometric]
+        first_jac = start.jacobian[: len(start.r0)][:, geometric]
+        rigid[geometric] = self.solve(geometric, values[geometric] / scale, held, first_jac) * scale
+        return rigid
 
 
 def _covariance(jac: np.ndarray, res: np.ndarray, pose_rows: int, width: int) -> np.ndarray:
