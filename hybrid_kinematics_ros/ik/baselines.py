@@ -19,7 +19,7 @@ from scipy.optimize import least_squares
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.lm import error6, joint_limits
 from hybrid_kinematics_ros.ik.refine import HybridRefiner
-from hybrid_kinematics_ros.ik.solver import IKOptions, IKResult, IKSolver, compensated_target
+from hybrid_kinematics_ros.ik.solver import IKOptions, IKResult, IKSolver, SolveRequest, compensated_target
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 COSTS = ("pose6", "eq2")
@@ -104,4 +104,4 @@ def wang_baseline(
     q, *_ = solver.classical(target, seed, deadline)
     for _ in range(iterations):
         q, *_ = solver.classical(compensated_target(solver.model, target, q), q, deadline)
-    return solver.result(q, target, False, start, {"method": "wang"})
+    return solver.result(SolveRequest(target, seed, None, False, start, deadline), q, {"method": "wang"})

@@ -70,7 +70,7 @@ import functools
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -172,6 +172,25 @@ class IKOptions:
     arrive_from_seed: bool = True  # approach-direction models: the directions of the move from the seed (4.)
     closed_form: bool = True  # False: the iterative solver alone, without the closed forms (baselines, benches)
     valley: bool = True  # False: no root search along a singular valley (ik/valley.py; benches compare)
+
+
+@dataclass(frozen=True)
+class SolveRequest:
+    """One solve: the ``target`` pose, the ``seed`` it starts from, where the robot comes from (``origin``; None:
+    the caller did not say, 4.), the URDF model alone (``analytic``), when it started (``start``,
+    ``time.perf_counter``) and its ``deadline``. Each stage takes it; ``stats``, the trace of what ran, travels
+    beside it."""
+
+    target: np.ndarray
+    seed: np.ndarray
+    origin: np.ndarray | None
+    analytic: bool
+    start: float
+    deadline: float
+
+    def until(self, deadline: float) -> SolveRequest:
+        """The same request with another deadline (a stage's share of the budget)."""
+        return replace(self, deadline=deadline)
 
 
 @dataclass
@@ -347,13 +366,14 @@ class IKSolver:
         deadline = start + o.timeout_s
         stats = {"attempts": 0, "refinements": 0, "path": self.path}
         restarted: list[np.ndarray] = []  # the weak-direction restarts run already (3.), none twice
+        req = SolveRequest(target, seed, origin, analytic, start, deadline)
         urdf_only = analytic or not self.model.is_corrected
         missed = None  # the nearest branch's fixed point that missed: the search below starts from it again
         lm_starts: list[np.ndarray] = []  # where a near miss's LM has run (_near_miss_lm)
         if urdf_only:
-            found = self._nearest_exact(target, seed, analytic, start, stats)
+            found = self._nearest_exact(req, stats)
         else:
-            found, missed = self._nearest_fixed_point(target, seed, analytic, start, deadline, stats, origin)
+            found, missed = self._nearest_fixed_point(req, stats)
         if found is not None:
             return found
         closed = self.branches(target, seed)
@@ -362,7 +382,7 @@ class IKSolver:
             # from the same table seeds: the classical stage gets the whole budget and all of those seeds
             restarts = 2 * seeding.TABLE_RESTARTS
             q, _, _, stats["attempts"] = self.classical(target, seed, deadline, restarts, closed)
-            return self._singular(self.result(q, target, analytic, start, stats))
+            return self._singular(self.result(req, q, stats))
         near = self._beyond_reach(target, seed, closed)
         nearest_miss = None  # beyond the URDF model's reach: the branch's fixed point that came nearest
         if len(near):  # the closed forms are complete: no URDF-model restart would find an exact branch
@@ -370,9 +390,7 @@ class IKSolver:
             # the hybrid model reaches the target on some of these branches only (the edge of its workspace
             # moved by the corrections): the cheap fixed point on each first, nearest the seed first
             for q in near:
-                result = self._from_branch(
-                    target, q, analytic, start, deadline, stats, origin, IKSolver._fixed_point_only
-                )
+                result = self._from_branch(req, q, stats, IKSolver._fixed_point_only)
                 if result.success:
                     return self._singular(result)
                 if nearest_miss is None or result.position_error_mm < nearest_miss.position_error_mm:
@@ -380,13 +398,13 @@ class IKSolver:
             q0 = nearest_miss.q  # the refinements go on from the branch that came nearest
             # the cheaper tries before the valley search: its weak-direction restarts (four short LM runs), then
             # its copies shifted by 2π (the order chosen by bench_ik_singular, BENCHMARKS.md)
-            found = self._weak_restarts(target, nearest_miss, analytic, start, deadline, stats, origin, restarted)
+            found = self._weak_restarts(req, nearest_miss, stats, restarted)
             if found is not None:
                 return self._singular(found)
-            found = self._copies(target, nearest_miss.q, analytic, start, deadline, stats, origin, restarted)
+            found = self._copies(req, nearest_miss.q, stats, restarted)
             if found is not None:
                 return self._singular(found)
-            found = self._valley(target, q0, start, deadline, stats, near=near)
+            found = self._valley(req, q0, stats, near=near)
             if found is not None:
                 return self._singular(found)
         else:
@@ -405,10 +423,8 @@ class IKSolver:
             if missed is not None and _same_start(missed[0], [q0]):  # the same fixed point: its miss, not a second run
                 first = missed[1]
             else:
-                first = self._from_branch(
-                    target, q0, analytic, start, deadline, stats, origin, IKSolver._fixed_point_only
-                )
-            first = self._near_miss_lm(target, first, analytic, start, deadline, origin, lm_starts)
+                first = self._from_branch(req, q0, stats, IKSolver._fixed_point_only)
+            first = self._near_miss_lm(req, first, lm_starts)
             if first.success:
                 return self._singular(first)
             # the rest of the seed's branch goes on from the fixed point's answer, which it does not repeat
@@ -419,20 +435,16 @@ class IKSolver:
             # other branch reaches, the solution lies on a valley)
             beyond = first.stats.get("beyond_branch_reach")
             if beyond:
-                reserve = self._reserve(
-                    target, first, closed_q, closed, analytic, start, deadline, stats, origin, lm_starts
-                )
+                reserve = self._reserve(req, first, closed_q, closed, stats, lm_starts)
             if reserve is None:
                 valley = functools.partial(IKSolver._valley_only, nearest=closed_q)
-                found = self._from_branch(target, q0, analytic, start, deadline, stats, origin, valley)
+                found = self._from_branch(req, q0, stats, valley)
                 if found.success:
                     return self._singular(found)
             refine = functools.partial(IKSolver._refine_branch, fixed=first, valley=False)
             if not beyond:
-                reserve = self._reserve(
-                    target, first, closed_q, closed, analytic, start, deadline, stats, origin, lm_starts
-                )
-        best = self._from_branch(target, q0, analytic, start, deadline, stats, origin, refine)
+                reserve = self._reserve(req, first, closed_q, closed, stats, lm_starts)
+        best = self._from_branch(req, q0, stats, refine)
         if best.success:
             return self._singular(best)
         if reserve is not None:  # the seed's branch found nothing in the budget: another branch's answer
@@ -489,12 +501,12 @@ class IKSolver:
             if time.perf_counter() > deadline:
                 break
             if valley:  # straight to the hybrid LM: these start next to a hybrid near-solution
-                result = self._other_branch(target, valley.pop(0), analytic, start, deadline, stats, origin)
+                result = self._other_branch(req, valley.pop(0), stats)
                 stats["valley"] = stats.get("valley", 0) + 1
             elif others:  # the URDF model's nearest answers of the other branches, beyond its reach
                 q0 = others.pop(0)
                 tried.append(q0)
-                result = self._other_branch(target, q0, analytic, start, deadline, stats, origin)
+                result = self._other_branch(req, q0, stats)
                 valley = restarts_of(result)
             else:
                 s, copy = next(starts, (None, False))
@@ -506,7 +518,7 @@ class IKSolver:
                 if ep > seeding.NEAR_M or er > seeding.NEAR_RAD or not seeding.is_new_branch(q0, tried):
                     continue
                 tried.append(q0)
-                result = self._other_branch(target, q0, analytic, start, deadline, stats, origin, copy, valleys)
+                result = self._other_branch(req, q0, stats, copy, valleys)
                 if not result.success:
                     valley = restarts_of(result)
             if result.position_error_mm < best.position_error_mm:
@@ -519,14 +531,10 @@ class IKSolver:
 
     def _restarts(
         self,
-        target: np.ndarray,
+        req: SolveRequest,
         starts: list[np.ndarray],
         mark: str,
-        analytic: bool,
-        start: float,
-        deadline: float,
         stats: dict,
-        origin: np.ndarray | None,
         restarted: list[np.ndarray],
         lm_beyond: bool = False,
     ) -> IKResult | None:
@@ -535,16 +543,16 @@ class IKSolver:
         budget. The first that reaches the target, with ``stats[mark]`` set (how it was found), else None. A start
         that finished within its share is added to ``restarted``, for the fallback loop to skip; one cut short
         gets the time that loop has left."""
-        if analytic:
+        if req.analytic:
             return None
         for q in starts:
             now = time.perf_counter()
-            if now > deadline:
+            if now > req.deadline:
                 break
             # each a slice of the budget: those that solve do so quickly, and the others can crawl along a
             # continuum (a wrist straight) for longer than the valley search after them needs
-            until = min(deadline, now + RESTART_SHARE * self.options.timeout_s)
-            result = self._other_branch(target, q, analytic, start, until, stats, origin, lm_beyond)
+            until = min(req.deadline, now + RESTART_SHARE * self.options.timeout_s)
+            result = self._other_branch(req.until(until), q, stats, lm_beyond)
             if time.perf_counter() < until:
                 restarted.append(q)
             if result.success:
@@ -553,54 +561,32 @@ class IKSolver:
         return None
 
     def _weak_restarts(
-        self,
-        target: np.ndarray,
-        miss: IKResult,
-        analytic: bool,
-        start: float,
-        deadline: float,
-        stats: dict,
-        origin: np.ndarray | None,
-        restarted: list[np.ndarray],
+        self, req: SolveRequest, miss: IKResult, stats: dict, restarted: list[np.ndarray]
     ) -> IKResult | None:
         """The restarts along the weak direction of a near miss (``seeds.valley_seeds``, as the fallback loop
         of 3. has them), by :meth:`_restarts`."""
-        if analytic:
+        if req.analytic:
             return None
         starts = seeding.valley_seeds(self.model, miss.q, miss.position_error_mm, self.limits)
         stats["valley"] = stats.get("valley", 0) + len(starts)
-        return self._restarts(target, starts, "weak_restart", analytic, start, deadline, stats, origin, restarted)
+        return self._restarts(req, starts, "weak_restart", stats, restarted)
 
-    def _copies(
-        self,
-        target: np.ndarray,
-        q: np.ndarray,
-        analytic: bool,
-        start: float,
-        deadline: float,
-        stats: dict,
-        origin: np.ndarray | None,
-        restarted: list[np.ndarray],
-    ) -> IKResult | None:
+    def _copies(self, req: SolveRequest, q: np.ndarray, stats: dict, restarted: list[np.ndarray]) -> IKResult | None:
         """The copies of a near miss ``q`` shifted by 2π, the COPY_PROBES nearest it, by :meth:`_restarts` with
         LM past a stall: where the branch's fixed point stalls beyond its reach, the nets' reach on another
         copy is what differs (they see raw joint values)."""
         copies = turns(q[None], self.lower, self.upper)
         copies = copies[np.argsort(np.linalg.norm(copies - q, axis=1), kind="stable")]
         copies = [c for c in copies if seeding.is_new_branch(c, [q])][:COPY_PROBES]
-        return self._restarts(target, copies, "copy", analytic, start, deadline, stats, origin, restarted, True)
+        return self._restarts(req, copies, "copy", stats, restarted, True)
 
     def _reserve(
         self,
-        target: np.ndarray,
+        req: SolveRequest,
         first: IKResult,
         q0: np.ndarray,
         closed: np.ndarray,
-        analytic: bool,
-        start: float,
-        deadline: float,
         stats: dict,
-        origin: np.ndarray | None,
         lm_starts: list[np.ndarray],
     ) -> IKResult | None:
         """The seed's branch ``q0`` was not solved by its fixed point (``first``; near a wrist singularity it
@@ -620,50 +606,37 @@ class IKSolver:
         stalled = [(first.position_error_mm, q0)] if first.stats.get("beyond_branch_reach") else []
         probe = functools.partial(IKSolver._fixed_point_only, rounds=PROBE_ROUNDS)  # converging ones take 3
         for q in closed:
-            if time.perf_counter() > deadline or not seeding.is_new_branch(q, tried):
+            if time.perf_counter() > req.deadline or not seeding.is_new_branch(q, tried):
                 continue
             tried.append(q)
-            result = self._from_branch(target, q, analytic, start, deadline, stats, origin, probe)
+            result = self._from_branch(req, q, stats, probe)
             if not result.success and not result.stats.get("beyond_branch_reach"):
                 # undecided after its probe: the rest of its fixed point says whether it converges or stalls
-                result = self._from_branch(
-                    target, result.q, analytic, start, deadline, stats, origin, IKSolver._fixed_point_only
-                )
+                result = self._from_branch(req, result.q, stats, IKSolver._fixed_point_only)
             if result.success:
                 return result
             misses.append(result)
             if result.stats.get("beyond_branch_reach"):
                 stalled.append((result.position_error_mm, q))
         for result in [m for m in misses if not m.stats.get("beyond_branch_reach")]:  # after every fixed point
-            result = self._near_miss_lm(target, result, analytic, start, deadline, origin, lm_starts)
+            result = self._near_miss_lm(req, result, lm_starts)
             if result.success:
                 return result
         for _, branch in sorted(stalled, key=lambda miss: miss[0]):
             for q in turns(branch[None], self.lower, self.upper):
-                if time.perf_counter() > deadline or not seeding.is_new_branch(q, tried):
+                if time.perf_counter() > req.deadline or not seeding.is_new_branch(q, tried):
                     continue
                 tried.append(q)  # the whole fixed point: a copy that reaches converges more slowly there
-                result = self._from_branch(
-                    target, q, analytic, start, deadline, stats, origin, IKSolver._fixed_point_only
-                )
+                result = self._from_branch(req, q, stats, IKSolver._fixed_point_only)
                 if result.success:
                     return result
         for result in [m for m in misses if m.stats.get("beyond_branch_reach")]:
-            result = self._near_miss_lm(target, result, analytic, start, deadline, origin, lm_starts)
+            result = self._near_miss_lm(req, result, lm_starts)
             if result.success:
                 return result
         return None
 
-    def _near_miss_lm(
-        self,
-        target: np.ndarray,
-        result: IKResult,
-        analytic: bool,
-        start: float,
-        deadline: float,
-        origin: np.ndarray | None,
-        starts: list[np.ndarray],
-    ) -> IKResult:
+    def _near_miss_lm(self, req: SolveRequest, result: IKResult, starts: list[np.ndarray]) -> IKResult:
         """A fixed point's ``result`` that missed by less than NEAR_MISS_MM has stalled at a fold of the URDF model
         (or where its Jacobian loses rank, next to the solution), where its rounds only halve the error: LM on the
         hybrid model from there, which finishes in a few steps. The seed's own fixed point gets it too: next to a
@@ -674,13 +647,11 @@ class IKSolver:
         if result.success or result.position_error_mm >= NEAR_MISS_MM or _same_start(result.q, starts):
             return result
         starts.append(result.q)
-        solver = self._approaching(self._arrival(origin, result.q))
-        q, *_ = solver.refiner.unbounded(target, result.q, deadline)
-        return solver.result(q, target, analytic, start, dict(result.stats, hybrid_lm=1))
+        solver = self._approaching(self._arrival(req.origin, result.q))
+        q, *_ = solver.refiner.unbounded(req.target, result.q, req.deadline)
+        return solver.result(req, q, dict(result.stats, hybrid_lm=1))
 
-    def _nearest_exact(
-        self, target: np.ndarray, seed: np.ndarray, analytic: bool, start: float, stats: dict
-    ) -> IKResult | None:
+    def _nearest_exact(self, req: SolveRequest, stats: dict) -> IKResult | None:
         """The URDF model's answer for one IK-Geo call and one checked branch: the first of the closed forms'
         branches (:meth:`AnalyticIK.nearest_checked`), when our FK takes it to within the inner tolerance and
         the target is singular on none of its branches. None otherwise: the whole classical stage follows
@@ -688,26 +659,19 @@ class IKSolver:
         stage's, for a fraction of its time (bench_ik_singular, TRAC-IK's protocol: BENCHMARKS.md)."""
         if self.closed_form is None:
             return None
-        found = self.closed_form.nearest_checked(target, seed)
+        found = self.closed_form.nearest_checked(req.target, req.seed)
         if found is None:
             return None
         q, e, jac = found
         ep, er = math.sqrt(e[:3] @ e[:3]), math.sqrt(e[3:] @ e[3:])
         tol_m, tol_rad = self.inner_tol
-        if ep > tol_m or er > tol_rad or self._rank_lost(q, jac) or self.closed_form.singular(target):
+        if ep > tol_m or er > tol_rad or self._rank_lost(q, jac) or self.closed_form.singular(req.target):
             return None
         stats["attempts"] = 1
-        return self.result(q, target, analytic, start, stats, (1e3 * ep, float(np.degrees(er))))
+        return self.result(req, q, stats, (1e3 * ep, float(np.degrees(er))))
 
     def _nearest_fixed_point(
-        self,
-        target: np.ndarray,
-        seed: np.ndarray,
-        analytic: bool,
-        start: float,
-        deadline: float,
-        stats: dict,
-        origin: np.ndarray | None,
+        self, req: SolveRequest, stats: dict
     ) -> tuple[IKResult | None, tuple[np.ndarray, IKResult] | None]:
         """The hybrid answer for one IK-Geo call: the closed forms' fixed point from their branch nearest the
         seed (:meth:`AnalyticIK.nearest`), where it converges, as on nearly every target. None otherwise,
@@ -716,11 +680,11 @@ class IKSolver:
         verdict where that missed (the search's first step, which it then need not repeat), else None."""
         if self.closed_form is None:
             return None, None
-        q = self.closed_form.nearest(target, seed)  # checked on the hybrid FK: an answer that misses fails there
+        q = self.closed_form.nearest(req.target, req.seed)  # checked on the hybrid FK: a miss fails there
         if q is None:
             return None, None
         stats["attempts"] = 1
-        result = self._from_branch(target, q, analytic, start, deadline, stats, origin, IKSolver._fixed_point_only)
+        result = self._from_branch(req, q, stats, IKSolver._fixed_point_only)
         return (self._singular(result), None) if result.success else (None, (q, result))
 
     def _beyond_reach(self, target: np.ndarray, seed: np.ndarray, closed: np.ndarray) -> np.ndarray:
@@ -786,13 +750,9 @@ class IKSolver:
 
     def _other_branch(
         self,
-        target: np.ndarray,
+        req: SolveRequest,
         q0: np.ndarray,
-        analytic: bool,
-        start: float,
-        deadline: float,
         stats: dict,
-        origin: np.ndarray | None = None,
         lm_beyond: bool = False,
         valleys: list[np.ndarray] | None = None,
     ) -> IKResult:
@@ -805,44 +765,36 @@ class IKSolver:
         without closed forms, where the solver searches no valleys). Once per point: restarts that end on one
         fixed point would trace its valley again. A restart's URDF answer with the wrist straight next to two
         limits can stall LM in the wrist's valley, where the valley through it holds the solution."""
-        if analytic or not self.model.is_corrected:
-            return self.result(q0, target, analytic, start, dict(stats))
-        solver = self._approaching(self._arrival(origin, q0))
-        q0, errors, beyond = solver.fixed_point(target, q0, deadline)
-        result = solver.result(q0, target, analytic, start, dict(stats), errors)
+        if req.analytic or not self.model.is_corrected:
+            return self.result(req, q0, dict(stats))
+        solver = self._approaching(self._arrival(req.origin, q0))
+        q0, errors, beyond = solver.fixed_point(req.target, q0, req.deadline)
+        result = solver.result(req, q0, dict(stats), errors)
         if result.success or (beyond and not lm_beyond):
             return result
         if valleys is not None and seeding.is_new_branch(q0, valleys) and solver.closed_form is not None:
             valleys.append(q0)  # where nothing was searched (not singular, too late), it would not be again
-            found = solver._valley_rows(target, q0[None], start, deadline, stats)
+            found = solver._valley_rows(req, q0[None], stats)
             if found is not None:
                 return found
-        q, *_ = solver.refiner.unbounded(target, q0, deadline, chord_first=True)
-        return solver.result(q, target, analytic, start, dict(stats))
+        q, *_ = solver.refiner.unbounded(req.target, q0, req.deadline, chord_first=True)
+        return solver.result(req, q, dict(stats))
 
     def _from_branch(
-        self,
-        target: np.ndarray,
-        q0: np.ndarray,
-        analytic: bool,
-        start: float,
-        deadline: float,
-        stats: dict,
-        origin: np.ndarray | None = None,
-        refine: Callable[..., IKResult] | None = None,
+        self, req: SolveRequest, q0: np.ndarray, stats: dict, refine: Callable[..., IKResult] | None = None
     ) -> IKResult:
-        """:meth:`_refine_branch` (or ``refine``, a function of the solver and its arguments) over the model with
-        the directions of the move from ``origin`` (4.): once more if the refinement moved a joint to the other
-        side of the origin."""
+        """:meth:`_refine_branch` (or ``refine``, a function of the solver, the request, ``q0`` and the stats)
+        over the model with the directions of the move from the request's origin (4.): once more if the
+        refinement moved a joint to the other side of the origin."""
         refine = refine or IKSolver._refine_branch
-        directions = self._arrival(origin, q0)
-        result = refine(self._approaching(directions), target, q0, analytic, start, deadline, stats)
+        directions = self._arrival(req.origin, q0)
+        result = refine(self._approaching(directions), req, q0, stats)
         if directions is None:
             return result
-        again = self._arrival(origin, result.q)
+        again = self._arrival(req.origin, result.q)
         if not np.array_equal(again, directions):
             directions = again
-            result = refine(self._approaching(directions), target, result.q, analytic, start, deadline, stats)
+            result = refine(self._approaching(directions), req, result.q, stats)
         result.stats["approach"] = directions.tolist()
         return result
 
@@ -948,91 +900,67 @@ class IKSolver:
         return q_next if len(q_next) else None
 
     def _fixed_point_only(
-        self,
-        target: np.ndarray,
-        q0: np.ndarray,
-        analytic: bool,
-        start: float,
-        deadline: float,
-        stats: dict,
-        rounds: int = FIXED_POINT_ROUNDS,
+        self, req: SolveRequest, q0: np.ndarray, stats: dict, rounds: int = FIXED_POINT_ROUNDS
     ) -> IKResult:
         """The closed forms' fixed point alone (``rounds`` at most), stopped where it stalls: the cheap first
         try of a branch."""
-        q, errors, beyond = self.fixed_point(target, q0, deadline, rounds)
+        q, errors, beyond = self.fixed_point(req.target, q0, req.deadline, rounds)
         stats = dict(stats, method="closed-form fixed point")
         if beyond:
             stats["beyond_branch_reach"] = True
-        return self.result(q, target, analytic, start, stats, errors)
+        return self.result(req, q, stats, errors)
 
     def _valley_only(
-        self,
-        target: np.ndarray,
-        q0: np.ndarray,
-        analytic: bool,
-        start: float,
-        deadline: float,
-        stats: dict,
-        nearest: np.ndarray | None = None,
+        self, req: SolveRequest, q0: np.ndarray, stats: dict, nearest: np.ndarray | None = None
     ) -> IKResult:
         """The root search along the singular valleys alone (:meth:`_valley`; a miss where it finds nothing)."""
-        found = self._valley(target, q0, start, deadline, stats, nearest)
-        return found if found is not None else self.result(q0, target, analytic, start, dict(stats))
+        found = self._valley(req, q0, stats, nearest)
+        return found if found is not None else self.result(req, q0, dict(stats))
 
     def _refine_branch(
-        self,
-        target: np.ndarray,
-        q0: np.ndarray,
-        analytic: bool,
-        start: float,
-        deadline: float,
-        stats: dict,
-        fixed: IKResult | None = None,
-        valley: bool = True,
+        self, req: SolveRequest, q0: np.ndarray, stats: dict, fixed: IKResult | None = None, valley: bool = True
     ) -> IKResult:
         """The hybrid solution near the classical answer ``q0``: the closed forms' fixed point, then the box
         refinement, then, if that misses, damped LM on the hybrid model over the whole joint range (the bounded
         boxes crawl near a singularity). ``fixed``: the fixed point's result where it has run already and ``q0``
         is its answer; ``valley``: False where the valley search has run already."""
         q, errors = q0, None
-        corrected = not analytic and self.model.is_corrected
-        if time.perf_counter() > deadline:
+        corrected = not req.analytic and self.model.is_corrected
+        if time.perf_counter() > req.deadline:
             # the budget is spent (by the valley search, mostly): the verdict on what is there, no refinement
             # after the deadline (each stage's first step would run regardless, and the answer come late)
             if fixed is not None and np.array_equal(fixed.q, q0):
                 return fixed
-            return self.result(q0, target, analytic, start, dict(stats))
+            return self.result(req, q0, dict(stats))
         if corrected and self.closed_form is not None:
             # ``fixed`` holds for its own answer only (a rerun with other approach directions starts elsewhere)
             ran = fixed is not None and np.array_equal(fixed.q, q0)
-            result = fixed if ran else self._fixed_point_only(target, q0, analytic, start, deadline, stats)
+            result = fixed if ran else self._fixed_point_only(req, q0, stats)
             q = q0 = result.q
             if result.success:
                 return result
             if result.stats.get("beyond_branch_reach"):  # no nearer on this branch: the others get the time
                 return result
-            found = self._valley(target, q0, start, deadline, stats) if valley else None
+            found = self._valley(req, q0, stats) if valley else None
             if found is not None:
                 return found
         if corrected:
             # the box keeps its own budget (its share of timeout_s), unless the valley search took the time
-            q, info = self.refiner.refine(target, q0, deadline if "valley" in stats else float("inf"))
+            q, info = self.refiner.refine(req.target, q0, req.deadline if "valley" in stats else float("inf"))
             errors = info.pop("errors", None)
             stats["refinements"] += 1
             stats.update(info)
-        result = self.result(q, target, analytic, start, dict(stats), errors)
-        if not result.success and corrected and time.perf_counter() < deadline:
-            q, *_ = self.refiner.unbounded(target, q, deadline)
+        result = self.result(req, q, dict(stats), errors)
+        if not result.success and corrected and time.perf_counter() < req.deadline:
+            q, *_ = self.refiner.unbounded(req.target, q, req.deadline)
             stats["hybrid_lm"] = stats.get("hybrid_lm", 0) + 1
-            result = self.result(q, target, analytic, start, dict(stats))
+            result = self.result(req, q, dict(stats))
         return result
 
     def _valley(
         self,
-        target: np.ndarray,
+        req: SolveRequest,
         q0: np.ndarray,
-        start: float,
-        deadline: float,
         stats: dict,
         nearest: np.ndarray | None = None,
         near: np.ndarray | None = None,
@@ -1042,55 +970,48 @@ class IKSolver:
         has no branch, and its least-squares answers take their place), nearest ``nearest`` (else ``q0``) first
         (:mod:`~hybrid_kinematics_ros.ik.valley`); None when none is near a singularity or no root of the
         valleys reaches the target."""
-        if not self._valley_time(deadline):
+        if not self._valley_time(req.deadline):
             return None
         # the valleys of every closed-form branch, one by one: at a shoulder singularity the solution can lie on
         # another branch's valley (the shoulder flipped), and the seed's wanders across the wrist's
-        others = self.branches(target, q0) if near is None else near
+        others = self.branches(req.target, q0) if near is None else near
         # then the exact branches past a joint limit: their valleys can enter the limits (valley.enter), where
         # the hybrid solution can lie (a UR10 with its wrist straight next to q3 = -2.8)
-        past = [] if self.closed_form is None else self.closed_form.past_limits(target, q0)
+        past = [] if self.closed_form is None else self.closed_form.past_limits(req.target, q0)
         near = np.vstack([*([] if nearest is None else [nearest]), q0, *others, *past])
-        return self._valley_rows(target, near, start, deadline, stats)
+        return self._valley_rows(req, near, stats)
 
     def _valley_time(self, deadline: float) -> bool:
         """The valley search is on, and VALLEY_SHARE of the budget is left for it: tracing the valleys and
         settling their points take a few batched hybrid FKs."""
         return self.options.valley and deadline - time.perf_counter() >= VALLEY_SHARE * self.options.timeout_s
 
-    def _valley_rows(
-        self, target: np.ndarray, rows: np.ndarray, start: float, deadline: float, stats: dict
-    ) -> IKResult | None:
+    def _valley_rows(self, req: SolveRequest, rows: np.ndarray, stats: dict) -> IKResult | None:
         """The search of :meth:`_valley` along the valleys through ``rows`` ``(B, n)`` alone, the first's first."""
-        if not self._valley_time(deadline):
+        if not self._valley_time(req.deadline):
             return None
-        starts = valley_starts(self.model, target, rows, self.limits, deadline, self.inner_tol[0])
+        starts = valley_starts(self.model, req.target, rows, self.limits, req.deadline, self.inner_tol[0])
         if starts is None:
             return None
         stats["valley"] = 0
         for q in starts:  # valley by valley, the seed's first: the next one is searched when these fail
             stats["valley"] += 1
-            result = self.result(q, target, False, start, dict(stats, method="singular valley"))
-            if not result.success and time.perf_counter() < deadline:  # a double root: LM finishes from next to it
-                q, *_ = self.refiner.unbounded(target, q, deadline)
-                result = self.result(q, target, False, start, dict(stats, method="singular valley"))
+            result = self.result(req, q, dict(stats, method="singular valley"))
+            if not result.success and time.perf_counter() < req.deadline:  # a double root: LM finishes from near it
+                q, *_ = self.refiner.unbounded(req.target, q, req.deadline)
+                result = self.result(req, q, dict(stats, method="singular valley"))
             if result.success:
                 return result
         return None
 
     def result(
-        self,
-        q: np.ndarray,
-        target: np.ndarray,
-        analytic: bool,
-        start: float,
-        stats: dict,
-        errors: tuple[float, float] | None = None,
+        self, req: SolveRequest, q: np.ndarray, stats: dict, errors: tuple[float, float] | None = None
     ) -> IKResult:
-        """The verdict on ``q``; ``errors`` (mm, deg) when the solver has just evaluated them there with the
-        same model."""
+        """The verdict on ``q`` for the request; ``errors`` (mm, deg) when the solver has just evaluated them
+        there with the same model."""
         o = self.options
-        pos, rot = errors if errors is not None else self.refiner.errors(q, target, analytic)
+        analytic = req.analytic
+        pos, rot = errors if errors is not None else self.refiner.errors(q, req.target, analytic)
         inside = self.model.in_calibrated_range_one(q)
         ok = pos <= o.position_tolerance_mm and rot <= o.orientation_tolerance_deg
         if ok and not inside and o.require_calibrated_range and not analytic:
@@ -1105,7 +1026,7 @@ class IKSolver:
                 f"no solution within tolerance: best error {pos:.3g} mm / {rot:.3g} deg "
                 "(target unreachable, or no convergence within the iteration and time budget)"
             )
-        return IKResult(ok, q, pos, rot, message, time.perf_counter() - start, inside, stats)
+        return IKResult(ok, q, pos, rot, message, time.perf_counter() - req.start, inside, stats)
 
     def solve_many(
         self,
@@ -1135,6 +1056,7 @@ class IKSolver:
         o = self.options
         tol_m, tol_rad = 1e-3 * o.position_tolerance_mm, np.radians(o.orientation_tolerance_deg)
         end = float("inf") if deadline is None else deadline
+        req = SolveRequest(target, seed, origin, analytic, start, end)
         search_end = start + SEARCH_SHARE * (end - start)
         branches = list(self.branches(target, seed))  # every branch at once: the seeds below only add the rest
         # a branch at a singularity has no closed-form answer: the spread of seeds searches for it too
@@ -1181,10 +1103,10 @@ class IKSolver:
             beyond = False
             if corrected and solver.closed_form is not None:
                 q0, errors, beyond = fixed[k] if k in fixed else solver.fixed_point(target, q0, end)
-                result = solver.result(q0, target, analytic, start, {"method": "closed-form fixed point"}, errors)
+                result = solver.result(req, q0, {"method": "closed-form fixed point"}, errors)
             if result is None or (not (result.success or beyond) and time.perf_counter() <= end):
                 q, stats = solver.refiner.refine(target, q0, deadline=end) if corrected else (q0, {})
-                result = solver.result(q, target, analytic, start, stats, stats.pop("errors", None))
+                result = solver.result(req, q, stats, stats.pop("errors", None))
             result.stats["path"] = self.path
             if result.success:
                 results.append(result)
@@ -1241,7 +1163,8 @@ class IKSolver:
         results = []
         for i in range(n):
             if np.isfinite(errors[i, 0]):
-                result = self.result(q[i], targets[i], False, start, {"method": "batch chord"}, tuple(errors[i]))
+                chord = SolveRequest(targets[i], q[i], None, False, start, float("inf"))
+                result = self.result(chord, q[i], {"method": "batch chord"}, tuple(errors[i]))
             else:  # from the pose before (its answer: the chord step leaves an unconverged pose's last iterate
                 # in q), on the side its joints arrived from
                 solver = self._approaching(None if arrive is None or not i else arrive[i - 1])

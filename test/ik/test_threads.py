@@ -13,6 +13,7 @@ import pytest
 PROBE = """
 import json
 from threadpoolctl import threadpool_info
+import hybrid_kinematics_ros.ik.solver  # numpy's and scipy's BLAS, loaded as the node loads them
 from hybrid_kinematics_ros.nodes.process import one_blas_thread
 blas = lambda: {d["filepath"]: d["num_threads"] for d in threadpool_info() if d["user_api"] == "blas"}
 before = blas()

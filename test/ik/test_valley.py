@@ -15,7 +15,7 @@ from bench.bench_ik_singular import cases
 from hybrid_kinematics_ros.ik import seeds as seeding
 from hybrid_kinematics_ros.ik import valley as valley_module
 from hybrid_kinematics_ros.ik.lm import error6, joint_limits, lm_solve
-from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
+from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, SolveRequest
 from hybrid_kinematics_ros.ik.valley import (
     NEAR_SINGULAR,
     TRACE_STEP,
@@ -412,7 +412,9 @@ def test_a_fallback_near_answer_has_its_valley_searched_before_lm(trained):
         for valley_first in (False, True):
             now = time.perf_counter()
             valleys = [] if valley_first else None  # none searched yet in this solve: the valley's turn
-            result = solver._other_branch(target, q0, False, now, now + 5.0, {}, valleys=valleys)
+            result = solver._other_branch(
+                SolveRequest(target, q0, None, False, now, now + 5.0), q0, {}, valleys=valleys
+            )
             solved[valley_first] += result.success
             if valley_first and result.success:
                 assert hybrid_errors(model, result.q, target)[0] < 1e-4

@@ -19,7 +19,7 @@ from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.ik import solver as solver_module
 from hybrid_kinematics_ros.ik import valley
 from hybrid_kinematics_ros.ik.analytic import turns
-from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
+from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, SolveRequest
 from hybrid_kinematics_ros.ik.valley import trace, valley_starts
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
@@ -139,7 +139,8 @@ def test_a_branch_its_probe_leaves_undecided_gets_its_whole_fixed_point(rx160_mo
         if len(closed) < 2:  # beyond the URDF model's reach, or one branch: no reserve
             continue
         start = time.perf_counter()
-        first = solver._fixed_point_only(target, closed[0], False, start, start + 5.0, {})
+        req = SolveRequest(target, closed[0], None, False, start, start + 5.0)
+        first = solver._fixed_point_only(req, closed[0], {})
         if first.success or not first.stats.get("beyond_branch_reach"):
             continue
         reachable = any(
@@ -152,7 +153,7 @@ def test_a_branch_its_probe_leaves_undecided_gets_its_whole_fixed_point(rx160_mo
         if not reachable:
             continue
         checked += 1
-        found = solver._reserve(target, first, closed[0], closed, False, start, start + 5.0, {}, None, [])
+        found = solver._reserve(req, first, closed[0], closed, {}, [])
         assert found is not None and found.success
         assert max(hybrid_errors(rx160_model, found.q, target)) < 1e-4
     assert checked >= 3, checked  # measured 7 of these 24 targets (the old rule found none of them)
