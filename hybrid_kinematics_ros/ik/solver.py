@@ -386,27 +386,10 @@ class IKSolver:
         near = self._beyond_reach(target, seed, closed)
         nearest_miss = None  # beyond the URDF model's reach: the branch's fixed point that came nearest
         if len(near):  # the closed forms are complete: no URDF-model restart would find an exact branch
-            stats["beyond_urdf_reach"] = True
-            # the hybrid model reaches the target on some of these branches only (the edge of its workspace
-            # moved by the corrections): the cheap fixed point on each first, nearest the seed first
-            for q in near:
-                result = self._from_branch(req, q, stats, IKSolver._fixed_point_only)
-                if result.success:
-                    return self._singular(result)
-                if nearest_miss is None or result.position_error_mm < nearest_miss.position_error_mm:
-                    nearest_miss = result
+            found, nearest_miss = self._near_branches(req, stats, near, restarted)
+            if found is not None:
+                return self._singular(found)
             q0 = nearest_miss.q  # the refinements go on from the branch that came nearest
-            # the cheaper tries before the valley search: its weak-direction restarts (four short LM runs), then
-            # its copies shifted by 2π (the order chosen by bench_ik_singular, BENCHMARKS.md)
-            found = self._weak_restarts(req, nearest_miss, stats, restarted)
-            if found is not None:
-                return self._singular(found)
-            found = self._copies(req, nearest_miss.q, stats, restarted)
-            if found is not None:
-                return self._singular(found)
-            found = self._valley(req, q0, stats, near=near)
-            if found is not None:
-                return self._singular(found)
         else:
             # closed forms that give no branch within the limits are complete: no restart of the URDF model's LM
             # finds one, and its nearest point within them comes from the first few (more would take the time
@@ -417,33 +400,11 @@ class IKSolver:
                 target, seed, start + share * o.timeout_s, branches=closed, continuum=False, table_only=complete
             )
             stats["attempts"] += attempts
-        reserve = None
-        refine = None
+        reserve = refine = None
         if len(closed) > 1:  # the seed's fixed point first: if it fails, the other branches' wait in reserve
-            if missed is not None and _same_start(missed[0], [q0]):  # the same fixed point: its miss, not a second run
-                first = missed[1]
-            else:
-                first = self._from_branch(req, q0, stats, IKSolver._fixed_point_only)
-            first = self._near_miss_lm(req, first, lm_starts)
-            if first.success:
-                return self._singular(first)
-            # the rest of the seed's branch goes on from the fixed point's answer, which it does not repeat
-            closed_q, q0 = q0, first.q
-            # the valley search next, then the other branches' fixed points. Where the seed's fixed point stalled
-            # beyond its branch's reach, those first, and the valleys only if they found nothing: another branch's
-            # cheap fixed point is then the likelier answer, and the valleys could take the whole budget (where no
-            # other branch reaches, the solution lies on a valley)
-            beyond = first.stats.get("beyond_branch_reach")
-            if beyond:
-                reserve = self._reserve(req, first, closed_q, closed, stats, lm_starts)
-            if reserve is None:
-                valley = functools.partial(IKSolver._valley_only, nearest=closed_q)
-                found = self._from_branch(req, q0, stats, valley)
-                if found.success:
-                    return self._singular(found)
-            refine = functools.partial(IKSolver._refine_branch, fixed=first, valley=False)
-            if not beyond:
-                reserve = self._reserve(req, first, closed_q, closed, stats, lm_starts)
+            found, reserve, refine, q0 = self._seed_branch(req, stats, q0, closed, missed, lm_starts)
+            if found is not None:
+                return self._singular(found)
         best = self._from_branch(req, q0, stats, refine)
         if best.success:
             return self._singular(best)
@@ -453,20 +414,98 @@ class IKSolver:
             reserve = self._singular(reserve)
             reserve.message += f"; {OTHER_BRANCH}"
             return reserve
-        # the other branches (module docstring, 3.)
+        return self._fallback(req, stats, best, q0, (closed, near), nearest_miss, restarted)
+
+    def _near_branches(
+        self, req: SolveRequest, stats: dict, near: np.ndarray, restarted: list[np.ndarray]
+    ) -> tuple[IKResult | None, IKResult]:
+        """A target beyond the URDF model's reach (``near``: its least-squares answers, nearest the seed first).
+        The hybrid model reaches it on some of these branches only (the edge of its workspace moved by the
+        corrections): the cheap fixed point on each first; then, from the one that came nearest, the cheaper
+        tries before the valley search: its weak-direction restarts (four short LM runs), its copies shifted by
+        2π (the order chosen by bench_ik_singular, BENCHMARKS.md), and the valleys. The answer found (else None)
+        and the branch's fixed point that came nearest."""
+        stats["beyond_urdf_reach"] = True
+        nearest_miss = None
+        for q in near:
+            result = self._from_branch(req, q, stats, IKSolver._fixed_point_only)
+            if result.success:
+                return result, result
+            if nearest_miss is None or result.position_error_mm < nearest_miss.position_error_mm:
+                nearest_miss = result
+        found = self._weak_restarts(req, nearest_miss, stats, restarted)
+        if found is None:
+            found = self._copies(req, nearest_miss.q, stats, restarted)
+        if found is None:
+            found = self._valley(req, nearest_miss.q, stats, near=near)
+        return found, nearest_miss
+
+    def _seed_branch(
+        self,
+        req: SolveRequest,
+        stats: dict,
+        q0: np.ndarray,
+        closed: np.ndarray,
+        missed: tuple[np.ndarray, IKResult] | None,
+        lm_starts: list[np.ndarray],
+    ) -> tuple[IKResult | None, IKResult | None, Callable[..., IKResult], np.ndarray]:
+        """The seed's branch ``q0`` among several closed-form ``closed`` ones: its fixed point (``missed``'s
+        verdict where it ran already) and LM from a near miss; then the valley search and the other branches'
+        fixed points, which wait in reserve. Where the seed's fixed point stalled beyond its branch's reach,
+        those first, and the valleys only if they found nothing: another branch's cheap fixed point is then the
+        likelier answer, and the valleys could take the whole budget (where no other branch reaches, the
+        solution lies on a valley). The answer found (else None), the other branches' answer in reserve, the
+        refinement the seed's branch goes on with, and the configuration it goes on from (the fixed point's
+        answer, which it does not repeat)."""
+        if missed is not None and _same_start(missed[0], [q0]):  # the same fixed point: its miss, not a second run
+            first = missed[1]
+        else:
+            first = self._from_branch(req, q0, stats, IKSolver._fixed_point_only)
+        first = self._near_miss_lm(req, first, lm_starts)
+        refine = functools.partial(IKSolver._refine_branch, fixed=first, valley=False)
+        if first.success:
+            return first, None, refine, first.q
+        reserve = None
+        beyond = first.stats.get("beyond_branch_reach")
+        if beyond:
+            reserve = self._reserve(req, first, q0, closed, stats, lm_starts)
+        if reserve is None:
+            valley = functools.partial(IKSolver._valley_only, nearest=q0)
+            found = self._from_branch(req, first.q, stats, valley)
+            if found.success:
+                return found, reserve, refine, first.q
+        if not beyond:
+            reserve = self._reserve(req, first, q0, closed, stats, lm_starts)
+        return None, reserve, refine, first.q
+
+    def _fallback(
+        self,
+        req: SolveRequest,
+        stats: dict,
+        best: IKResult,
+        q0: np.ndarray,
+        exact_and_near: tuple[np.ndarray, np.ndarray],
+        nearest_miss: IKResult | None,
+        restarted: list[np.ndarray],
+    ) -> IKResult:
+        """The other branches (module docstring, 3.), while the budget lasts: the weak-direction restarts of the
+        misses, the URDF model's nearest answers beyond its reach, then LM from the closed forms' branches, their
+        copies shifted by 2π and the restart table's configurations. ``best``: the seed's branch's answer so far;
+        ``exact_and_near``: the closed forms' exact branches and those beyond the URDF model's reach."""
+        closed, near = exact_and_near
         tried = [q0]
         tol_m, tol_rad = self.inner_tol
         # the branches' copies shifted by 2π next: another problem for the nets (an elbow stretched a few
         # micrometres beyond one copy's reach can lie within another's), nearest the seed first
         branches = np.vstack([closed, near])
         copies = turns(branches, self.lower, self.upper)
-        copies = copies[np.argsort(np.linalg.norm(copies - seed, axis=1), kind="stable")]
+        copies = copies[np.argsort(np.linalg.norm(copies - req.seed, axis=1), kind="stable")]
         if nearest_miss is not None:
             # beyond the URDF model's reach, the copies of the branch that came nearest first: where no copy of
             # the seed's reaches, the nets' reach on another copy of that branch is what differs (an RX160's
             # stretched elbow)
             mine = turns(nearest_miss.q[None], self.lower, self.upper)
-            copies = np.vstack([mine[np.argsort(np.linalg.norm(mine - seed, axis=1), kind="stable")], copies])
+            copies = np.vstack([mine[np.argsort(np.linalg.norm(mine - req.seed, axis=1), kind="stable")], copies])
         unique: list[np.ndarray] = [*branches, *restarted]  # the copies tried before the valley search too
         kept = []
         for q in copies:
@@ -474,7 +513,7 @@ class IKSolver:
                 unique.append(q)
                 kept.append(q)
         copies = kept
-        table = self.seeds.nearest(target, 2 * seeding.TABLE_RESTARTS)
+        table = self.seeds.nearest(req.target, 2 * seeding.TABLE_RESTARTS)
         # (start, whether LM on the hybrid model follows a fixed point that stalls beyond the branch's reach: on
         # a copy, the nets' reach is what differs, and the hybrid Jacobian is what finds it)
         starts = iter([(q, False) for q in closed] + [(q, True) for q in copies] + [(q, False) for q in table])
@@ -484,7 +523,7 @@ class IKSolver:
         def restarts_of(result: IKResult) -> list[np.ndarray]:
             """The restarts along ``result``'s weak direction, none twice from one near miss: near a singularity
             many fallback starts' fixed points end on the same few near misses."""
-            if analytic or not seeding.is_new_branch(result.q, seeded):
+            if req.analytic or not seeding.is_new_branch(result.q, seeded):
                 return []
             restarts = seeding.valley_seeds(self.model, result.q, result.position_error_mm, self.limits)
             if restarts:
@@ -498,7 +537,7 @@ class IKSolver:
         valley = [q for q in valley if seeding.is_new_branch(q, restarted)]
         others = [q for q in near[1:] if seeding.is_new_branch(q, tried)]
         while True:
-            if time.perf_counter() > deadline:
+            if time.perf_counter() > req.deadline:
                 break
             if valley:  # straight to the hybrid LM: these start next to a hybrid near-solution
                 result = self._other_branch(req, valley.pop(0), stats)
@@ -512,7 +551,14 @@ class IKSolver:
                 s, copy = next(starts, (None, False))
                 s = self.seeds.random() if s is None else s
                 q0, ep, er, _ = lm_solve(
-                    self.analytic_fk_jac, target, s, self.limits, tol_m, tol_rad, o.max_iterations, deadline
+                    self.analytic_fk_jac,
+                    req.target,
+                    s,
+                    self.limits,
+                    tol_m,
+                    tol_rad,
+                    self.options.max_iterations,
+                    req.deadline,
                 )
                 stats["attempts"] += 1
                 if ep > seeding.NEAR_M or er > seeding.NEAR_RAD or not seeding.is_new_branch(q0, tried):
@@ -526,7 +572,7 @@ class IKSolver:
             if result.success:
                 break
         best.stats["branches"] = len(tried)
-        best.seconds = time.perf_counter() - start
+        best.seconds = time.perf_counter() - req.start
         return self._singular(best)
 
     def _restarts(
