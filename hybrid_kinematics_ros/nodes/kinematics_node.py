@@ -77,10 +77,50 @@ SERVICE_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 class KinematicsNode(Node):
     def __init__(self, name: str = "kinematics_node", **kwargs) -> None:
         super().__init__(name, **kwargs)
+        topic, publish, diagnostics_period = self._declare_serving()
+        monitor_topic, monitor_options = self._declare_monitor()
+        self._lock = threading.Lock()
+        self.model, self.solver = self._load()
+        # A model trained with condition channels (hybrid-kinematics train --condition temperature) needs
+        # their current values: parameters conditions.NAME, settable at run time; unset: the training mean,
+        # which a WARN, the diagnostics and every answer's message say. The node keeps the values (with the
+        # joints' approach directions) here, and every answer computes with a model of a snapshot of them taken
+        # under the lock (HybridModel.with_conditions): the served model itself never changes.
+        for name in self.model.condition_names:
+            self.declare_parameter(f"conditions.{name}", float("nan"))
+        self._conditions, self._unset = self._conditions_of(self.model)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.compensator = self._compensator(self.model)
+        self._latest: np.ndarray | None = None
+        self._approach: tuple[int, ApproachTracker] | None = None  # (the load it follows, its tracker)
+        self._loads = 0  # models loaded: a reload starts the approach directions afresh, a new payload does not
+        self._reply = threading.local()  # see _fk_pose
+        self.stats = RequestStats()
+        self._create_endpoints(topic, publish, diagnostics_period)
+        self._monitor_options = monitor_options
+        self.monitor = DriftMonitor(self.model, monitor_options) if monitor_options else None
+        self._drifted = False
+        if self.monitor is not None:
+            tracker_qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
+            self.pose_node.create_subscription(PoseStamped, monitor_topic, self._on_tracker_pose, tracker_qos)
+        m = self.model
+        kind = f"calibrated model {self.model_dir}" if m.is_corrected else "analytic URDF model (no model_dir)"
+        self.get_logger().info(
+            f"serving {kind}: {m.chain.base_link} -> {m.chain.tip_link}, joints {', '.join(m.joint_names)}; "
+            f"IK: {self.solver.path}"
+        )
+        for warning in m.chain.inertial_warnings:
+            self.get_logger().warn(f"URDF: {warning}")
+        freeze_heap()  # no full collection of the loaded model inside a request (a stall past its budget)
+        one_blas_thread()  # no BLAS pool spinning on the other core while a request waits for it
 
-        def declare(name: str, default, description: str):
-            return read_only_parameter(self, name, default, description)
+    def _declare(self, name: str, default, description: str):
+        return read_only_parameter(self, name, default, description)
 
+    def _declare_serving(self) -> tuple[str, bool, float]:
+        """The parameters of what the node serves and how; the joint states' topic, whether to publish the
+        corrected pose, and the diagnostics' period."""
+        declare = self._declare
         self.model_dir = declare(
             "model_dir", "", "trained model directory (or package://pkg/path); empty: analytic URDF kinematics only"
         )
@@ -125,6 +165,26 @@ class KinematicsNode(Node):
             "warn",
             f"outside the joint range the nets were trained on: {range_policy.described()}",
         )
+        self.coverage_radius = declare(
+            "coverage_radius_rad",
+            0.0,
+            "> 0: the calibrated range is where a training configuration lies within this distance (joint "
+            "space, rad), instead of the trained joint ranges (hybrid-kinematics evaluate suggests one); 0: off",
+        )
+        self.gravity = declare(
+            "gravity",
+            [0.0, 0.0, 0.0],
+            "m/s² in the base frame, for the parametric stage's joint torques (a wall or ceiling mount); "
+            "0 0 0: the model's own (model.json, from the robot config it was trained with)",
+        )
+        # the payload the robot carries now, settable at run time (NaN: the model's, from model.json)
+        self.declare_parameter("payload_mass", float("nan"))
+        self.declare_parameter("payload_com", [float("nan")] * 3)
+        return topic, publish, diagnostics_period
+
+    def _declare_monitor(self) -> tuple[str, MonitorOptions | None]:
+        """The tracker monitor's parameters: its topic and options (None: off)."""
+        declare = self._declare
         monitor_topic = declare(
             "monitor_tracker_topic",
             "",
@@ -138,43 +198,13 @@ class KinematicsNode(Node):
             "monitor_clock_margin_s", 0.05, "tracker poses this close to a still run's ends are left out (s)"
         )
         try:
-            monitor_options = MonitorOptions(window, reference, still, clock_margin_s=margin) if monitor_topic else None
+            options = MonitorOptions(window, reference, still, clock_margin_s=margin) if monitor_topic else None
         except CalibrationError as exc:
             raise StartupError(f"parameters monitor_*: {exc}") from exc
-        self.coverage_radius = declare(
-            "coverage_radius_rad",
-            0.0,
-            "> 0: the calibrated range is where a training configuration lies within this distance (joint "
-            "space, rad), instead of the trained joint ranges (hybrid-kinematics evaluate suggests one); 0: off",
-        )
+        return monitor_topic, options
 
-        self.gravity = declare(
-            "gravity",
-            [0.0, 0.0, 0.0],
-            "m/s² in the base frame, for the parametric stage's joint torques (a wall or ceiling mount); "
-            "0 0 0: the model's own (model.json, from the robot config it was trained with)",
-        )
-        # the payload the robot carries now, settable at run time (NaN: the model's, from model.json)
-        self.declare_parameter("payload_mass", float("nan"))
-        self.declare_parameter("payload_com", [float("nan")] * 3)
-        self._lock = threading.Lock()
-        self.model, self.solver = self._load()
-        # A model trained with condition channels (hybrid-kinematics train --condition temperature) needs
-        # their current values: parameters conditions.NAME, settable at run time; unset: the training mean,
-        # which a WARN, the diagnostics and every answer's message say. The node keeps the values (with the
-        # joints' approach directions) here, and every answer computes with a snapshot of them taken under
-        # the lock (HybridModel.using): the served model itself is never changed.
-        for name in self.model.condition_names:
-            self.declare_parameter(f"conditions.{name}", float("nan"))
-        self._conditions, self._unset = self._conditions_of(self.model)
-        self.add_on_set_parameters_callback(self._on_set_parameters)
-        self.compensator = self._compensator(self.model)
-        self._latest: np.ndarray | None = None
-        self._approach: tuple[int, ApproachTracker] | None = None  # (the load it follows, its tracker)
-        self._loads = 0  # models loaded: a reload starts the approach directions afresh, a new payload does not
-        self._reply = threading.local()  # see _fk_pose
-        self.stats = RequestStats()
-
+    def _create_endpoints(self, topic: str, publish: bool, diagnostics_period: float) -> None:
+        """The services, the corrected pose's publishers, the joint states' subscription and the diagnostics."""
         # Replies share one writer; with the default depth of 10, a burst from many clients can overwrite a
         # reply before a slow client has taken it, and that call is never answered.
         self.create_service(ComputeFK, "~/compute_fk", self._on_fk, qos_profile=SERVICE_QOS)
@@ -199,25 +229,9 @@ class KinematicsNode(Node):
         # best effort (matches reliable and best-effort publishers) with a deep queue for bursts
         joint_qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.BEST_EFFORT)
         self.pose_node.create_subscription(JointState, topic, self._on_joint_state, joint_qos)
-        self._monitor_options = monitor_options
-        self.monitor = DriftMonitor(self.model, monitor_options) if monitor_options else None
-        self._drifted = False
-        if self.monitor is not None:
-            tracker_qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
-            self.pose_node.create_subscription(PoseStamped, monitor_topic, self._on_tracker_pose, tracker_qos)
         if diagnostics_period > 0:
             self.diag_pub = self.pose_node.create_publisher(DiagnosticArray, "/diagnostics", 10)
             self.pose_node.create_timer(diagnostics_period, self._publish_diagnostics)
-        m = self.model
-        kind = f"calibrated model {self.model_dir}" if m.is_corrected else "analytic URDF model (no model_dir)"
-        self.get_logger().info(
-            f"serving {kind}: {m.chain.base_link} -> {m.chain.tip_link}, joints {', '.join(m.joint_names)}; "
-            f"IK: {self.solver.path}"
-        )
-        for warning in m.chain.inertial_warnings:
-            self.get_logger().warn(f"URDF: {warning}")
-        freeze_heap()  # no full collection of the loaded model inside a request (a stall past its budget)
-        one_blas_thread()  # no BLAS pool spinning on the other core while a request waits for it
 
     # ------------------------------------------------------------------ loading
     def _urdf(self) -> str | None:
