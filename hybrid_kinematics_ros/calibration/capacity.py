@@ -46,7 +46,7 @@ about a minute on thousands of pairs. The test pairs never enter it.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -388,131 +388,163 @@ def _select(
     """The capacity chosen at ``lin``'s orientation weight; the residuals ``(N, width)`` that the chosen stage
     and joint error map, fitted on every pair, leave of them; the chosen stage's held-out residuals (each a
     contiguous fifth of the recording, as the elastic terms and the cyclic errors are judged)."""
-    base = _normal(lin)
-    folds = _Folds.build(lin, total, base=base)
-    params = [lin.params[c] for c in folds.columns]
-    kind = np.array([p.kind for p in params])
-    freq = np.array([p.component // 2 + 1 if p.kind == "harmonic" else 0 for p in params])
-    if max(freq, default=0) < max(fixed.get("harmonics", 0), 0):
-        raise CalibrationError(f"harmonics {fixed['harmonics']}: the linearisation holds only {max(freq)}")
-    settings = {**START, **{k: fixed[k] for k in ("harmonic_prior", "map_smoothness") if k in fixed}}
+    return _Selection(lin, total, fixed, map_ridge).run()
 
-    def stage_columns(elastic: str, harmonics: int, backlash: bool = False) -> np.ndarray:
+
+class _Selection:
+    """One capacity selection over a linearised stage: the settings given (``fixed``), the decisions made, and
+    the cross-validated residuals each candidate leaves."""
+
+    def __init__(self, lin: Linearisation, total: int, fixed: dict[str, Any], map_ridge: float | None) -> None:
+        self.lin, self.total, self.fixed = lin, total, fixed
+        self.ridge = {} if map_ridge is None else {"ridge": map_ridge}
+        self.base = _normal(lin)
+        self.folds = _Folds.build(lin, total, base=self.base)
+        params = [lin.params[c] for c in self.folds.columns]
+        self.kind = np.array([p.kind for p in params])
+        self.freq = np.array([p.component // 2 + 1 if p.kind == "harmonic" else 0 for p in params])
+        if max(self.freq, default=0) < max(fixed.get("harmonics", 0), 0):
+            raise CalibrationError(f"harmonics {fixed['harmonics']}: the linearisation holds only {max(self.freq)}")
+        self.settings = {**START, **{k: fixed[k] for k in ("harmonic_prior", "map_smoothness") if k in fixed}}
+        self.made: dict[str, dict[str, Any]] = {}  # the latest decision of each setting, in the order first made
+
+    def stage_columns(self, elastic: str, harmonics: int, backlash: bool = False) -> np.ndarray:
         kinds = (*ELASTIC[elastic], *STATION_KINDS, *(("backlash",) if backlash else ()))
-        return np.isin(kind, kinds) | ((kind == "harmonic") & (freq <= harmonics))
+        return np.isin(self.kind, kinds) | ((self.kind == "harmonic") & (self.freq <= harmonics))
 
-    def prior(harmonic_prior: float) -> np.ndarray:
-        return harmonic_ridge(lin, harmonic_prior)[folds.columns]
+    def prior(self, harmonic_prior: float) -> np.ndarray:
+        return harmonic_ridge(self.lin, harmonic_prior)[self.folds.columns]
 
-    def stage_residuals(elastic: str, harmonics: int, harmonic_prior: float, backlash: bool = False) -> np.ndarray:
+    def stage_residuals(
+        self, elastic: str, harmonics: int, harmonic_prior: float, backlash: bool = False
+    ) -> np.ndarray:
         """``(N, width)``: every pair's residual, from the fold that held it out."""
-        use = stage_columns(elastic, harmonics, backlash)
-        out = np.zeros_like(lin.residual)
+        use = self.stage_columns(elastic, harmonics, backlash)
+        out = np.zeros_like(self.lin.residual)
         for f in range(FOLDS):
-            z = folds.solve(f, use, prior(harmonic_prior))
-            out[folds.held_out(f)] = folds.residual(f, z)
+            z = self.folds.solve(f, use, self.prior(harmonic_prior))
+            out[self.folds.held_out(f)] = self.folds.residual(f, z)
         return out
 
-    made: dict[str, dict[str, Any]] = {}  # the latest decision of each setting, in the order first made
-
-    def decide(setting: str, labels: Sequence[Any], evaluate, round_: int = 1) -> Any:
-        if setting in fixed:
-            made[setting] = {"setting": setting, "chosen": fixed[setting], "given": True}
-            return fixed[setting]
+    def decide(
+        self, setting: str, labels: Sequence[Any], evaluate: Callable[[Any], np.ndarray], round_: int = 1
+    ) -> Any:
+        """The setting given, else the label whose held-out residuals win (:func:`_choose`)."""
+        if setting in self.fixed:
+            self.made[setting] = {"setting": setting, "chosen": self.fixed[setting], "given": True}
+            return self.fixed[setting]
         residuals = [evaluate(label) for label in labels]
-        chosen, decision = _choose(setting, labels, residuals, folds.block, lin.orientation_length)
-        made[setting] = {**decision, "round": round_}
+        chosen, decision = _choose(setting, labels, residuals, self.folds.block, self.lin.orientation_length)
+        self.made[setting] = {**decision, "round": round_}
         return labels[chosen]
 
-    # The elastic terms, the cyclic errors and the backlash term are chosen in turn, each given the others,
-    # until none changes (at most ROUNDS): judged without the gears' errors, a geared robot's bending hides in
-    # what they leave, and judged without the approach directions, backlash passes for cyclic errors.
-    elastic, harmonics, backlash = "geometry", 0, False
-    for round_ in range(1, ROUNDS + 1):
-        before = (elastic, harmonics, settings["harmonic_prior"], backlash)
-        elastic = decide(
-            "elastic",
-            list(ELASTIC),
-            lambda e, h=harmonics, b=backlash: stage_residuals(e, h, settings["harmonic_prior"], b),
-            round_,
-        )
-        harmonics = decide(
-            "harmonics",
-            [h for h in HARMONICS if h <= max(freq, default=0)],
-            lambda h, e=elastic, b=backlash: stage_residuals(e, h, settings["harmonic_prior"], b),
-            round_,
-        )
-        if harmonics > 0:
-            settings["harmonic_prior"] = decide(
-                "harmonic_prior",
-                list(HARMONIC_PRIORS),
-                lambda p, e=elastic, h=harmonics, b=backlash: stage_residuals(e, h, p, b),
+    def stage(self) -> tuple[str, int, bool]:
+        """The elastic terms, the cyclic errors and the backlash term, chosen in turn, each given the others,
+        until none changes (at most ROUNDS): judged without the gears' errors, a geared robot's bending hides in
+        what they leave, and judged without the approach directions, backlash passes for cyclic errors."""
+        settings, freq = self.settings, self.freq
+        elastic, harmonics, backlash = "geometry", 0, False
+        for round_ in range(1, ROUNDS + 1):
+            before = (elastic, harmonics, settings["harmonic_prior"], backlash)
+            elastic = self.decide(
+                "elastic",
+                list(ELASTIC),
+                lambda e, h=harmonics, b=backlash: self.stage_residuals(e, h, settings["harmonic_prior"], b),
                 round_,
             )
-        elif "harmonic_prior" not in fixed:
-            made.pop("harmonic_prior", None)  # an earlier round's, for harmonics no longer fitted
-        if "backlash" in kind or "approach" in fixed:
-            backlash = bool(
-                decide(
-                    "approach",
-                    [False, True],
-                    lambda b, e=elastic, h=harmonics: stage_residuals(e, h, settings["harmonic_prior"], b),
+            harmonics = self.decide(
+                "harmonics",
+                [h for h in HARMONICS if h <= max(freq, default=0)],
+                lambda h, e=elastic, b=backlash: self.stage_residuals(e, h, settings["harmonic_prior"], b),
+                round_,
+            )
+            if harmonics > 0:
+                settings["harmonic_prior"] = self.decide(
+                    "harmonic_prior",
+                    list(HARMONIC_PRIORS),
+                    lambda p, e=elastic, h=harmonics, b=backlash: self.stage_residuals(e, h, p, b),
                     round_,
                 )
-            )
-        if (elastic, harmonics, settings["harmonic_prior"], backlash) == before:
-            break
+            elif "harmonic_prior" not in self.fixed:
+                self.made.pop("harmonic_prior", None)  # an earlier round's, for harmonics no longer fitted
+            if "backlash" in self.kind or "approach" in self.fixed:
+                backlash = bool(
+                    self.decide(
+                        "approach",
+                        [False, True],
+                        lambda b, e=elastic, h=harmonics: self.stage_residuals(e, h, settings["harmonic_prior"], b),
+                        round_,
+                    )
+                )
+            if (elastic, harmonics, settings["harmonic_prior"], backlash) == before:
+                break
+        return elastic, harmonics, backlash
 
-    held = stage_residuals(elastic, harmonics, settings["harmonic_prior"], backlash)
-    # The joint error map, fitted per fold on what that fold's stage leaves of its training pairs (and, with
-    # approach directions, of the backlash they explain: the nets will carry that part).
-    folds = _Folds.build(lin, total, interleaved=True, base=base, blocks=MAP_BLOCKS)
-    use = stage_columns(elastic, harmonics, backlash)
-    stage = [folds.solve(f, use, prior(settings["harmonic_prior"])) for f in range(FOLDS)]
-    # what each fold's stage leaves of its held-out and of its training pairs (the same for every map)
-    left = [(folds.residual(f, stage[f]), folds.residual(f, stage[f], ~folds.held_out(f))) for f in range(FOLDS)]
-    ridge = {} if map_ridge is None else {"ridge": map_ridge}
-
-    def map_left(train: np.ndarray, res_train: np.ndarray, rows: np.ndarray, res_rows: np.ndarray, step, smoothness):
+    def map_left(
+        self, train: np.ndarray, res_train: np.ndarray, rows: np.ndarray, res_rows: np.ndarray, step, smoothness
+    ) -> np.ndarray:
         """What a joint error map of knot spacing ``step`` (0: none), fitted on the pairs ``train`` (bool)
         from their residuals ``res_train``, leaves of the residuals ``res_rows`` of the pairs ``rows``."""
         if step <= 0:
             return res_rows
+        lin = self.lin
         q = lin.q[train]
         lower = q.min(axis=0) - step
         knots = int(np.floor((q.max(axis=0) - lower) / step).max()) + 2
         empty = JointMap(lower, step, np.zeros((q.shape[1], knots)))
         design = map_design(empty, q, lin.joint_rows[train])
-        values = solve_joint_map(design, res_train.ravel(), len(q), q.shape[1], knots, smoothness, **ridge)
+        values = solve_joint_map(design, res_train.ravel(), len(q), q.shape[1], knots, smoothness, **self.ridge)
         design = map_design(empty, lin.q[rows], lin.joint_rows[rows])
         return res_rows - (design @ values.ravel()).reshape(res_rows.shape)
 
-    def mapped(step: float, smoothness: float) -> np.ndarray:
-        out = np.zeros_like(lin.residual)
-        for f in range(FOLDS):
-            held = folds.held_out(f)
-            res_val, res_train = left[f]
-            out[held] = map_left(~held, res_train, held, res_val, step, smoothness)
-        return out
+    def joint_map(self, use: np.ndarray) -> float:
+        """The joint error map's knot spacing (and smoothness, in the settings), each fold's map fitted on what
+        that fold's stage (columns ``use``) leaves of its training pairs (and, with approach directions, of the
+        backlash they explain: the nets will carry that part)."""
+        # from here on the decisions are judged on these folds (every fifth of MAP_BLOCKS blocks)
+        folds = self.folds = _Folds.build(self.lin, self.total, interleaved=True, base=self.base, blocks=MAP_BLOCKS)
+        stage = [folds.solve(f, use, self.prior(self.settings["harmonic_prior"])) for f in range(FOLDS)]
+        # what each fold's stage leaves of its held-out and of its training pairs (the same for every map)
+        left = [(folds.residual(f, stage[f]), folds.residual(f, stage[f], ~folds.held_out(f))) for f in range(FOLDS)]
 
-    map_step = decide("map_step", list(MAP_STEPS), lambda s: mapped(s, settings["map_smoothness"]))
-    if map_step > 0:
-        settings["map_smoothness"] = decide("map_smoothness", list(MAP_SMOOTHNESS), lambda m: mapped(map_step, m))
-    decisions = list(made.values())
-    chosen = Capacity(
-        elastic,
-        int(harmonics),
-        float(settings["harmonic_prior"]),
-        float(map_step),
-        float(settings["map_smoothness"]),
-        decisions,
-        backlash,
-        lin.orientation_length,
-    )
-    # what the chosen stage and map, fitted on every pair, leave of them
-    idx = np.flatnonzero(use)
-    z = np.zeros(len(base.columns))
-    z[idx] = _solve(base.normal[np.ix_(idx, idx)] + np.diag(prior(settings["harmonic_prior"])[idx]), base.gradient[idx])
-    fitted = lin.residual + base.jacobian @ z
-    every = np.ones(len(fitted), dtype=bool)
-    return chosen, map_left(every, fitted, every, fitted, map_step, settings["map_smoothness"]), held
+        def mapped(step: float, smoothness: float) -> np.ndarray:
+            out = np.zeros_like(self.lin.residual)
+            for f in range(FOLDS):
+                held = folds.held_out(f)
+                res_val, res_train = left[f]
+                out[held] = self.map_left(~held, res_train, held, res_val, step, smoothness)
+            return out
+
+        settings = self.settings
+        map_step = self.decide("map_step", list(MAP_STEPS), lambda s: mapped(s, settings["map_smoothness"]))
+        if map_step > 0:
+            settings["map_smoothness"] = self.decide(
+                "map_smoothness", list(MAP_SMOOTHNESS), lambda m: mapped(map_step, m)
+            )
+        return map_step
+
+    def run(self) -> tuple[Capacity, np.ndarray, np.ndarray]:
+        """:func:`_select`'s answer."""
+        elastic, harmonics, backlash = self.stage()
+        settings = self.settings
+        held = self.stage_residuals(elastic, harmonics, settings["harmonic_prior"], backlash)
+        use = self.stage_columns(elastic, harmonics, backlash)
+        map_step = self.joint_map(use)
+        chosen = Capacity(
+            elastic,
+            int(harmonics),
+            float(settings["harmonic_prior"]),
+            float(map_step),
+            float(settings["map_smoothness"]),
+            list(self.made.values()),
+            backlash,
+            self.lin.orientation_length,
+        )
+        # what the chosen stage and map, fitted on every pair, leave of them
+        base, prior = self.base, self.prior(settings["harmonic_prior"])
+        idx = np.flatnonzero(use)
+        z = np.zeros(len(base.columns))
+        z[idx] = _solve(base.normal[np.ix_(idx, idx)] + np.diag(prior[idx]), base.gradient[idx])
+        fitted = self.lin.residual + base.jacobian @ z
+        every = np.ones(len(fitted), dtype=bool)
+        return chosen, self.map_left(every, fitted, every, fitted, map_step, settings["map_smoothness"]), held
