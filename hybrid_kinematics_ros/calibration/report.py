@@ -473,26 +473,57 @@ def write_report(
     parts += [
         "<h2>Errors over the workspace</h2>",
         f"<img src='{_workspace_plot(errors, pairs, out_dir / 'workspace.png').name}' alt='workspace'>",
+        *_range_section(report, len(pairs)),
+        *_coverage_section(report.get("coverage")),
+        *_bounds_section(model, pairs, errors, out_dir),  # joints are the same in any frame
+        *_iso_section(iso),
+        *_referencing_section(model),
+        *_parametric_section(m, out_dir),
+        *_capacity_section(m.get("capacity"), m.get("nets", {})),
+    ]
+    if curve:
+        parts += [
+            "<h2>Accuracy against the amount of data</h2>",
+            f"<img src='{_curve_plot(curve, out_dir / 'curve.png').name}' alt='curve'>",
+        ]
+    page = out_dir / "index.html"
+    page.write_text(
+        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>Accuracy report</title>"
+        f"<style>{STYLE}</style></head><body>{''.join(parts)}</body></html>\n"
+    )
+    (out_dir / "report.json").write_text(json.dumps({**report, "iso9283": iso, "summary": summary}, indent=2) + "\n")
+    return page, summary
+
+
+def _range_section(report: dict[str, Any], count: int) -> list[str]:
+    """The errors inside and outside the joint range the nets were trained on."""
+    outside_rows = _stats_rows(report, "_outside_range")
+    return [
         "<h2>Inside and outside the calibrated joint range</h2>",
-        f"<p>{report['inside_calibrated_range']} of {len(pairs)} test pairs lie inside the joint range the nets "
+        f"<p>{report['inside_calibrated_range']} of {count} test pairs lie inside the joint range the nets "
         "were trained on. Outside it the nets extrapolate, and their error grows.</p>",
         "<h3>Inside</h3>",
         _table(STATS_HEAD, _stats_rows(report, "_inside_range")),
         "<h3>Outside</h3>",
+        _table(STATS_HEAD, outside_rows) if outside_rows else "<p>No test pair lies outside.</p>",
     ]
-    outside_rows = _stats_rows(report, "_outside_range")
-    parts.append(_table(STATS_HEAD, outside_rows) if outside_rows else "<p>No test pair lies outside.</p>")
-    parts.extend(_coverage_section(report.get("coverage")))
-    parts.extend(_bounds_section(model, pairs, errors, out_dir))  # joints are the same in any frame
-    parts.append("<h2>ISO 9283 pose accuracy and repeatability</h2>")
+
+
+def _iso_section(iso: list[dict[str, Any]]) -> list[str]:
+    parts = ["<h2>ISO 9283 pose accuracy and repeatability</h2>"]
     if iso:
         head = ["pose", "repeats", "AP, URDF model (mm)", "AP, hybrid model (mm)", "RP (mm)"]
         rows = [[e["pose"], e["repeats"], e["AP_analytic_mm"], e["AP_hybrid_mm"], e["RP_mm"]] for e in iso]
         parts.append(_table(head, rows))
     else:
         parts.append("<p>The test data repeats no pose (three or more measurements of one joint vector).</p>")
+    return parts
+
+
+def _referencing_section(model: HybridModel) -> list[str]:
+    """Each tracker station's placement and target, in mm and degrees."""
     refs = model.referencings.values()
-    parts.append("<h2>Referencing</h2>")
+    parts = ["<h2>Referencing</h2>"]
     for ref in refs:
         rows = []
         for label, t in (
@@ -515,8 +546,14 @@ def write_report(
         )
     if not refs:
         parts.append("<p>The training data was in the base frame: no referencing was needed.</p>")
+    return parts
+
+
+def _parametric_section(m: dict[str, Any], out_dir: Path) -> list[str]:
+    """The stage's identified parameters with their σ, the cyclic errors and the joint error map per joint,
+    and what the data could not identify."""
     par = m.get("parametric")
-    parts.append("<h2>Parametric stage</h2>")
+    parts = ["<h2>Parametric stage</h2>"]
     dropped = m.get("stage_not_served")
     if dropped:
         parts.append(
@@ -557,19 +594,7 @@ def write_report(
         ]
     else:
         parts.append("<p>No parametric stage: the nets correct the URDF model directly.</p>")
-    parts += _capacity_section(m.get("capacity"), m.get("nets", {}))
-    if curve:
-        parts += [
-            "<h2>Accuracy against the amount of data</h2>",
-            f"<img src='{_curve_plot(curve, out_dir / 'curve.png').name}' alt='curve'>",
-        ]
-    page = out_dir / "index.html"
-    page.write_text(
-        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>Accuracy report</title>"
-        f"<style>{STYLE}</style></head><body>{''.join(parts)}</body></html>\n"
-    )
-    (out_dir / "report.json").write_text(json.dumps({**report, "iso9283": iso, "summary": summary}, indent=2) + "\n")
-    return page, summary
+    return parts
 
 
 def _uncertainty_lines(uncertainty: dict | None) -> list[str]:

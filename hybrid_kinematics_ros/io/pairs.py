@@ -263,110 +263,134 @@ def read_pairs(path: str | Path, joint_names: Sequence[str] | None = None) -> Pa
     reader = open_bag(path)
     try:
         conns = {c.topic: c for c in reader.connections}
-        for topic, msgtype in ((JOINTS_TOPIC, JOINT_STATE), (POSE_TOPIC, POSE_STAMPED)):
-            if topic not in conns:
-                raw = (
-                    " (a raw recording: align it first with `hybrid-kinematics align`)"
-                    if (RAW_JOINTS_TOPIC in conns)
-                    else ""
-                )
-                raise DataError(f"bag {path} has no topic {topic}{raw}; topics: {', '.join(sorted(conns)) or 'none'}")
-            if conns[topic].msgtype != msgtype:
-                raise DataError(f"bag {path}: topic {topic} has type {conns[topic].msgtype}, expected {msgtype}")
-        channels: dict[str, str] = {}  # topic -> condition name
-        for name, (msgtype, _) in CONDITION_TYPES.items():
-            conn = conns.get(condition_topic(name))
-            if conn is not None:
-                if conn.msgtype != msgtype:
-                    raise DataError(f"bag {path}: topic {conn.topic} has type {conn.msgtype}, expected {msgtype}")
-                channels[conn.topic] = name
-        values: dict[str, dict[int, float]] = {name: {} for name in channels.values()}
-        joints: dict[int, np.ndarray] = {}
-        poses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        frames: set[str] = set()
-        dropped: Counter = Counter()
-        names = tuple(joint_names) if joint_names is not None else None
-        order = None
+        channels = _checked_topics(path, conns)
+        read = _Read(path, tuple(joint_names) if joint_names is not None else None, channels)
         wanted = [conns[JOINTS_TOPIC], conns[POSE_TOPIC], *(conns[t] for t in channels)]
         for conn, _, raw in reader.messages(connections=wanted):
-            msg = TYPESTORE.deserialize_cdr(raw, conn.msgtype)
-            ns = _ns(msg.header)
-            if conn.topic in channels:
-                name = channels[conn.topic]
-                values[name][ns] = float(getattr(msg, CONDITION_TYPES[name][1]))
-            elif conn.topic == JOINTS_TOPIC:
-                msg_names = tuple(msg.name)
-                if names is None:
-                    names = msg_names
-                if msg_names != names:
-                    if set(msg_names) != set(names) or len(msg_names) != len(names):
-                        unknown = sorted(set(msg_names) - set(names))
-                        missing = sorted(set(names) - set(msg_names))
-                        raise DataError(
-                            f"bag {path}: joint state at stamp {ns} has joints {list(msg_names)}; "
-                            f"unknown {unknown}, missing {missing} (the model has {list(names)})"
-                        )
-                    order = [msg_names.index(n) for n in names]
-                else:
-                    order = None
-                position = np.asarray(msg.position, dtype=float)
-                if len(position) != len(msg_names):
-                    dropped["joint_state_length_mismatch"] += 1
-                    continue
-                if order is not None:
-                    position = position[order]
-                if ns in joints:
-                    dropped["duplicate_stamp"] += 1
-                    continue
-                joints[ns] = position
-            else:
-                frames.add(msg.header.frame_id)
-                p = msg.pose.position
-                o = msg.pose.orientation
-                poses[ns] = (np.array([p.x, p.y, p.z]), np.array([o.x, o.y, o.z, o.w]))
+            read.take(conn.topic, TYPESTORE.deserialize_cdr(raw, conn.msgtype))
     finally:
         reader.close()
+    return read.pairs()
 
-    if len(frames) > 1:
-        raise DataError(f"bag {path}: tracker poses come in several frames {sorted(frames)}; expected one")
-    common = sorted(set(joints) & set(poses))
-    if len(joints) - len(common):
-        dropped["joint_state_without_pose"] += len(joints) - len(common)
-    if len(poses) - len(common):
-        dropped["pose_without_joint_state"] += len(poses) - len(common)
-    if not common:
-        raise DataError(f"bag {path}: no joint state has a tracker pose with the same header.stamp")
-    for name, by_stamp in values.items():  # a pair without its condition value cannot be used with it
-        missing = sum(1 for s in common if s not in by_stamp)
-        if missing:
-            dropped[f"without_{name}"] += missing
-            common = [s for s in common if s in by_stamp]
-    if not common:
-        raise DataError(f"bag {path}: no usable pair left after dropping {dict(+dropped)}")
-    q = np.array([joints[s] for s in common])
-    pos = np.array([poses[s][0] for s in common])
-    quat = np.array([poses[s][1] for s in common])
-    stamps = np.array(common, dtype=np.int64)
-    cond = {name: np.array([by_stamp[s] for s in common]) for name, by_stamp in values.items()}
 
-    finite = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(pos), axis=1) & np.all(np.isfinite(quat), axis=1)
-    for v in cond.values():
-        finite &= np.isfinite(v)
-    dropped["nan_or_inf"] += int(np.sum(~finite))
-    if np.all(quat[finite] == 0.0):  # a plain reflector: the contract's zero quaternion means "no orientation"
-        keep = finite
-        if not np.any(keep):
+def _checked_topics(path: Path, conns: dict) -> dict[str, str]:
+    """Refuse a bag without the pairs' topics or with other types; its condition topics -> condition names."""
+    for topic, msgtype in ((JOINTS_TOPIC, JOINT_STATE), (POSE_TOPIC, POSE_STAMPED)):
+        if topic not in conns:
+            raw = (
+                " (a raw recording: align it first with `hybrid-kinematics align`)" if RAW_JOINTS_TOPIC in conns else ""
+            )
+            raise DataError(f"bag {path} has no topic {topic}{raw}; topics: {', '.join(sorted(conns)) or 'none'}")
+        if conns[topic].msgtype != msgtype:
+            raise DataError(f"bag {path}: topic {topic} has type {conns[topic].msgtype}, expected {msgtype}")
+    channels: dict[str, str] = {}
+    for name, (msgtype, _) in CONDITION_TYPES.items():
+        conn = conns.get(condition_topic(name))
+        if conn is not None:
+            if conn.msgtype != msgtype:
+                raise DataError(f"bag {path}: topic {conn.topic} has type {conn.msgtype}, expected {msgtype}")
+            channels[conn.topic] = name
+    return channels
+
+
+class _Read:
+    """A pairs bag's messages as they are read, by stamp; then its pairs."""
+
+    def __init__(self, path: Path, names: tuple[str, ...] | None, channels: dict[str, str]) -> None:
+        self.path, self.names, self.channels = path, names, channels
+        self.values: dict[str, dict[int, float]] = {name: {} for name in channels.values()}
+        self.joints: dict[int, np.ndarray] = {}
+        self.poses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.frames: set[str] = set()
+        self.dropped: Counter = Counter()
+
+    def take(self, topic: str, msg) -> None:
+        ns = _ns(msg.header)
+        if topic in self.channels:
+            name = self.channels[topic]
+            self.values[name][ns] = float(getattr(msg, CONDITION_TYPES[name][1]))
+        elif topic == JOINTS_TOPIC:
+            self._joint_state(msg, ns)
+        else:
+            self.frames.add(msg.header.frame_id)
+            p = msg.pose.position
+            o = msg.pose.orientation
+            self.poses[ns] = (np.array([p.x, p.y, p.z]), np.array([o.x, o.y, o.z, o.w]))
+
+    def _joint_state(self, msg, ns: int) -> None:
+        """A joint state's positions, in the model's joint order."""
+        msg_names = tuple(msg.name)
+        if self.names is None:
+            self.names = msg_names
+        names, order = self.names, None
+        if msg_names != names:
+            if set(msg_names) != set(names) or len(msg_names) != len(names):
+                unknown = sorted(set(msg_names) - set(names))
+                missing = sorted(set(names) - set(msg_names))
+                raise DataError(
+                    f"bag {self.path}: joint state at stamp {ns} has joints {list(msg_names)}; "
+                    f"unknown {unknown}, missing {missing} (the model has {list(names)})"
+                )
+            order = [msg_names.index(n) for n in names]
+        position = np.asarray(msg.position, dtype=float)
+        if len(position) != len(msg_names):
+            self.dropped["joint_state_length_mismatch"] += 1
+            return
+        if order is not None:
+            position = position[order]
+        if ns in self.joints:
+            self.dropped["duplicate_stamp"] += 1
+            return
+        self.joints[ns] = position
+
+    def _common_stamps(self) -> list[int]:
+        """The stamps with a joint state, a tracker pose and every condition value."""
+        path, joints, poses, dropped = self.path, self.joints, self.poses, self.dropped
+        if len(self.frames) > 1:
+            raise DataError(f"bag {path}: tracker poses come in several frames {sorted(self.frames)}; expected one")
+        common = sorted(set(joints) & set(poses))
+        if len(joints) - len(common):
+            dropped["joint_state_without_pose"] += len(joints) - len(common)
+        if len(poses) - len(common):
+            dropped["pose_without_joint_state"] += len(poses) - len(common)
+        if not common:
+            raise DataError(f"bag {path}: no joint state has a tracker pose with the same header.stamp")
+        for name, by_stamp in self.values.items():  # a pair without its condition value cannot be used with it
+            missing = sum(1 for s in common if s not in by_stamp)
+            if missing:
+                dropped[f"without_{name}"] += missing
+                common = [s for s in common if s in by_stamp]
+        if not common:
             raise DataError(f"bag {path}: no usable pair left after dropping {dict(+dropped)}")
-        T = matrix_from_pose(pos[keep], np.tile([0.0, 0.0, 0.0, 1.0], (int(keep.sum()), 1)))
+        return common
+
+    def pairs(self) -> Pairs:
+        """The usable pairs: finite, with a unit quaternion (or a plain reflector's zero one throughout)."""
+        common, dropped = self._common_stamps(), self.dropped
+        q = np.array([self.joints[s] for s in common])
+        pos = np.array([self.poses[s][0] for s in common])
+        quat = np.array([self.poses[s][1] for s in common])
+        stamps = np.array(common, dtype=np.int64)
+        cond = {name: np.array([by_stamp[s] for s in common]) for name, by_stamp in self.values.items()}
+        finite = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(pos), axis=1) & np.all(np.isfinite(quat), axis=1)
+        for v in cond.values():
+            finite &= np.isfinite(v)
+        dropped["nan_or_inf"] += int(np.sum(~finite))
+        position_only = bool(np.all(quat[finite] == 0.0))  # a plain reflector: the zero quaternion means none
+        if position_only:
+            keep = finite
+            quat = np.tile([0.0, 0.0, 0.0, 1.0], (len(quat), 1))
+        else:
+            norms = np.linalg.norm(np.where(np.isfinite(quat), quat, 0.0), axis=1)
+            unit = np.abs(norms - 1.0) <= QUAT_TOLERANCE
+            dropped["non_unit_quaternion"] += int(np.sum(finite & ~unit))
+            keep = finite & unit
+            quat = quat / np.where(unit, norms, 1.0)[:, None]
+        if not np.any(keep):
+            raise DataError(f"bag {self.path}: no usable pair left after dropping {dict(+dropped)}")
+        T = matrix_from_pose(pos[keep], quat[keep])
         kept = {k: v[keep] for k, v in cond.items()}
-        return Pairs(q[keep], T, stamps[keep], names, frames.pop(), +dropped, position_only=True, conditions=kept)
-    norms = np.linalg.norm(np.where(np.isfinite(quat), quat, 0.0), axis=1)
-    unit = np.abs(norms - 1.0) <= QUAT_TOLERANCE
-    dropped["non_unit_quaternion"] += int(np.sum(finite & ~unit))
-    keep = finite & unit
-    if not np.any(keep):
-        raise DataError(f"bag {path}: no usable pair left after dropping {dict(+dropped)}")
-    quat = quat[keep] / norms[keep, None]
-    T = matrix_from_pose(pos[keep], quat)
-    kept = {k: v[keep] for k, v in cond.items()}
-    return Pairs(q[keep], T, stamps[keep], names, frames.pop(), +dropped, conditions=kept)
+        frame = self.frames.pop()
+        return Pairs(
+            q[keep], T, stamps[keep], self.names, frame, +dropped, position_only=position_only, conditions=kept
+        )
