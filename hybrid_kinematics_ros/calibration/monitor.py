@@ -10,7 +10,7 @@ A tracker station the model does not know is placed from the first ``reference_p
 model (:func:`~hybrid_kinematics_ros.calibration.verify.place_station`); the poses after them are judged. Each
 judged pose is compared with the model's own error bounds at its configuration, over the last ``window`` poses.
 As in ``verify``, "drifted" needs more poses beyond a bound than the bound's validation pairs had, with a
-significance of ``p_value`` (Fisher's exact test, :func:`~.verify.excess_p_value`; position and orientation
+significance of ``p_value`` (Fisher's exact test, :func:`~.verify.drift_p_value`; position and orientation
 each on its own, Bonferroni over the two). The test is repeated at every pose, so its level is stricter than
 ``verify``'s.
 """
@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import target_errors
-from hybrid_kinematics_ros.calibration.verify import excess_p_value, place_station
+from hybrid_kinematics_ros.calibration.verify import drift_p_value, place_station
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.model.referencing import Referencing
@@ -195,7 +195,6 @@ class DriftMonitor:
             state = "no bounds" if bounds is None else "ok"
             return MonitorStatus(state, self._poses, judged, over, 1.0, mean, self._last, self._how)
         kinds = 1 if self._position_only or not self.model.has_orientation else 2  # Bonferroni, as verify
-        validation = bounds.figures.get("validation_pairs")
-        p = min(1.0, kinds * min(excess_p_value(c, judged, bounds.level, validation) for c in counts[:kinds]))
+        p = drift_p_value(counts[:kinds], judged, bounds)
         state = "drifted" if p < self.options.p_value else "ok"
         return MonitorStatus(state, self._poses, judged, over, p, mean, self._last, self._how)

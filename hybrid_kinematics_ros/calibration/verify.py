@@ -33,6 +33,7 @@ from hybrid_kinematics_ros.calibration.summary import verdict
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.chain import Chain
+from hybrid_kinematics_ros.model.bounds import Bounds
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.model.referencing import Referencing
 
@@ -148,24 +149,26 @@ def _in_base_frame(model: HybridModel, pairs: Pairs, refit_target: bool) -> tupl
             f"least {2 * MIN_REFERENCE_POSES} (each part is judged with the station placed from the others)"
         )
     fold = np.arange(len(pairs)) % FOLDS
+    tips = _tips(model, pairs)
     parts, targets = [], set()
     for k in range(FOLDS):
-        place = pairs.subset(np.flatnonzero(fold != k))
+        rows = np.flatnonzero(fold != k)
+        place = pairs.subset(rows)
         if refit_target:
-            ref, target = place_station(model, place)
+            ref, target = place_station(model, place, tips[rows])
         else:
-            ref, target = _placed_with_target(model, place, _tips(model, place)), "the target at the model's"
+            ref, target = _placed_with_target(model, place, tips[rows]), "the target at the model's"
         parts.append(ref.to_base(pairs.subset(np.flatnonzero(fold == k)), base_link))
         targets.add(target)
     where = " or ".join(sorted(targets))
     return Pairs.concatenate(parts), f"placed from the other {FOLDS - 1} fifths for each fifth judged, {where}"
 
 
-def place_station(model: HybridModel, pairs: Pairs) -> tuple[Referencing, str]:
-    """A station the model does not know, placed through the model from ``pairs``: with a 6-D probe the
-    target too, unless the poses leave it undetermined; else at the model's target. Also says where the
-    target is."""
-    tips = _tips(model, pairs)
+def place_station(model: HybridModel, pairs: Pairs, tips: np.ndarray | None = None) -> tuple[Referencing, str]:
+    """A station the model does not know, placed through the model from ``pairs`` (``tips``: the model's poses
+    at their joints, when the caller has them): with a 6-D probe the target too, unless the poses leave it
+    undetermined; else at the model's target. Also says where the target is."""
+    tips = _tips(model, pairs) if tips is None else tips
     if not pairs.position_only:  # the probe's orientation places the target too
         (ref,) = reference_stations(model.chain, [pairs], [tips])
         if not ref.undetermined:
@@ -211,8 +214,16 @@ def _bound_test(
         beyond.append(rot_deg > np.degrees(orientation))
     level = model.bounds.level
     counts = [int(b.sum()) for b in beyond]
-    p_values = [excess_p_value(c, len(pos_mm), level, model.bounds.figures.get("validation_pairs")) for c in counts]
-    return max(counts), level, float(min(1.0, len(beyond) * min(p_values)))
+    return max(counts), level, drift_p_value(counts, len(pos_mm), model.bounds)
+
+
+def drift_p_value(counts: Sequence[int], judged: int, bounds: Bounds) -> float:
+    """How unlikely ``counts`` of ``judged`` poses beyond each of the model's bounds (position, and orientation
+    where it is judged) are for a model still as good as when its bounds were set: each kind tested on its own
+    (:func:`excess_p_value`), Bonferroni over them."""
+    validation = bounds.figures.get("validation_pairs")
+    p_values = [excess_p_value(c, judged, bounds.level, validation) for c in counts]
+    return float(min(1.0, len(counts) * min(p_values)))
 
 
 def excess_p_value(over: int, count: int, level: float, validation: int | None) -> float:
