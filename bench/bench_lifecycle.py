@@ -132,12 +132,29 @@ def real_section(model: HybridModel, train_pairs: Pairs, held_out: Pairs, steps:
         + "\n\nupdate's choice of the prior's weight, each judged on 4 held-out blocks of the check by the error "
         + "the fit weighs (position and orientation × the orientation length); means; inf: the stations alone:\n\n"
         + table(*_by_weight(updated.record))
+        + "\n\nEach net tuned on what the chosen stage leaves, judged on the same blocks (0 steps keeps the "
+        + "parent's net):\n\n"
+        + table(*_by_steps(updated.record))
         + "\n\nWhat update changed most (σ: the parent's):\n\n"
         + table(["parameter", "from", "to", "unit", "change (σ)"], _changes(updated.record["changed"][:6]))
     )
     write_section(
         "lifecycle_real", "A calibration met again: verify and update on the real UR10 (bench_lifecycle)", body
     )
+
+
+def _by_steps(record: dict) -> tuple[list[str], list[list[str]]]:
+    """Each net's held-out mean after every count of steps tried, the chosen count marked."""
+    nets = record["nets"]
+    steps = list(next(iter(nets.values()))["held_out_by_steps"]) if nets else []
+    head = ["net", *[f"{s} steps" for s in steps]]
+    rows = []
+    for kind, tuning in nets.items():
+        unit = "mm" if kind == "position" else "deg"
+        by = tuning["held_out_by_steps"]
+        marked = [f"**{by[s]:.4f}**" if s == str(tuning["steps"]) else f"{by[s]:.4f}" for s in steps]
+        rows.append([f"{kind} ({unit})", *marked])
+    return head, rows
 
 
 def _by_weight(record: dict) -> tuple[list[str], list[list[str]]]:

@@ -12,7 +12,9 @@ on all but one of ``FOLDS`` contiguous blocks and judged on the one left out, by
 candidates.
 
 The problem is linear: the nets depend on the joints only, and the stage's parameters and the stations'
-corrections are small, so the poses move linearly in them about the parent.
+corrections are small, so the poses move linearly in them about the parent. What the new poses still show after
+it, each net may learn by a few hundred steps from the parent's (:mod:`~.retune`), as far as the same held-out
+blocks say it helps; 0 steps keeps the net.
 """
 
 from __future__ import annotations
@@ -22,17 +24,20 @@ import hashlib
 import json
 import shutil
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 from scipy.spatial.transform import Rotation
 
+from hybrid_kinematics_ros.calibration import retune
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.parametric import GEOMETRY_KINDS, SCALE, orientation_length
 from hybrid_kinematics_ros.calibration.referencing import reference_stations
 from hybrid_kinematics_ros.calibration.verify import MIN_REFERENCE_POSES, place_station
+from hybrid_kinematics_ros.io.model_dir import MANIFEST, NET_FILES, sha256_file
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -45,6 +50,8 @@ PRIOR_WEIGHTS = (*10.0 ** np.arange(-6, 3.1, 0.25), np.inf)  # the prior's weigh
 STEP = 1e-3  # of each parameter's scaled unit: the finite difference of the stage's columns
 STATION_STEP = 1e-6  # m or rad: the same for the stations' corrections
 CHANGES_LISTED = 10  # the largest changes (in σ) that model.json and the summary name
+RANK_TOLERANCE = 1e-10  # of the largest singular value: the stations' corrections the new poses cannot see
+Fold = tuple[np.ndarray, np.ndarray]  # the poses fitted on and the block held out
 
 
 @dataclass(frozen=True)
@@ -53,7 +60,8 @@ class Problem:
     ``length``, at the target in the base frame) and how they change per unit of each column
     (``jacobian`` ``(N, w, P)``): first the stage's parameters (``params``, indices into the manifest's list, per
     ``unit`` SI), then each station's corrections (its tracker's placement, its target's offset and, with a 6-D
-    probe, turn). ``information`` ``(P,)``: the parent's, for a weight of one (zero for the stations)."""
+    probe, turn). ``information`` ``(p,)``: the parent's on the stage's parameters, for a weight of one (the
+    stations' corrections are free). ``inputs`` ``(N, k)``: the nets' inputs at the new poses."""
 
     residual: np.ndarray
     jacobian: np.ndarray
@@ -64,19 +72,16 @@ class Problem:
     station: np.ndarray  # (N,) which of ``refs`` each pose was measured from
     position_only: bool
     length: float  # m per rad: the orientation residuals' weight, as the parent's stage was fitted with
+    inputs: np.ndarray
 
-    def solve(self, weight: float, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
-        """The columns' values for the prior ``weight`` (inf: the stations alone), fitted on pose ``rows``."""
-        design = self.jacobian[rows].reshape(-1, self.jacobian.shape[2])
-        free = np.ones(design.shape[1], dtype=bool)
-        if np.isinf(weight):
-            free[: len(self.params)] = False
-        ridge = np.diag(np.sqrt(weight * self.information[free])) if np.isfinite(weight) else np.zeros((0, free.sum()))
-        stacked = np.vstack([design[:, free], ridge])
-        target = np.r_[self.residual[rows].reshape(-1), np.zeros(len(ridge))]
-        out = np.zeros(design.shape[1])
-        out[free] = np.linalg.lstsq(stacked, target, rcond=None)[0]
-        return out
+    def fitted(self, rows: np.ndarray | slice = slice(None)) -> Ridge:
+        """The fit on pose ``rows``, for any prior weight."""
+        return Ridge.of(self, rows)
+
+    def missed(self, kind: str, x: np.ndarray) -> np.ndarray:
+        """``(N, 3)``: what the ``kind`` net would have to add after the columns' values ``x`` (m or rad)."""
+        left = self.residual - self.jacobian @ x
+        return left[:, :3] if kind == "position" else left[:, 3:] / self.length
 
     def errors(self, x: np.ndarray, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
         """``(N, 3)``: each pose's error after the columns' values ``x``: the weighed one (position and
@@ -109,11 +114,47 @@ class Problem:
 
 
 @dataclass(frozen=True)
+class Ridge:
+    """A problem's least-squares fit on some poses for every prior weight, from one SVD each: the stations'
+    columns, free at every weight, are projected out, and the stage's columns whitened by their prior, so
+    that a weight only scales the singular values' filter."""
+
+    stage: np.ndarray  # the stage's columns on the rows (M, p)
+    target: np.ndarray  # (M,)
+    root: np.ndarray  # (p,): the prior's square root at a weight of one
+    filtered: tuple[np.ndarray, np.ndarray, np.ndarray]  # the whitened, projected stage: Vᵀ, s and Uᵀ·target
+    stations: tuple[np.ndarray, np.ndarray, np.ndarray]  # the stations' columns' SVD (U, s, Vᵀ), rank kept
+
+    @classmethod
+    def of(cls, problem: Problem, rows: np.ndarray | slice) -> Ridge:
+        design = problem.jacobian[rows].reshape(-1, problem.jacobian.shape[2])
+        target = problem.residual[rows].reshape(-1)
+        count = len(problem.params)
+        u, s, vt = np.linalg.svd(design[:, count:], full_matrices=False)
+        rank = int(np.sum(s > s[0] * RANK_TOLERANCE)) if len(s) else 0
+        u, s, vt = u[:, :rank], s[:rank], vt[:rank]
+        root = np.sqrt(problem.information)
+        stage = design[:, :count]
+        whitened = (stage - u @ (u.T @ stage)) / root
+        wu, ws, wvt = np.linalg.svd(whitened, full_matrices=False)
+        return cls(stage, target, root, (wvt, ws, wu.T @ (target - u @ (u.T @ target))), (u, s, vt))
+
+    def solve(self, weight: float) -> np.ndarray:
+        """The columns' values for the prior ``weight`` (inf: the stations alone)."""
+        vt, s, projected = self.filtered
+        stage = np.zeros(len(self.root)) if np.isinf(weight) else vt.T @ (s / (s**2 + weight) * projected) / self.root
+        u, su, uvt = self.stations
+        return np.r_[stage, uvt.T @ ((u.T @ (self.target - self.stage @ stage)) / su)]
+
+
+@dataclass(frozen=True)
 class Updated:
-    """The new model's manifest and what the update did (``record``, also in the manifest as ``update``)."""
+    """The new model's manifest, what the update did (``record``, also in the manifest as ``update``) and the
+    nets it tuned (kind -> TorchScript module; the others are the parent's)."""
 
     manifest: dict[str, Any]
     record: dict[str, Any]
+    nets: dict[str, torch.jit.ScriptModule] = field(default_factory=dict)
 
     def lines(self) -> list[str]:
         r = self.record
@@ -127,6 +168,13 @@ class Updated:
         out += [
             f"  {c['name']}: {c['from']:+.4g} -> {c['to']:+.4g} {c['unit']} ({c['sigmas']:.1f} σ)" for c in r["changed"]
         ]
+        for kind, tuning in r["nets"].items():
+            unit = "mm" if kind == "position" else "deg"
+            errors = tuning["held_out_by_steps"]
+            chosen = f"tuned {tuning['steps']} steps" if tuning["steps"] else "kept"
+            out.append(
+                f"{kind} net: {chosen} (held-out {errors[str(tuning['steps'])]:.4f} {unit}; kept: {errors['0']:.4f})"
+            )
         return out
 
 
@@ -147,10 +195,15 @@ def update(model: HybridModel, stations: Sequence[Pairs]) -> Updated:
         raise CalibrationError(f"{count} new poses; an update needs at least {MIN_POSES}")
     problem = _problem(model, section, stations)
     blocks = np.array_split(np.arange(count), FOLDS)
-    held_out = {w: _held_out(problem, w, blocks) for w in PRIOR_WEIGHTS}  # weighed, position, orientation
+    folds = [(np.concatenate(blocks[:k] + blocks[k + 1 :]), block) for k, block in enumerate(blocks)]
+    ridges = [problem.fitted(rest) for rest, _ in folds]
+    held_out = {w: _held_out(problem, w, folds, ridges) for w in PRIOR_WEIGHTS}  # weighed, position, orientation
     weight = min(held_out, key=lambda w: held_out[w][0])
-    x = problem.solve(weight)
+    x = problem.fitted().solve(weight)
+    nets, tunings = _retuned(model, problem, x, folds, [r.solve(weight) for r in ridges])
     manifest, changed = _child_manifest(model, stations, problem, x)
+    for kind, tuning in tunings.items():
+        manifest["nets"][kind]["update_steps"] = tuning["steps"]
     record = {
         "poses": count,
         "stations": [ref.frame_id for ref in problem.refs],
@@ -163,17 +216,23 @@ def update(model: HybridModel, stations: Sequence[Pairs]) -> Updated:
         },
         "position_mm_mean": float(np.mean(problem.errors(x)[:, 1])),
         "changed": changed,
+        "nets": tunings,
     }
     manifest["parent"] = {"path": str(model.path), "sha256": _digest(model)}
     manifest["update"] = record
-    return Updated(manifest, record)
+    return Updated(manifest, record, nets)
 
 
 def write_updated(model: HybridModel, updated: Updated, out: Path) -> Path:
-    """The child model directory at ``out``: the parent's files with the updated ``model.json``."""
+    """The child model directory at ``out``: the parent's files with the tuned nets and the updated
+    ``model.json``."""
     check_out(out)
     shutil.copytree(model.path, out)
-    (out / "model.json").write_text(json.dumps(updated.manifest, indent=2) + "\n")
+    manifest = copy.deepcopy(updated.manifest)
+    for kind, net in updated.nets.items():
+        net.save(str(out / NET_FILES[kind]))
+        manifest["nets"][kind] |= {"file": NET_FILES[kind], "sha256": sha256_file(out / NET_FILES[kind])}
+    (out / MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n")
     return out
 
 
@@ -187,14 +246,42 @@ def _digest(model: HybridModel) -> str:
     return hashlib.sha256((Path(model.path) / "model.json").read_bytes()).hexdigest()
 
 
-def _held_out(problem: Problem, weight: float, blocks: list[np.ndarray]) -> list[float]:
-    """The mean held-out errors (weighed mm, position mm, orientation deg) of ``weight`` over the blocks."""
-    errors = []
-    for k, block in enumerate(blocks):
-        rest = np.concatenate([b for j, b in enumerate(blocks) if j != k])
-        errors.append(problem.errors(problem.solve(weight, rest), block))
+def _held_out(problem: Problem, weight: float, folds: list[Fold], ridges: list[Ridge]) -> list[float]:
+    """The mean held-out errors (weighed mm, position mm, orientation deg) of ``weight`` over the folds."""
+    errors = [problem.errors(ridge.solve(weight), block) for (_, block), ridge in zip(folds, ridges, strict=True)]
     mean = np.mean(np.concatenate(errors), axis=0)
     return [float(v) if np.isfinite(v) else None for v in mean]
+
+
+def _retuned(
+    model: HybridModel, problem: Problem, x: np.ndarray, folds: list[Fold], fold_x: list[np.ndarray]
+) -> tuple[dict[str, torch.jit.ScriptModule], dict[str, Any]]:
+    """Each net tuned on what the updated stage leaves, by the count of steps the held-out folds choose (the
+    stage refitted without each fold); none for a parent without its training configurations."""
+    if model.coverage is None:
+        return {}, {}
+    draw = np.random.default_rng(0).permutation(len(model.coverage))[: retune.ANCHORS]
+    anchor_inputs = model.net_inputs(model.coverage[draw])
+    nets, tunings = {}, {}
+    for kind, net in model.nets.items():
+        if kind == "orientation" and problem.position_only:
+            continue
+        anchors = retune.Anchors(anchor_inputs, retune.outputs(net, anchor_inputs))
+        before = retune.outputs(net, problem.inputs)
+        errors: dict[int, list[np.ndarray]] = {s: [] for s in retune.STEPS}
+        for (rest, block), fx in zip(folds, fold_x, strict=True):
+            missed = problem.missed(kind, fx)
+            for steps, tuned in retune.tuned(net, problem.inputs[rest], before[rest] + missed[rest], anchors).items():
+                added = retune.outputs(tuned, problem.inputs[block]) - before[block]
+                errors[steps].append(np.linalg.norm(missed[block] - added, axis=1))
+        scale = 1e3 if kind == "position" else np.degrees(1.0)  # mm or deg
+        mean = {s: float(scale * np.mean(np.concatenate(e))) for s, e in errors.items()}
+        steps = min(mean, key=lambda s: mean[s])
+        tunings[kind] = {"steps": steps, "held_out_by_steps": {str(s): e for s, e in mean.items()}}
+        if steps:
+            targets = before + problem.missed(kind, x)
+            nets[kind] = retune.tuned(net, problem.inputs, targets, anchors, (steps,))[steps]
+    return nets, tunings
 
 
 def _problem(model: HybridModel, section: dict[str, Any], stations: Sequence[Pairs]) -> Problem:
@@ -250,10 +337,10 @@ def _problem(model: HybridModel, section: dict[str, Any], stations: Sequence[Pai
             moves[k, c] = STATION_STEP
             columns.append((r0 - residual(stage, moves)) / STATION_STEP)
     sigma = np.array([section["parameters"][i]["sigma"] for i in params])
-    information = np.zeros(len(columns))
-    information[: len(params)] = (unit / sigma) ** 2 * np.mean(r0**2)
+    information = (unit / sigma) ** 2 * np.mean(r0**2)
     jacobian = np.stack(columns, axis=-1)
-    return Problem(r0, jacobian, information, params, unit, refs, station, position_only, length)
+    inputs = model.net_inputs(pairs.q, conditions)
+    return Problem(r0, jacobian, information, params, unit, refs, station, position_only, length, inputs)
 
 
 def _child_manifest(

@@ -557,7 +557,7 @@ class HybridModel:
             )
         return np.column_stack([np.broadcast_to(pairs_conditions[c], (count,)) for c in self.condition_names])
 
-    def _inputs(self, q: np.ndarray, conditions: np.ndarray | None = None) -> np.ndarray:
+    def net_inputs(self, q: np.ndarray, conditions: np.ndarray | None = None) -> np.ndarray:
         """The nets' input: the joints, then the condition channels (given per row, else the current values)."""
         if not self.condition_names:
             return q
@@ -571,7 +571,7 @@ class HybridModel:
     def residuals(self, q: np.ndarray, conditions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(Δp, ω)``, each ``(B, 3)`` in m and rad; zeros where a net is absent. ``conditions (B, k)``:
         the condition channels per configuration, else the current values."""
-        x = self._inputs(np.atleast_2d(q), conditions)
+        x = self.net_inputs(np.atleast_2d(q), conditions)
         zeros = np.zeros((len(x), 3))
         if len(x) <= COMPILED_ROWS and all(self._fast.values()):
             fast = self._fast
@@ -626,7 +626,7 @@ class HybridModel:
         compiled = self._pose_operands()
         if compiled is not None:
             stage, p_net, o_net = compiled
-            x = np.ascontiguousarray(self._inputs(q))
+            x = np.ascontiguousarray(self.net_inputs(q))
             return pose_kernel.hybrid_pose(
                 np.ascontiguousarray(reached),
                 x,
@@ -642,7 +642,7 @@ class HybridModel:
         if not all(self._fast.values()):
             dp, w = self.residuals(q[None])
             return self.correct(T[None], dp * position, w * orientation)[0]
-        x = self._inputs(q)
+        x = self.net_inputs(q)
         if "position" in self._fast and position:
             T[:3, 3] += self._fast["position"](x)
         if "orientation" in self._fast and orientation:
@@ -703,7 +703,7 @@ class HybridModel:
         T, J = self.base.fk_and_jacobian(self._approached(q))
         if not self.nets:
             return T, J
-        qt = torch.tensor(self._inputs(q), requires_grad=True)
+        qt = torch.tensor(self.net_inputs(q), requires_grad=True)
         grads, values = {}, {}
         for kind, net in self.nets.items():
             out = net(qt)
@@ -743,7 +743,7 @@ class HybridModel:
         if not all(self._fast.values()) or not (position and orientation):
             T, J = self.fk_and_jacobian(q[None])
             return T[0], J[0]
-        x, n = self._inputs(q), self.chain.dof
+        x, n = self.net_inputs(q), self.chain.dof
         if "position" in self._fast:
             dp, ddp = self._fast["position"].value_and_jacobian(x)
             T[:3, 3] += dp

@@ -8,7 +8,7 @@ import json
 import numpy as np
 
 from hybrid_kinematics_ros.calibration.evaluate import pose_errors_of, target_errors
-from hybrid_kinematics_ros.calibration.update import update
+from hybrid_kinematics_ros.calibration.update import update, write_updated
 from hybrid_kinematics_ros.calibration.verify import place_station
 from hybrid_kinematics_ros.io.pairs import write_pairs
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -57,3 +57,18 @@ def test_too_few_poses_and_an_existing_directory_get_one_line(ur10, shoulder_mod
     assert few.returncode == 2 and "at least 20" in few.stderr and len(few.stderr.strip().splitlines()) == 1
     taken = cli("update", "--model", str(model_dir), "--bag", str(bag), "--out", str(model_dir))
     assert taken.returncode == 2 and "exists already" in taken.stderr
+
+
+def test_each_net_moves_only_as_far_as_its_held_out_blocks_choose(ur10, shoulder_model, tmp_path):
+    _, model, _, _ = shoulder_model
+    new = in_new_station(check_pairs(ur10, DRIFT, seed=26)).subset(np.arange(64))
+    updated = update(model, [new])
+    child = HybridModel.load(write_updated(model, updated, tmp_path / "child"))
+    q = check_pairs(ur10, 0.0, seed=27).q
+    for k, kind in enumerate(("position", "orientation")):
+        tuning = updated.record["nets"][kind]
+        errors = tuning["held_out_by_steps"]
+        assert str(tuning["steps"]) == min(errors, key=lambda s: errors[s])
+        moved = np.abs(child.residuals(q)[k] - model.residuals(q)[k]).max()
+        assert (moved > 0) == (tuning["steps"] > 0) == (kind in updated.nets)
+    assert child.manifest["nets"]["orientation"]["update_steps"] == updated.record["nets"]["orientation"]["steps"]
