@@ -38,6 +38,10 @@ made one after the other, each on top of the ones before:
    walks the held-out errors choose the largest weight offered (orientation pins the bending down), smaller
    errors of both kinds than a weight of 1 (BENCHMARKS.md, "The orientation residuals' weight").
 
+The chosen stage's learning curve (:func:`learning_curve`) then says whether more poses or a richer model
+would help: its held-out error with each fold trained on a quarter, a half and all of its training blocks,
+and what it leaves on the pairs it was fitted on.
+
 Each candidate is solved on the problem linearised at the nominal model (:class:`Linearisation`; its
 error is about a micrometre for milliradian parameters), so a candidate on a fold costs one small solve
 instead of an identification: one selection takes seconds, and the orientation weight's several of them
@@ -93,6 +97,7 @@ MAP_BLOCKS = 100
 ROUNDS = 3  # turns of choosing the elastic terms and the cyclic errors, each given the other
 WEIGHT_ROUNDS = 3  # at most this many selections with the orientation weight from the one before
 WEIGHT_TOLERANCE = 0.1  # the weight is settled when a selection changes it by less than this share
+CURVE_SHARES = (0.25, 0.5, 1.0)  # of each fold's training blocks: the learning curve's points
 WEIGHT_FACTORS = (1 / 3, 3.0, 1 / 9, 9.0)  # the weights tried about the data's ratio, nearest first (the simpler)
 
 
@@ -108,6 +113,7 @@ class Capacity:
     decisions: list[dict[str, Any]] = field(default_factory=list)  # one per setting, with every candidate's figures
     approach: bool = False  # the nets take the joints' approach directions
     orientation_length: float = ORIENTATION_LENGTH  # m per rad: the orientation residuals' weight in the fit
+    curve: dict[str, Any] | None = None  # the chosen stage's learning curve (:func:`learning_curve`)
 
     @property
     def kinds(self) -> tuple[str, ...]:
@@ -139,6 +145,7 @@ class Capacity:
                 "orientation_length": self.orientation_length,
             },
             "decisions": self.decisions,
+            **({"learning_curve": self.curve} if self.curve is not None else {}),
         }
 
 
@@ -330,6 +337,14 @@ def select_capacity(
     chosen too: whether the stage's backlash terms, and the directions as the nets' inputs, earn their place.
     With orientation rows, the orientation residuals' weight is chosen last (the module text, item 5).
     """
+    chosen = _chosen_capacity(lin, total, fixed, map_ridge)
+    weighed = lin.reweighted(chosen.orientation_length) if lin.residual.shape[1] == 6 else lin
+    chosen.curve = learning_curve(_Selection(weighed, total, {}, map_ridge), chosen)
+    return chosen
+
+
+def _chosen_capacity(lin: Linearisation, total: int, fixed: dict[str, Any] | None, map_ridge: float | None) -> Capacity:
+    """:func:`select_capacity`'s choice."""
     fixed = {k: v for k, v in (fixed or {}).items() if v is not None}
     unknown = set(fixed) - set(SETTINGS)
     if unknown:
@@ -382,6 +397,47 @@ def select_capacity(
     return chosen
 
 
+def learning_curve(selection: _Selection, chosen: Capacity) -> dict[str, Any]:
+    """Whether more poses or a richer model would help the stage: its held-out position error (each contiguous
+    fifth of the recording, as the capacity is judged) when each fold trains on a share of its training
+    blocks (every fourth, every other, all: the poses thinned evenly over the recording), and the error it
+    leaves on the pairs it was fitted on. ``gain_mm`` and ``gain_noise_mm``: what the last doubling of the
+    poses removed from the held-out error, and that difference's standard error over the blocks."""
+    use = selection.stage_columns(chosen.elastic, chosen.harmonics, chosen.approach)
+    prior = selection.prior(chosen.harmonic_prior)
+    held, fitted = [], []
+    for share in CURVE_SHARES:
+        left, on_fitted = selection.thinned_residuals(use, prior, round(1 / share))
+        held.append(np.linalg.norm(left[:, :3], axis=1))
+        fitted.append(on_fitted)
+    block = selection.folds.block
+    blocks = np.unique(block)
+    gained = np.array([np.mean(held[-2][block == b] - held[-1][block == b]) for b in blocks])
+    return {
+        "shares": list(CURVE_SHARES),
+        "held_out_position_mm": [float(1e3 * np.mean(h)) for h in held],
+        "fitted_position_mm": [float(1e3 * f) for f in fitted],
+        "gain_mm": float(1e3 * gained.mean()),
+        "gain_noise_mm": float(1e3 * gained.std(ddof=1) / np.sqrt(len(gained))) if len(gained) > 1 else 0.0,
+    }
+
+
+def curve_line(curve: dict[str, Any], floor_mm: float | None) -> str:
+    """What :func:`learning_curve` says, in one line of ``train``'s summary and the report."""
+    points = ", ".join(
+        f"{share:.0%} {mm:.4f}" for share, mm in zip(curve["shares"], curve["held_out_position_mm"], strict=True)
+    )
+    gain, noise = curve["gain_mm"], curve["gain_noise_mm"]
+    more = "more poses would help" if gain > 2.0 * noise else "more poses would not measurably help"
+    fitted = curve["fitted_position_mm"][-1]
+    floor = "" if not floor_mm else f", {fitted / floor_mm:.1f}x the floor"
+    return (
+        f"the stage's learning curve (held-out position mm, by share of the training poses): {points}; the last "
+        f"doubling gained {gain:.4f} ± {noise:.4f} mm: {more}. On the poses it was fitted to it leaves "
+        f"{fitted:.4f} mm{floor}: what it leaves there, a richer model (or the nets) must take"
+    )
+
+
 def _select(
     lin: Linearisation, total: int, fixed: dict[str, Any], map_ridge: float | None
 ) -> tuple[Capacity, np.ndarray, np.ndarray]:
@@ -425,6 +481,27 @@ class _Selection:
             z = self.folds.solve(f, use, self.prior(harmonic_prior))
             out[self.folds.held_out(f)] = self.folds.residual(f, z)
         return out
+
+    def thinned_residuals(self, use: np.ndarray, prior: np.ndarray, every: int) -> tuple[np.ndarray, float]:
+        """Every pair's held-out residual ``(N, width)`` with each fold trained on every ``every``-th of its
+        training blocks, and the mean position error (m) on the pairs the folds were trained on."""
+        folds, base = self.folds, self.base
+        idx = np.flatnonzero(use)
+        out, on_fitted = np.zeros_like(self.lin.residual), []
+        for f in range(FOLDS):
+            training = ~folds.held[f]
+            kept_blocks = np.unique(folds.block[training])[::every]
+            dropped = training & ~np.isin(folds.block, kept_blocks)
+            a = base.jacobian[dropped][:, :, idx].reshape(-1, len(idx))
+            w = base.weight[dropped].reshape(-1)
+            normal = folds.normal[f][np.ix_(idx, idx)] - a.T @ (w[:, None] * a) + np.diag(prior[idx])
+            gradient = folds.gradient[f][idx] - a.T @ (w * self.lin.residual[dropped].reshape(-1))
+            z = np.zeros(len(folds.columns))
+            z[idx] = _solve(normal, gradient)
+            out[folds.held[f]] = folds.residual(f, z)
+            kept = np.flatnonzero(training & ~dropped)
+            on_fitted.append(np.linalg.norm(folds.residual(f, z, kept)[:, :3], axis=1))
+        return out, float(np.mean(np.concatenate(on_fitted)))
 
     def decide(
         self, setting: str, labels: Sequence[Any], evaluate: Callable[[Any], np.ndarray], round_: int = 1

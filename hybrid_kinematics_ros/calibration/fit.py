@@ -298,6 +298,9 @@ def fit(
         log(floor.line(held_out))
     elif floor is None:
         log("no measurement floor: no two poses repeat the same joints (within 1 mrad); repeat a few to know it")
+    curve = manifest.get("capacity", {}).get("learning_curve")
+    if curve is not None:
+        log(capacity_module.curve_line(curve, None if floor is None else floor.position_mm))
     guard = None if errors is None else worse_than_rigid(errors["hybrid"][0], errors["analytic"][0])
     manifest["data"] = {
         **(data_summary or {}),

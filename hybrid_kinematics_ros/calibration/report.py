@@ -22,6 +22,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from hybrid_kinematics_ros.calibration import capacity as capacity_module
 from hybrid_kinematics_ros.calibration.evaluate import evaluate, measured_targets, plot_distributions, pose_errors_of
 from hybrid_kinematics_ros.calibration.summary import MODELS, summarise
 from hybrid_kinematics_ros.io.pairs import Pairs
@@ -416,6 +417,10 @@ def _summary_section(s: dict[str, Any]) -> list[str]:
         )
     )
     parts.append(_floor_line(s.get("floor"), s["errors"].get("hybrid", {}).get("position_mm_mean")))
+    if s.get("learning_curve"):
+        floor_mm = (s.get("floor") or {}).get("position_mm")
+        line = capacity_module.curve_line(s["learning_curve"], floor_mm)
+        parts.append(f"<p><b>More poses or a richer model?</b> {esc(line[0].upper() + line[1:])}.</p>")
     capacity = "; ".join(s["capacity"]) or "nothing chosen (no parametric stage, no nets)"
     parts.append(f"<p><b>Capacity chosen from the data</b> {esc(capacity)}.</p>")
     wr = s["working_range"]

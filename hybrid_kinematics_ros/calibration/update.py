@@ -22,8 +22,10 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+import os
 import shutil
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -257,31 +259,57 @@ def _retuned(
     model: HybridModel, problem: Problem, x: np.ndarray, folds: list[Fold], fold_x: list[np.ndarray]
 ) -> tuple[dict[str, torch.jit.ScriptModule], dict[str, Any]]:
     """Each net tuned on what the updated stage leaves, by the count of steps the held-out folds choose (the
-    stage refitted without each fold); none for a parent without its training configurations."""
+    stage refitted without each fold); none for a parent without its training configurations. The folds'
+    tunings are independent and run side by side."""
     if model.coverage is None:
         return {}, {}
     draw = np.random.default_rng(0).permutation(len(model.coverage))[: retune.ANCHORS]
     anchor_inputs = model.net_inputs(model.coverage[draw])
+    kinds = [k for k in model.nets if not (k == "orientation" and problem.position_only)]
+    anchors = {k: retune.Anchors(anchor_inputs, retune.outputs(model.nets[k], anchor_inputs)) for k in kinds}
+    before = {k: retune.outputs(model.nets[k], problem.inputs) for k in kinds}
     nets, tunings = {}, {}
-    for kind, net in model.nets.items():
-        if kind == "orientation" and problem.position_only:
-            continue
-        anchors = retune.Anchors(anchor_inputs, retune.outputs(net, anchor_inputs))
-        before = retune.outputs(net, problem.inputs)
-        errors: dict[int, list[np.ndarray]] = {s: [] for s in retune.STEPS}
-        for (rest, block), fx in zip(folds, fold_x, strict=True):
-            missed = problem.missed(kind, fx)
-            for steps, tuned in retune.tuned(net, problem.inputs[rest], before[rest] + missed[rest], anchors).items():
-                added = retune.outputs(tuned, problem.inputs[block]) - before[block]
-                errors[steps].append(np.linalg.norm(missed[block] - added, axis=1))
-        scale = 1e3 if kind == "position" else np.degrees(1.0)  # mm or deg
-        mean = {s: float(scale * np.mean(np.concatenate(e))) for s, e in errors.items()}
-        steps = min(mean, key=lambda s: mean[s])
-        tunings[kind] = {"steps": steps, "held_out_by_steps": {str(s): e for s, e in mean.items()}}
-        if steps:
-            targets = before + problem.missed(kind, x)
-            nets[kind] = retune.tuned(net, problem.inputs, targets, anchors, (steps,))[steps]
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        errors = {
+            k: [
+                pool.submit(_fold_errors, model.nets[k], k, problem, fold, fx, anchors[k], before[k])
+                for fold, fx in zip(folds, fold_x, strict=True)
+            ]
+            for k in kinds
+        }
+        finals = {}
+        for kind in kinds:
+            scale = 1e3 if kind == "position" else np.degrees(1.0)  # mm or deg
+            by_fold = [job.result() for job in errors[kind]]
+            mean = {s: float(scale * np.mean(np.concatenate([e[s] for e in by_fold]))) for s in retune.STEPS}
+            steps = min(mean, key=lambda s: mean[s])
+            tunings[kind] = {"steps": steps, "held_out_by_steps": {str(s): e for s, e in mean.items()}}
+            if steps:
+                targets = before[kind] + problem.missed(kind, x)
+                finals[kind] = pool.submit(
+                    retune.tuned, model.nets[kind], problem.inputs, targets, anchors[kind], (steps,)
+                )
+        nets = {kind: job.result()[tunings[kind]["steps"]] for kind, job in finals.items()}
     return nets, tunings
+
+
+def _fold_errors(
+    net: torch.jit.ScriptModule,
+    kind: str,
+    problem: Problem,
+    fold: Fold,
+    x: np.ndarray,
+    anchors: retune.Anchors,
+    before: np.ndarray,
+) -> dict[int, np.ndarray]:
+    """Each held-out pose's error (m or rad) after each count of steps, the net tuned on the fold's other poses."""
+    rest, block = fold
+    missed = problem.missed(kind, x)
+    out = {}
+    for steps, tuned in retune.tuned(net, problem.inputs[rest], before[rest] + missed[rest], anchors).items():
+        added = retune.outputs(tuned, problem.inputs[block]) - before[block]
+        out[steps] = np.linalg.norm(missed[block] - added, axis=1)
+    return out
 
 
 def _problem(model: HybridModel, section: dict[str, Any], stations: Sequence[Pairs]) -> Problem:

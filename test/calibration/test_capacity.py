@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from hybrid_kinematics_ros.calibration.capacity import FOLDS, MAP_BLOCKS, _Folds, _normal, select_capacity
+from hybrid_kinematics_ros.calibration.capacity import (
+    FOLDS,
+    MAP_BLOCKS,
+    _Folds,
+    _normal,
+    _Selection,
+    curve_line,
+    select_capacity,
+)
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.parametric import linearise
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
@@ -114,3 +122,32 @@ def test_a_given_orientation_weight_is_kept_and_a_bad_one_refused(lin):
     assert chosen.decisions[-1] == {"setting": "orientation_length", "chosen": 0.3, "given": True}
     with pytest.raises(CalibrationError, match="orientation_length -1: give a positive weight"):
         select_capacity(lin, len(lin.pick), {"orientation_length": -1.0})
+
+
+def test_a_thinned_fold_is_the_fit_on_the_blocks_it_keeps(lin):
+    selection = _Selection(lin, len(lin.pick), {}, None)
+    use = selection.stage_columns("bending", 2)
+    prior = selection.prior(30.0)
+    left, _ = selection.thinned_residuals(use, prior, 2)
+    folds, base = selection.folds, selection.base
+    for f in (0, FOLDS - 1):
+        training = ~folds.held[f]
+        keep = training & np.isin(folds.block, np.unique(folds.block[training])[::2])
+        assert 0 < keep.sum() < training.sum()
+        idx = np.flatnonzero(use)
+        a = base.jacobian[keep][:, :, idx].reshape(-1, len(idx))
+        w = base.weight[keep].reshape(-1)
+        z = np.zeros(len(folds.columns))
+        normal = a.T @ (w[:, None] * a) + np.diag(prior[idx])
+        z[idx] = -np.linalg.solve(normal, a.T @ (w * lin.residual[keep].reshape(-1)))
+        np.testing.assert_allclose(left[folds.held[f]], folds.residual(f, z), atol=1e-8)
+
+
+def test_the_learning_curve_falls_with_more_poses_and_says_so(lin):
+    curve = select_capacity(lin, len(lin.pick)).curve
+    held, fitted = curve["held_out_position_mm"], curve["fitted_position_mm"]
+    assert curve["shares"] == sorted(curve["shares"]) and curve["shares"][-1] == 1.0
+    assert held[0] > held[-1]  # a quarter of the poses pins the stage down worse than all of them
+    assert fitted[-1] <= held[-1]
+    line = curve_line(curve, floor_mm=fitted[-1] / 2)
+    assert "2.0x the floor" in line and ("would help" in line or "would not measurably help" in line)
