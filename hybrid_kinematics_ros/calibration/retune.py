@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 STEPS = (0, 50, 100, 150, 200)  # the checkpoints a caller chooses among
-RATE = 6e-3  # Adam's step size: a few hundred steps move a trained net by a fraction of its correction
+RATE = 6e-3  # Adam's step size: a couple of hundred steps move a trained net by a fraction of its correction
 ANCHORS = 200  # the parent's training configurations that hold the net where it was trained
 
 

@@ -206,7 +206,23 @@ def spec_from_dict(data: Mapping[str, Any], source: str = "<flags>") -> ImportSp
     if unknown:
         raise DataError(f"import spec {source}: '{unknown[0]}' is not a known section ({', '.join(SECTIONS)})")
     out: dict[str, Any] = {"source": source}
+    sections = (
+        _format_section,
+        _frame_section,
+        _joints_section,
+        _pose_section,
+        _stamp_section,
+        _conditions_section,
+        _filter_section,
+    )
+    for section in sections:  # in this order, so that the first mistake is the one reported
+        out |= section(data, source)
+    return ImportSpec(**out)
 
+
+def _format_section(data: Mapping[str, Any], source: str) -> dict[str, Any]:
+    """The fields of separator, decimal mark, lines to skip, comments, encoding and missing-value marks."""
+    out: dict[str, Any] = {}
     fmt = _Section(data.get("format"), "format", source)
     fmt.known("separator", "decimal", "skip_lines", "comment", "encoding", "na_values")
     out["separator"] = str(fmt.get("separator", ","))
@@ -223,12 +239,22 @@ def spec_from_dict(data: Mapping[str, Any], source: str = "<flags>") -> ImportSp
     out["encoding"] = str(fmt.get("encoding", "utf-8-sig"))
     if fmt.get("na_values") is not None:
         out["na_values"] = tuple(str(v).lower() for v in fmt.columns("na_values"))
+    return out
 
+
+def _frame_section(data: Mapping[str, Any], source: str) -> dict[str, Any]:
+    """The fields of the tracker station's frame."""
+    out: dict[str, Any] = {}
     frame = data.get("frame_id")
     if not isinstance(frame, str) or not frame:
         raise DataError(f"import spec {source}: frame_id is required (the tracker station's frame), got {frame!r}")
     out["frame_id"] = frame
+    return out
 
+
+def _joints_section(data: Mapping[str, Any], source: str) -> dict[str, Any]:
+    """The fields of the joint columns, by name or in the model's order, and their unit."""
+    out: dict[str, Any] = {}
     joints = _Section(data.get("joints"), "joints", source)
     joints.known("columns", "names", "unit")
     cols = joints.require("columns")
@@ -242,7 +268,12 @@ def spec_from_dict(data: Mapping[str, Any], source: str = "<flags>") -> ImportSp
         names = joints.get("names")
         out["joint_names"] = None if names is None else joints.columns("names", len(out["joint_columns"]))
     out["joint_unit"] = joints.choice("unit", ANGLE_UNITS)
+    return out
 
+
+def _pose_section(data: Mapping[str, Any], source: str) -> dict[str, Any]:
+    """The fields of the measured position and orientation (or the reflector points that give both)."""
+    out: dict[str, Any] = {}
     orient = _Section(data.get("orientation"), "orientation", source)
     kind = orient.choice("kind", ORIENTATIONS)
     out["orientation"] = kind
@@ -274,7 +305,12 @@ def spec_from_dict(data: Mapping[str, Any], source: str = "<flags>") -> ImportSp
             out["angle_unit"] = orient.choice("unit", ANGLE_UNITS)
         else:
             orient.known("kind")
+    return out
 
+
+def _stamp_section(data: Mapping[str, Any], source: str) -> dict[str, Any]:
+    """The fields of the measurement times: a column and its format, or the row order and a period."""
+    out: dict[str, Any] = {}
     stamp = _Section(data.get("stamp"), "stamp", source)
     stamp.known("column", "format", "period_s", "start")
     if stamp.get("column") is not None and stamp.get("period_s") is not None:
@@ -288,7 +324,12 @@ def spec_from_dict(data: Mapping[str, Any], source: str = "<flags>") -> ImportSp
     else:  # the rows' order is the measurement order: row i is stamped start + i * period
         out["stamp_period_s"] = stamp.number("period_s", 1.0, positive=True)
         out["stamp_start_s"] = _start_seconds(stamp)
+    return out
 
+
+def _conditions_section(data: Mapping[str, Any], source: str) -> dict[str, Any]:
+    """The fields of the condition channels carried along."""
+    out: dict[str, Any] = {}
     cond = data.get("conditions") or {}
     if not isinstance(cond, Mapping):
         raise DataError(f"import spec {source}: conditions must map a condition name to a column, got {cond!r}")
@@ -302,7 +343,12 @@ def spec_from_dict(data: Mapping[str, Any], source: str = "<flags>") -> ImportSp
         entry.known("column", "scale")
         conditions[name] = (str(entry.require("column")), entry.number("scale", 1.0))
     out["conditions"] = conditions
+    return out
 
+
+def _filter_section(data: Mapping[str, Any], source: str) -> dict[str, Any]:
+    """The fields of the rows kept."""
+    out: dict[str, Any] = {}
     if data.get("filter") is not None:
         flt = _Section(data.get("filter"), "filter", source)
         flt.known("column", "equals", "min", "max")
@@ -311,7 +357,7 @@ def spec_from_dict(data: Mapping[str, Any], source: str = "<flags>") -> ImportSp
         out["row_filter"] = RowFilter(
             str(flt.require("column")), flt.get("equals"), flt.number("min"), flt.number("max")
         )
-    return ImportSpec(**out)
+    return out
 
 
 def _points(orient: _Section, scale: float) -> Points:
