@@ -22,10 +22,8 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
-import os
 import shutil
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -259,37 +257,27 @@ def _retuned(
     model: HybridModel, problem: Problem, x: np.ndarray, folds: list[Fold], fold_x: list[np.ndarray]
 ) -> tuple[dict[str, torch.jit.ScriptModule], dict[str, Any]]:
     """Each net tuned on what the updated stage leaves, by the count of steps the held-out folds choose (the
-    stage refitted without each fold); none for a parent without its training configurations. The folds'
-    tunings are independent and run side by side."""
+    stage refitted without each fold); none for a parent without its training configurations."""
     if model.coverage is None:
         return {}, {}
     draw = np.random.default_rng(0).permutation(len(model.coverage))[: retune.ANCHORS]
     anchor_inputs = model.net_inputs(model.coverage[draw])
-    kinds = [k for k in model.nets if not (k == "orientation" and problem.position_only)]
-    anchors = {k: retune.Anchors(anchor_inputs, retune.outputs(model.nets[k], anchor_inputs)) for k in kinds}
-    before = {k: retune.outputs(model.nets[k], problem.inputs) for k in kinds}
     nets, tunings = {}, {}
-    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-        errors = {
-            k: [
-                pool.submit(_fold_errors, model.nets[k], k, problem, fold, fx, anchors[k], before[k])
-                for fold, fx in zip(folds, fold_x, strict=True)
-            ]
-            for k in kinds
-        }
-        finals = {}
-        for kind in kinds:
-            scale = 1e3 if kind == "position" else np.degrees(1.0)  # mm or deg
-            by_fold = [job.result() for job in errors[kind]]
-            mean = {s: float(scale * np.mean(np.concatenate([e[s] for e in by_fold]))) for s in retune.STEPS}
-            steps = min(mean, key=lambda s: mean[s])
-            tunings[kind] = {"steps": steps, "held_out_by_steps": {str(s): e for s, e in mean.items()}}
-            if steps:
-                targets = before[kind] + problem.missed(kind, x)
-                finals[kind] = pool.submit(
-                    retune.tuned, model.nets[kind], problem.inputs, targets, anchors[kind], (steps,)
-                )
-        nets = {kind: job.result()[tunings[kind]["steps"]] for kind, job in finals.items()}
+    for kind, net in model.nets.items():
+        if kind == "orientation" and problem.position_only:
+            continue
+        anchors = retune.Anchors(anchor_inputs, retune.outputs(net, anchor_inputs))
+        before = retune.outputs(net, problem.inputs)
+        by_fold = [
+            _fold_errors(net, kind, problem, fold, fx, anchors, before) for fold, fx in zip(folds, fold_x, strict=True)
+        ]
+        scale = 1e3 if kind == "position" else np.degrees(1.0)  # mm or deg
+        mean = {s: float(scale * np.mean(np.concatenate([e[s] for e in by_fold]))) for s in retune.STEPS}
+        steps = min(mean, key=lambda s: mean[s])
+        tunings[kind] = {"steps": steps, "held_out_by_steps": {str(s): e for s, e in mean.items()}}
+        if steps:
+            targets = before + problem.missed(kind, x)
+            nets[kind] = retune.tuned(net, problem.inputs, targets, anchors, (steps,))[steps]
     return nets, tunings
 
 

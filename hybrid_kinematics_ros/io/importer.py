@@ -132,90 +132,25 @@ def read_table(
     if not path.is_file():
         raise DataError(f"{path} does not exist")
     rows = _rows(path, spec)
-    first = next(rows, None)
-    if first is None:
-        raise DataError(f"{path} has no header line")
-    header_line, header = first
-    header = [h.strip() for h in header]
-    if spec.separator != "whitespace":
-        while header and not header[-1]:  # a trailing separator
-            header.pop()
-    wanted = list(spec.numeric_columns)
-    if spec.stamp_column and spec.stamp_column not in wanted:
-        wanted.append(spec.stamp_column)
-    if spec.row_filter:
-        wanted.append(spec.row_filter.column)
-    missing = [c for c in dict.fromkeys(wanted) if c not in header]
-    if missing:
-        raise DataError(
-            f"{path}: line {header_line}: no column '{missing[0]}' in the header "
-            f"({spec.separator if spec.separator != 'whitespace' else ' '}-separated: {', '.join(header)})"
-        )
-    numeric = list(spec.numeric_columns)
-    index = [header.index(c) for c in numeric]
-    stamp_index = header.index(spec.stamp_column) if spec.stamp_column else None
-    filter_index = header.index(spec.row_filter.column) if spec.row_filter else None
-    na = set(spec.na_values)
+    layout = _Layout.of(path, spec, next(rows, None))
     values: list[list[float]] = []
     empty: list[list[bool]] = []
     stamps: list[int] = []
     row_index: list[int] = []
     total = filtered = 0
     for line, row in rows:
-        if len(row) > len(header) and not any(f.strip() for f in row[len(header) :]):
-            row = row[: len(header)]
-        if len(row) != len(header):
-            raise DataError(
-                f"{path}: line {line}: {len(row)} fields, the header has {len(header)} "
-                f"(separator '{spec.separator}', decimal mark '{spec.decimal}')"
-            )
+        row = layout.fields(row, line)
         total += 1
-        if filter_index is not None and not _matches(spec.row_filter, row[filter_index], spec.decimal):
+        if layout.filter_index is not None and not _matches(spec.row_filter, row[layout.filter_index], spec.decimal):
             filtered += 1
             continue
-        parsed, blank = [], []
-        for c, i in zip(numeric, index, strict=True):
-            text = row[i].strip()
-            if not text:
-                parsed.append(np.nan)
-                blank.append(True)
-                continue
-            blank.append(False)
-            if text.lower() in na:
-                parsed.append(np.nan)
-                continue
-            if spec.decimal == "," and "." in text:
-                number = None  # "1.5" with a decimal comma: a thousands mark or the wrong spec, never guess
-            else:
-                try:
-                    number = float(text.replace(",", ".") if spec.decimal == "," else text)
-                except ValueError:
-                    number = None
-            if number is None:
-                raise DataError(
-                    f"{path}: line {line}, column {i + 1} '{c}': '{text}' is not a number "
-                    f"(decimal mark '{spec.decimal}')"
-                )
-            parsed.append(number)
-        if stamp_index is not None:
-            where = f"{path}: line {line}, column {stamp_index + 1} '{spec.stamp_column}'"
-            text = row[stamp_index].strip()
-            if not text:
-                stamps.append(0)  # dropped below: an empty stamp field is an empty field
-                blank.append(True)
-            elif spec._numeric_stamp:
-                value = parsed[numeric.index(spec.stamp_column)]
-                scale = {"seconds": 1e9, "milliseconds": 1e6, "nanoseconds": 1.0}[spec.stamp_format]
-                stamps.append(round(value * scale) if np.isfinite(value) else 0)
-                blank.append(False)
-            else:
-                stamps.append(_stamp_ns(text, spec, where))
-                blank.append(False)
-        else:
-            stamps.append(0)  # set below from the row index
-            blank.append(False)
-        values.append(parsed)
-        empty.append(blank)
+        parsed = [
+            _number(row[i].strip(), spec, f"{path}: line {line}, column {i + 1} '{c}'") for c, i in layout.numeric
+        ]
+        stamp, blank_stamp = layout.stamp(row, [v for v, _ in parsed], f"{path}: line {line}")
+        values.append([v for v, _ in parsed])
+        empty.append([blank for _, blank in parsed] + [blank_stamp])
+        stamps.append(stamp)
         row_index.append(total - 1)
     rows_index = np.array(row_index, dtype=np.int64)
     if spec.stamp_column is None:
@@ -224,10 +159,93 @@ def read_table(
         stamp_arr = start_ns + rows_index * round(spec.stamp_period_s * 1e9)
     else:
         stamp_arr = np.array(stamps, dtype=np.int64)
-    table = np.array(values, dtype=float).reshape(len(values), len(numeric))
-    columns = {c: table[:, k] for k, c in enumerate(numeric)}
+    table = np.array(values, dtype=float).reshape(len(values), len(layout.numeric))
+    columns = {c: table[:, k] for k, (c, _) in enumerate(layout.numeric)}
     mask = np.array(empty, dtype=bool).reshape(len(values), -1)
     return columns, mask, stamp_arr, rows_index, total, filtered
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Where the spec's columns sit in a table: the header, each numeric column's index, the stamp's and the
+    filter's."""
+
+    path: Path
+    spec: ImportSpec
+    header: list[str]
+    numeric: list[tuple[str, int]]
+    stamp_index: int | None
+    filter_index: int | None
+
+    @classmethod
+    def of(cls, path: Path, spec: ImportSpec, first: tuple[int, list[str]] | None) -> _Layout:
+        """From the header row ``first`` (line number, fields); every column the spec names must be in it."""
+        if first is None:
+            raise DataError(f"{path} has no header line")
+        header_line, header = first
+        header = [h.strip() for h in header]
+        if spec.separator != "whitespace":
+            while header and not header[-1]:  # a trailing separator
+                header.pop()
+        wanted = list(spec.numeric_columns)
+        if spec.stamp_column and spec.stamp_column not in wanted:
+            wanted.append(spec.stamp_column)
+        if spec.row_filter:
+            wanted.append(spec.row_filter.column)
+        missing = [c for c in dict.fromkeys(wanted) if c not in header]
+        if missing:
+            raise DataError(
+                f"{path}: line {header_line}: no column '{missing[0]}' in the header "
+                f"({spec.separator if spec.separator != 'whitespace' else ' '}-separated: {', '.join(header)})"
+            )
+        return cls(
+            path,
+            spec,
+            header,
+            [(c, header.index(c)) for c in spec.numeric_columns],
+            header.index(spec.stamp_column) if spec.stamp_column else None,
+            header.index(spec.row_filter.column) if spec.row_filter else None,
+        )
+
+    def fields(self, row: list[str], line: int) -> list[str]:
+        """The row's fields, one per header column (empty trailing fields dropped)."""
+        width = len(self.header)
+        if len(row) > width and not any(f.strip() for f in row[width:]):
+            row = row[:width]
+        if len(row) != width:
+            raise DataError(
+                f"{self.path}: line {line}: {len(row)} fields, the header has {width} "
+                f"(separator '{self.spec.separator}', decimal mark '{self.spec.decimal}')"
+            )
+        return row
+
+    def stamp(self, row: list[str], parsed: list[float], where: str) -> tuple[int, bool]:
+        """The row's stamp (ns; 0 where the rows' order stamps them, set later) and whether its field is empty."""
+        spec, index = self.spec, self.stamp_index
+        if index is None:
+            return 0, False
+        text = row[index].strip()
+        if not text:
+            return 0, True  # dropped by the caller: an empty stamp field is an empty field
+        if spec._numeric_stamp:
+            value = parsed[[c for c, _ in self.numeric].index(spec.stamp_column)]
+            scale = {"seconds": 1e9, "milliseconds": 1e6, "nanoseconds": 1.0}[spec.stamp_format]
+            return (round(value * scale) if np.isfinite(value) else 0), False
+        return _stamp_ns(text, spec, f"{where}, column {index + 1} '{spec.stamp_column}'"), False
+
+
+def _number(text: str, spec: ImportSpec, where: str) -> tuple[float, bool]:
+    """One numeric field: its value (NaN for an empty field or a missing-value mark) and whether it is empty."""
+    if not text:
+        return np.nan, True
+    if text.lower() in spec.na_values:
+        return np.nan, False
+    if not (spec.decimal == "," and "." in text):  # "1.5" with a decimal comma: a thousands mark or the wrong spec
+        try:
+            return float(text.replace(",", ".") if spec.decimal == "," else text), False
+        except ValueError:
+            pass
+    raise DataError(f"{where}: '{text}' is not a number (decimal mark '{spec.decimal}')")
 
 
 # --------------------------------------------------------------------------------------------- converting
