@@ -87,7 +87,7 @@ def row(name, poses, floor, chosen, former) -> list:
         poses,
         _pair(floor, "position_mm"),
         f"{after['URDF model']['position_mm_mean']:.3f}",
-        f"{after['geometry only']['position_mm_mean']:.4f}",
+        f"{after['geometry only']['position_mm_mean']:.4f}" if "geometry only" in after else "— (no stage served)",
         _pair(after["parametric stage"], "position_mm"),
         _pair(hyb, "position_mm"),
         f"{hyb['position_mm_mean'] / floor['position_mm_mean']:.2f}",

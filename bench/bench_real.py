@@ -125,7 +125,9 @@ def fit_recipe(
 def model_errors(cfg, model, manifest, train_pairs, tests, hybrid_label="hybrid"):
     """Errors of the URDF model, the geometry alone, the stage and the hybrid model on the pairs of every
     test set in ``tests`` together, in each one's tracker frame at the probe."""
-    geometry = model_from_manifest(cfg.chain, manifest["parametric"], rigid=True)
+    # no stage served (worse than the URDF model on validation): no geometry-only fit either
+    stage = manifest.get("parametric")
+    geometry = None if stage is None else model_from_manifest(cfg.chain, stage, rigid=True)
     # the URDF model with its own referencing of each station: the stage's referencings carry its base and
     # tool corrections (a station seen over a small volume can move them by decimetres)
     nominal = reference_all(cfg.chain, train_pairs)
@@ -135,7 +137,7 @@ def model_errors(cfg, model, manifest, train_pairs, tests, hybrid_label="hybrid"
         base = to_base_frame([te], cfg.chain, model.referencings)
         for label, pairs, T in (
             ("URDF model", urdf, model.fk(urdf.q, analytic=True)),
-            ("geometry only", base, geometry.fk(base.q)),
+            *([] if geometry is None else [("geometry only", base, geometry.fk(base.q))]),
             (
                 "parametric stage",
                 base,
