@@ -97,7 +97,9 @@ class HybridModel:
         # A revolute joint's q and q ± 2π are one pose: such joints are taken to the turn of the trained range
         # (where it spans at most a turn) before anything reads them, so both get one correction.
         self._periodic = chain.revolute & (self.trained_upper - self.trained_lower <= 2 * np.pi)
-        self._turn_centre = 0.5 * (self.trained_lower + self.trained_upper)
+        self._turn_centre = np.zeros(chain.dof)  # only the periodic joints' is read; a continuous one's range is ±inf
+        periodic = self._periodic
+        self._turn_centre[periodic] = 0.5 * (self.trained_lower[periodic] + self.trained_upper[periodic])
         self._range_lists = (self._range[0].tolist(), self._range[1].tolist())
         self._trained_lists = (self.trained_lower.tolist(), self.trained_upper.tolist())  # error_bounds' exact test
         self._revolute_list = chain.revolute.tolist()

@@ -11,10 +11,12 @@ from scipy.spatial.transform import Rotation
 from hybrid_kinematics_ros.calibration.capacity import (
     FOLDS,
     MAP_BLOCKS,
+    Capacity,
     _Folds,
     _normal,
     _Selection,
     curve_line,
+    learning_curve,
     select_capacity,
 )
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
@@ -144,7 +146,7 @@ def test_a_thinned_fold_is_the_fit_on_the_blocks_it_keeps(lin):
 
 
 def test_the_learning_curve_falls_with_more_poses_and_says_so(lin):
-    curve = select_capacity(lin, len(lin.pick)).curve
+    curve = learning_curve(_Selection(lin, len(lin.pick), {}, None), Capacity("bending", 2, 30.0, 0.0, 0.03))
     held, fitted = curve["held_out_position_mm"], curve["fitted_position_mm"]
     assert curve["shares"] == sorted(curve["shares"]) and curve["shares"][-1] == 1.0
     assert held[0] > held[-1]  # a quarter of the poses pins the stage down worse than all of them
