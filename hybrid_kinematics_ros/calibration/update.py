@@ -13,7 +13,7 @@ candidates.
 
 The problem is linear: the nets depend on the joints only, and the stage's parameters and the stations'
 corrections are small, so the poses move linearly in them about the parent. What the new poses still show after
-it, each net may learn by a few hundred steps from the parent's (:mod:`~.retune`), as far as the same held-out
+it, each net may learn by a couple of hundred steps from the parent's (:mod:`~.retune`), as far as the same held-out
 blocks say it helps; 0 steps keeps the net.
 """
 
