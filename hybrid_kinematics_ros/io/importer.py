@@ -147,8 +147,9 @@ def read_table(
         parsed = [
             _number(row[i].strip(), spec, f"{path}: line {line}, column {i + 1} '{c}'") for c, i in layout.numeric
         ]
-        stamp, blank_stamp = layout.stamp(row, [v for v, _ in parsed], f"{path}: line {line}")
-        values.append([v for v, _ in parsed])
+        numbers = [v for v, _ in parsed]
+        stamp, blank_stamp = layout.stamp(row, numbers, f"{path}: line {line}")
+        values.append(numbers)
         empty.append([blank for _, blank in parsed] + [blank_stamp])
         stamps.append(stamp)
         row_index.append(total - 1)
@@ -176,6 +177,7 @@ class _Layout:
     numeric: list[tuple[str, int]]
     stamp_index: int | None
     filter_index: int | None
+    stamp_position: int | None  # the stamp's place among the numeric columns, when it is one of them
 
     @classmethod
     def of(cls, path: Path, spec: ImportSpec, first: tuple[int, list[str]] | None) -> _Layout:
@@ -193,6 +195,7 @@ class _Layout:
         if spec.row_filter:
             wanted.append(spec.row_filter.column)
         missing = [c for c in dict.fromkeys(wanted) if c not in header]
+        numeric = list(spec.numeric_columns)
         if missing:
             raise DataError(
                 f"{path}: line {header_line}: no column '{missing[0]}' in the header "
@@ -202,9 +205,10 @@ class _Layout:
             path,
             spec,
             header,
-            [(c, header.index(c)) for c in spec.numeric_columns],
+            [(c, header.index(c)) for c in numeric],
             header.index(spec.stamp_column) if spec.stamp_column else None,
             header.index(spec.row_filter.column) if spec.row_filter else None,
+            numeric.index(spec.stamp_column) if spec.stamp_column in numeric else None,
         )
 
     def fields(self, row: list[str], line: int) -> list[str]:
@@ -228,7 +232,7 @@ class _Layout:
         if not text:
             return 0, True  # dropped by the caller: an empty stamp field is an empty field
         if spec._numeric_stamp:
-            value = parsed[[c for c, _ in self.numeric].index(spec.stamp_column)]
+            value = parsed[self.stamp_position]
             scale = {"seconds": 1e9, "milliseconds": 1e6, "nanoseconds": 1.0}[spec.stamp_format]
             return (round(value * scale) if np.isfinite(value) else 0), False
         return _stamp_ns(text, spec, f"{where}, column {index + 1} '{spec.stamp_column}'"), False
