@@ -60,10 +60,10 @@ from scipy.linalg import cho_factor, cho_solve
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.parametric import (
     ORIENTATION_LENGTH,
-    ROBUST_SCALE,
     STATION_KINDS,
     Linearisation,
     map_design,
+    robust_scales,
     solve_joint_map,
 )
 from hybrid_kinematics_ros.kinematics.elastic import JointMap
@@ -200,12 +200,12 @@ def _normal(lin: Linearisation) -> _Normal:
     columns = np.flatnonzero(lin.identifiable)
     jac = lin.jacobian[:, :, columns]
     res = lin.residual
-    # Robust weights (soft L1, as the identification's loss) from one fit of every column on every pair:
-    # a broken-beam outlier then weighs alike in every candidate.
+    # Robust weights (soft L1 at a scale from what the fit leaves, as the identification's loss) from one fit
+    # of every column on every pair: a broken-beam outlier then weighs alike in every candidate.
     flat = jac.reshape(-1, len(columns))
     z = _solve(flat.T @ flat, flat.T @ res.ravel())
     fitted = res + jac @ z
-    weight = 1.0 / np.sqrt(1.0 + (fitted / ROBUST_SCALE) ** 2)
+    weight = 1.0 / np.sqrt(1.0 + (fitted / robust_scales(fitted)) ** 2)
     w_all = weight.reshape(-1)
     return _Normal(columns, jac, weight, flat.T @ (w_all[:, None] * flat), flat.T @ (w_all * res.reshape(-1)))
 

@@ -359,7 +359,9 @@ def _stage(
     manifest["parametric"] = {**result.manifest(), "seconds": round(time.perf_counter() - start, 1)}
     log(
         f"parametric stage: {int(result.identifiable.sum())} of {len(result.params)} parameters identifiable; "
-        f"rms {result.rms_before['position_mm']:.4f} -> {result.rms_after['position_mm']:.4f} mm"
+        f"rms {result.rms_before['position_mm']:.4f} -> {result.rms_after['position_mm']:.4f} mm; "
+        f"{len(result.outliers)} pairs beyond {1e3 * result.outlier_limit:.4f} mm of what it leaves, down-weighted as "
+        "outliers"
     )
     return Stage(result.model, refs, result)
 

@@ -61,7 +61,13 @@ from hybrid_kinematics_ros.model.parametric import Parameter, build_model
 ORIENTATION_LENGTH = 1.0  # m per rad: weighs orientation residuals against position ones, unless chosen (capacity)
 RANK_TOLERANCE = 1e-6  # pivots below this fraction of the largest are unidentifiable
 CORRELATED_PAIRS = 5  # the most correlated pairs of parameters the manifest and the report name
-ROBUST_SCALE = 1e-3  # m: residuals well above this are down-weighted (soft L1)
+# The soft-L1 scale, in robust standard deviations of what the fit leaves: a residual as common as the fit's
+# own weighs almost fully, a broken beam or a bumped reflector little.
+ROBUST_SIGMAS = 3.0
+ROBUST_MIN_M = 1e-6  # m: the scale of noise-free residuals
+# A pair whose position residual is this many robust standard deviations of one component counts as an
+# outlier: Gaussian scatter leaves about one pair in 10⁵ beyond it.
+OUTLIER_SIGMAS = 5.0
 # Scaled unit of each kind of parameter, in SI: what one unit of the optimiser's variable means.
 # The capacity of the cyclic errors and of the joint error map is chosen from the data being calibrated
 # (calibration.capacity, train's default); called on its own, ``identify`` fits neither.
@@ -338,6 +344,10 @@ class ParametricResult:
     capacity: dict[str, Any] | None = None  # how the capacity was chosen (calibration.capacity), if it was
     options: dict[str, Any] | None = None  # the capacity options it was identified with (kinds, harmonics, …)
     uncertainty: Uncertainty | None = None  # σ per parameter (``params`` order), condition, correlations
+    robust_scale: np.ndarray | None = None  # m: the robust loss's scale the fit ended with, per residual column
+    # the pairs (indices into those identified from) whose position the stage leaves beyond ``outlier_limit`` (m)
+    outliers: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    outlier_limit: float = float("nan")
 
     def geometry_model(self) -> ElasticChain:
         """The geometry-only calibration (joint offsets and joint origins, no compliance, bending or
@@ -356,6 +366,8 @@ class ParametricResult:
             "position_only": self.position_only,
             "rms_before": self.rms_before,
             "rms_after": self.rms_after,
+            "robust_scale_mm": None if self.robust_scale is None else (1e3 * self.robust_scale[::3]).tolist(),
+            "outliers": {"pairs": len(self.outliers), "beyond_mm": 1e3 * self.outlier_limit},
             "parameters": [
                 {
                     "name": p.name,
@@ -455,7 +467,8 @@ class StageOptions:
     errors (0: none), each coefficient held towards zero by ``harmonic_prior`` (in pairs). ``map_step``: the
     joint error map's knot spacing (0: no map), fitted last from all the pairs (at most
     :data:`MAP_MAX_PAIRS`), with ``map_smoothness``. ``orientation_length`` (m per rad) weighs the orientation
-    residuals against the position ones; ``robust_scale`` (m): residuals well above it are down-weighted."""
+    residuals against the position ones; ``robust_scale`` (m): residuals well above it are down-weighted (None:
+    chosen from the data, :meth:`Stage.identify`)."""
 
     payload_mass: float = 0.0
     payload_com: np.ndarray | None = None
@@ -468,7 +481,7 @@ class StageOptions:
     harmonics: int = HARMONICS
     harmonic_prior: float = HARMONIC_PRIOR
     orientation_length: float = ORIENTATION_LENGTH
-    robust_scale: float = ROBUST_SCALE
+    robust_scale: float | None = None
     map_step: float = MAP_STEP
     map_smoothness: float = MAP_SMOOTHNESS
 
@@ -660,16 +673,37 @@ class Stage:
 
     def solve(
         self, subset: np.ndarray, start: np.ndarray, fixed: np.ndarray, first_jac: np.ndarray | None = None
-    ) -> np.ndarray:
-        """The ``subset`` of parameters fitted from ``start`` (scaled units), the others at ``fixed``."""
-        return robust_gauss_newton(
-            lambda z: self.residual(z, subset, fixed),
-            lambda z: self.jacobian(z, subset, fixed),
-            start,
-            self.o.robust_scale,
-            self.o.max_nfev,
-            first_jac,
-        )
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The ``subset`` of parameters fitted from ``start`` (scaled units), the others at ``fixed``, and the
+        robust loss's scale it ended with (m; position, then orientation).
+
+        Unless the options give that scale, the data choose it (:func:`robust_scales`): the first fit takes
+        it from the residuals at ``start``, so a nominal model's error of centimetres still weighs fully; the
+        second, from the first one's end, takes it from what that fit leaves, so only pairs far off what the
+        fitted parameters explain (not what the start misses) are down-weighted. The priors' rows stay
+        quadratic, as capacity selection's linear fits hold them."""
+        held = int(np.sum(subset & self.held_back))
+
+        def fit(z: np.ndarray, scale: np.ndarray, jac: np.ndarray | None) -> np.ndarray:
+            rows = np.r_[np.tile(scale, len(self.pick)), np.full(held, np.inf)]
+            return robust_gauss_newton(
+                lambda z: self.residual(z, subset, fixed),
+                lambda z: self.jacobian(z, subset, fixed),
+                z,
+                rows,
+                self.o.max_nfev,
+                jac,
+            )
+
+        if self.o.robust_scale is not None:
+            given = np.full(self.width, self.o.robust_scale)
+            return fit(start, given, first_jac), given
+        z = fit(start, self._scales(start, subset, fixed), first_jac)
+        scale = self._scales(z, subset, fixed)
+        return fit(z, scale, None), scale
+
+    def _scales(self, z: np.ndarray, subset: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+        return robust_scales(self.pose_part(*self.model_at(z, subset, fixed)).reshape(-1, self.width))
 
     def start(self) -> _Start:
         """The problem at the nominal model, and which parameters the pairs identify."""
@@ -710,7 +744,7 @@ class Stage:
         # the Jacobian at zero, already computed, starts the fit: its pose rows, then the active priors' rows
         start_rows = np.r_[np.arange(len(r0)), len(r0) + np.flatnonzero(active[self.held_back])]
         start_jac = start.jacobian[np.ix_(start_rows, np.flatnonzero(active))]
-        z = self.solve(active, np.zeros(int(active.sum())), nothing, first_jac=start_jac)
+        z, scale = self.solve(active, np.zeros(int(active.sum())), nothing, first_jac=start_jac)
         values = self.values_at(z, active, nothing)
         cols = np.flatnonzero(active)
         covariance = _covariance(
@@ -727,6 +761,7 @@ class Stage:
         after = pose_residuals(
             model, self._reached(model, self.pick), measured, o.position_only, offsets, o.orientation_length
         )
+        sigma = robust_sigma(after[:, :3])
         return ParametricResult(
             model=model,
             params=self.chain_params,
@@ -742,6 +777,9 @@ class Stage:
             placements=station_moves(self.params, values, "placement", self.counts[0])[:-1],
             mounts=station_moves(self.params, values, "mount", self.counts[1])[:-1],
             uncertainty=uncertainty,
+            robust_scale=scale,
+            outliers=self.pick[outliers(after[:, :3], sigma)],
+            outlier_limit=OUTLIER_SIGMAS * sigma,
         )
 
     def _reached(self, model: ElasticChain, rows: np.ndarray) -> np.ndarray:
@@ -774,7 +812,7 @@ class Stage:
         rigid = held.copy()
         scale = self.scale[geometric]
         first_jac = start.jacobian[: len(start.r0)][:, geometric]
-        rigid[geometric] = self.solve(geometric, values[geometric] / scale, held, first_jac) * scale
+        rigid[geometric] = self.solve(geometric, values[geometric] / scale, held, first_jac)[0] * scale
         return rigid
 
 
@@ -833,16 +871,40 @@ class Uncertainty:
         }
 
 
-def _soft_l1_cost(res: np.ndarray, scale: float) -> float:
-    """scipy's soft-L1 cost, ``Σ s² (2 (√(1 + (r/s)²) − 1))``: quadratic below ``s``, linear above."""
-    return float(np.sum(2.0 * scale**2 * (np.sqrt(1.0 + (res / scale) ** 2) - 1.0)))
+def robust_sigma(res: np.ndarray) -> float:
+    """The robust standard deviation of residuals ``res`` (any shape; each component one residual, centred
+    on zero): 1.4826 times their median absolute value, which model error and a few outliers barely move."""
+    return 1.4826 * float(np.median(np.abs(res)))
+
+
+def robust_scale(res: np.ndarray) -> float:
+    """The soft-L1 scale for what a fit leaves, ``res`` (m): :data:`ROBUST_SIGMAS` robust standard
+    deviations, so the loss follows the data's own scatter instead of a fixed length."""
+    return max(ROBUST_SIGMAS * robust_sigma(res), ROBUST_MIN_M)
+
+
+def robust_scales(res: np.ndarray) -> np.ndarray:
+    """Per column of pose residuals ``res (N, 3 or 6)``: the position columns' :func:`robust_scale`, then
+    the orientation columns' (their scatter differs from the positions' by the orientation length)."""
+    return np.repeat([robust_scale(res[:, k : k + 3]) for k in range(0, res.shape[1], 3)], 3)
+
+
+def outliers(position: np.ndarray, sigma: float) -> np.ndarray:
+    """Which pairs' position residuals ``(N, 3)`` (m) lie beyond :data:`OUTLIER_SIGMAS` times ``sigma``."""
+    return np.linalg.norm(position, axis=1) > OUTLIER_SIGMAS * max(sigma, ROBUST_MIN_M)
+
+
+def _soft_l1_cost(res: np.ndarray, scale: float | np.ndarray) -> float:
+    """scipy's soft-L1 cost, ``Σ s² (2 (√(1 + (r/s)²) − 1))``: quadratic below ``s``, linear above; written as
+    ``Σ 2 r² / (√(1 + (r/s)²) + 1)``, which keeps its digits for ``r ≪ s`` and is ``Σ r²`` at ``s = ∞``."""
+    return float(np.sum(2.0 * res**2 / (np.sqrt(1.0 + (res / scale) ** 2) + 1.0)))
 
 
 def robust_gauss_newton(
     residual: Callable[[np.ndarray], np.ndarray],
     jacobian: Callable[[np.ndarray], np.ndarray],
     x0: np.ndarray,
-    robust_scale: float,
+    scale: float | np.ndarray,
     max_steps: int = 30,
     first_jacobian: np.ndarray | None = None,
     refresh: int = 4,
@@ -850,7 +912,7 @@ def robust_gauss_newton(
 ) -> np.ndarray:
     """Minimise scipy's soft-L1 cost of ``residual(x)`` by Levenberg-Marquardt steps on reweighted normal
     equations (IRLS: each residual weighted by ``1 / √(1 + (r/s)²)``), the minimiser ``least_squares(...,
-    loss="soft_l1")`` finds.
+    loss="soft_l1")`` finds. ``scale`` (m): the loss's, one for every residual or one each.
 
     The calibration's parameters are small and their effects nearly linear, so a Jacobian (the costly part:
     a model evaluation per geometric parameter) is recomputed only every ``refresh`` accepted steps; each
@@ -859,21 +921,21 @@ def robust_gauss_newton(
     """
     x = np.array(x0, dtype=float)
     res = residual(x)
-    cost = _soft_l1_cost(res, robust_scale)
+    cost = _soft_l1_cost(res, scale)
     jac = jacobian(x) if first_jacobian is None else first_jacobian
     fresh = 0  # accepted steps since the Jacobian was computed
     damping = 1e-6
     for _ in range(max_steps):
         if fresh >= refresh:
             jac, fresh = jacobian(x), 0
-        weight = 1.0 / np.sqrt(1.0 + (res / robust_scale) ** 2)
+        weight = 1.0 / np.sqrt(1.0 + (res / scale) ** 2)
         normal = jac.T @ (weight[:, None] * jac)
         gradient = jac.T @ (weight * res)
         diagonal = np.maximum(np.diag(normal), 1e-12 * max(float(np.max(np.diag(normal), initial=0.0)), 1e-300))
         while True:
             step = -cho_solve(cho_factor(normal + damping * np.diag(diagonal)), gradient)
             trial = residual(x + step)
-            trial_cost = _soft_l1_cost(trial, robust_scale)
+            trial_cost = _soft_l1_cost(trial, scale)
             if trial_cost < cost or damping > 1e6:
                 break
             damping *= 10.0

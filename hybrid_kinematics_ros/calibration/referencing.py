@@ -26,15 +26,12 @@ from scipy.optimize import OptimizeResult, least_squares
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.calibration.parametric import ParametricResult
+from hybrid_kinematics_ros.calibration.parametric import ParametricResult, outliers, robust_scale, robust_sigma
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.model.parametric import build_model
 from hybrid_kinematics_ros.model.referencing import Referencing
-
-ROBUST_SCALE = 1e-3  # m: residuals well above this (a broken beam, a wrong reflector) are down-weighted
-OUTLIER_M = 0.01  # after the fit, pairs this far off are counted as outliers
 
 
 def station_labels(refs: Mapping[str, Referencing], base_frame_pairs: bool) -> dict[str, tuple[int, int]]:
@@ -258,19 +255,30 @@ class _Problem:
         return np.concatenate(out)
 
     def solve(self) -> OptimizeResult:
-        size = self.n_target + 6 * len(self.parts)
-        return least_squares(self.residual, np.zeros(size), loss="soft_l1", f_scale=ROBUST_SCALE, x_scale="jac")
+        """Twice, robustly: the loss's scale first from the residuals at the start, then from what the first
+        fit leaves (:func:`~hybrid_kinematics_ros.calibration.parametric.robust_scale`, on the positions)."""
+        x = np.zeros(self.n_target + 6 * len(self.parts))
+        for _ in range(2):
+            scale = robust_scale(self.residual(x).reshape(-1, self.width)[:, :3])
+            fit = least_squares(self.residual, x, loss="soft_l1", f_scale=scale, x_scale="jac")
+            x = fit.x
+        return fit
+
+    @property
+    def width(self) -> int:
+        return 3 if self.position_only else 6
 
     def referencings(
         self, stations: Sequence[Pairs], x: np.ndarray, fun: np.ndarray, notes: tuple[str, ...]
     ) -> list[Referencing]:
         bases, t = self.unpack(x)
-        width = 3 if self.position_only else 6
+        width = self.width
+        sigma = robust_sigma(fun.reshape(-1, width)[:, :3])
         out, start = [], 0
         for pairs, (meas, _, _), b in zip(stations, self.parts, bases, strict=True):
             res = fun[start : start + width * len(meas)].reshape(len(meas), width)
             start += width * len(meas)
-            inlier = np.linalg.norm(res[:, :3], axis=1) < OUTLIER_M
+            inlier = ~outliers(res[:, :3], sigma)
             res = res[inlier]
             rms_deg = (
                 float("nan") if self.position_only else float(np.degrees(np.sqrt(np.mean(np.sum(res[:, 3:] ** 2, 1)))))
@@ -334,9 +342,8 @@ def undetermined_offsets(jac: np.ndarray, problem: _Problem, fun: np.ndarray) ->
     _, sing, vt = np.linalg.svd(apart, full_matrices=False)
     poses = sum(len(meas) for meas, _, _ in problem.parts)
     turns = sing / np.sqrt(poses)
-    width = 3 if problem.position_only else 6
-    res = fun.reshape(-1, width)
-    inlier = np.linalg.norm(res[:, :3], axis=1) < OUTLIER_M
+    res = fun.reshape(-1, problem.width)
+    inlier = ~outliers(res[:, :3], robust_sigma(res[:, :3]))
     if problem.position_only:
         reach = np.sqrt(np.mean(np.sum(np.concatenate([model[:, :3, 3] for _, model, _ in problem.parts]) ** 2, 1)))
         model_error = float(np.sqrt(np.mean(np.sum(res[inlier] ** 2, 1)))) / reach

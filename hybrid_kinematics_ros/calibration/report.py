@@ -583,6 +583,7 @@ def _parametric_section(m: dict[str, Any], out_dir: Path) -> list[str]:
         parts += [
             f"<p>{len(fitted)} of {len(par['parameters'])} parameters identified; rms position error "
             f"{par['rms_before']['position_mm']:.4f} → {par['rms_after']['position_mm']:.4f} mm.</p>",
+            *_outlier_line(par.get("outliers")),
             _table(["parameter", "value", "σ", "unit"], rows),
             *_uncertainty_lines(par.get("uncertainty")),
             *(
@@ -600,6 +601,16 @@ def _parametric_section(m: dict[str, Any], out_dir: Path) -> list[str]:
     else:
         parts.append("<p>No parametric stage: the nets correct the URDF model directly.</p>")
     return parts
+
+
+def _outlier_line(outliers: dict[str, Any] | None) -> list[str]:
+    """What the stage left far off: the pairs down-weighted as outliers (none in an older model)."""
+    if outliers is None:
+        return []
+    return [
+        f"<p>Outliers: {outliers['pairs']} pairs lie more than {outliers['beyond_mm']:.4f} mm (five robust "
+        "standard deviations) off what the stage leaves; they were down-weighted.</p>"
+    ]
 
 
 def _uncertainty_lines(uncertainty: dict | None) -> list[str]:

@@ -25,7 +25,7 @@ class Referencing:
     rms_position_mm: float = float("nan")
     rms_orientation_deg: float = float("nan")
     method: str = "least squares"
-    outliers: int = 0  # pairs more than calibration.referencing.OUTLIER_M off after the fit, left out of the rms
+    outliers: int = 0  # pairs far off what the fit leaves (calibration.parametric.outliers), left out of the rms
     undetermined: tuple[str, ...] = ()  # what the poses left undetermined and held at the prior, and how to fix it
 
     def to_base(self, pairs: Pairs, base_link: str) -> Pairs:

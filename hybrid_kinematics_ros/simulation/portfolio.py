@@ -14,6 +14,9 @@ does not:
   ``1 − exp(−t / 1 h)``; no joint angle explains it;
 - a tracker frame with a target off the flange, and broken-beam outliers in the training pairs;
 - a plain reflector: position only;
+- a URDF centimetres off the robot (``truth``: millimetres at each joint origin, half a degree of turn and
+  an arm that bends twenty times more than the UR10's), as on a lift or a long column, where what the
+  nominal model misses dwarfs a broken beam;
 - a task path: the tool held at one orientation while the arm moves over a surface (``path="surface"``),
   as cells calibrated along drilling or inspection paths are, optionally with a few poses turned by 30°
   (``turned``) to determine the target's offset from the flange.
@@ -52,6 +55,7 @@ class CellSpec:
     poses: int = 2000
     test_poses: int = 600
     effects: dict[str, bool] = field(default_factory=dict)  # the truth's effects switched (default: the YAML's)
+    truth: dict[str, dict[str, Any]] = field(default_factory=dict)  # the truth's sections' values overridden
     tracker: dict[str, Any] | None = None  # tracker frames (TRACKER_FAR, say); None: the base frame
     position_noise_mm: float = 0.015
     orientation_noise_deg: float = 0.001
@@ -136,6 +140,11 @@ def _stats(pos_mm: np.ndarray, rot_deg: np.ndarray | None) -> dict[str, float]:
 def build_cell(spec: CellSpec) -> Cell:
     """The cell's training and test pairs and its floor, reproducible from ``spec.seed``."""
     config = load_robot_config(spec.robot)
+    if spec.truth:
+        sections = {k: v for k, v in config.truth.items() if k not in spec.truth}
+        for name, values in spec.truth.items():
+            sections[name] = {**config.truth.get(name, {}), **values}
+        config = replace(config, truth=sections)
     robot = TrueRobot.from_config(config, enabled=spec.effects or None)
     frames = spec.tracker or {}
     noisy = Tracker.from_config(
@@ -192,6 +201,10 @@ REALISTIC = {  # every effect at once, backlash a third of the backlash cell's
     "thermal_ppm": 15.0,
     "outliers": 0.004,
 }
+CENTIMETRES_OFF = {  # a truth's sections overridden: the URDF model misses by centimetres
+    "geometric": {"translation_mm": 3.0, "rotation_deg": 0.5, "zero_offset_deg": 0.3},
+    "bending": {"rad_per_nm": 2e-5},
+}
 SURFACE = {"path": "surface", "step_rad": 0.1, "tracker": TRACKER_FAR}  # a task path, the target off the flange
 SURFACE_CELLS = (
     CellSpec("UR10: one tool orientation along a surface", **SURFACE),
@@ -213,5 +226,12 @@ CELLS = (
     CellSpec("UR10: realistic, 1,000 poses", poses=1000, **REALISTIC),
     CellSpec("UR10: realistic, 4,800 poses", poses=4800, **REALISTIC),
     CellSpec("UR10: every effect, base frame, 20,000 poses", poses=20_000, position_noise_mm=0.01),
+    CellSpec(
+        "UR10: URDF centimetres off, plain reflector, realistic, 300 poses",
+        poses=300,
+        truth=CENTIMETRES_OFF,
+        plain_reflector=True,
+        **REALISTIC,
+    ),
     *SURFACE_CELLS,
 )
