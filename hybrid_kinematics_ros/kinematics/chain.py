@@ -15,6 +15,7 @@ import warnings
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yourdfpy
@@ -262,13 +263,22 @@ def load_urdf(source: str | Path) -> tuple[yourdfpy.URDF, str]:
 def chain_from_urdf(source: str | Path, base_link: str, tip_link: str) -> Chain:
     """Build the serial chain from ``base_link`` to ``tip_link`` of a URDF (a path or XML text)."""
     urdf, text = load_urdf(source)
-    robot = urdf.robot
-    links = {link.name: link for link in robot.links}
+    links = {link.name: link for link in urdf.robot.links}
     for role, name in (("base_link", base_link), ("tip_link", tip_link)):
         if name not in links:
             raise KinematicsError(f"{role} '{name}' is not a link of the URDF (links: {', '.join(sorted(links))})")
-    joint_to_child = {j.child: j for j in robot.joints}
+    built = _ChainBuilder(links, base_link)
+    for joint in _joint_path(urdf.robot.joints, base_link, tip_link):
+        built.add(joint)
+    chain = built.chain(tip_link, text)
+    for message in chain.inertial_warnings:
+        warnings.warn(message, ImplausibleInertialWarning, stacklevel=2)
+    return chain
 
+
+def _joint_path(joints: list, base_link: str, tip_link: str) -> list:
+    """The URDF joints from ``base_link`` down to ``tip_link``, in order."""
+    joint_to_child = {j.child: j for j in joints}
     path = []
     link = tip_link
     while link != base_link:
@@ -277,89 +287,110 @@ def chain_from_urdf(source: str | Path, base_link: str, tip_link: str) -> Chain:
             raise KinematicsError(f"no kinematic path from '{base_link}' down to '{tip_link}' in the URDF")
         path.append(joint)
         link = joint.parent
-    path.reverse()
+    return path[::-1]
 
-    names, pre, axes, revolute, continuous, lower, upper = [], [], [], [], [], [], []
-    seg_mass, seg_com = [], []
-    implausible: list[str] = []
-    fixed = np.eye(4)  # transform accumulated since the last actuated joint frame
-    mass, moment = 0.0, np.zeros(3)  # of the segment since the last actuated joint, in its frame
-    link_frames = {base_link: (-1, np.eye(4))}
 
-    def add_inertial(link_name: str, frame: np.ndarray) -> None:
-        nonlocal mass, moment
-        inertial = links[link_name].inertial
-        if inertial is None or inertial.mass is None:
-            return
-        origin = inertial.origin if inertial.origin is not None else np.eye(4)
-        problem = _implausible_inertial(float(inertial.mass), origin[:3, 3])
-        if problem:
-            implausible.append(f"link '{link_name}': {problem}; its mass is left out of the gravity torques")
-        if problem or inertial.mass == 0:
-            return
-        mass += float(inertial.mass)
-        moment += float(inertial.mass) * (frame @ origin)[:3, 3]
+def _limits(joint: Any) -> tuple[float, float]:
+    """A joint's (lower, upper) limits; a continuous joint, or a limit not given, is unbounded."""
+    lim, endless = joint.limit, joint.type == "continuous"
+    lo = lim.lower if (lim is not None and lim.lower is not None and not endless) else -np.inf
+    hi = lim.upper if (lim is not None and lim.upper is not None and not endless) else np.inf
+    if not lo <= hi:
+        raise KinematicsError(f"joint '{joint.name}' has lower limit {lo} above upper limit {hi}")
+    return lo, hi
 
-    for joint in path:
+
+class _ChainBuilder:
+    """The chain's columns, joint by joint along the path: each actuated joint's frame, axis, type and limits;
+    fixed joints folded into the transform to the next; each segment's mass and centre of mass (the links
+    since the last actuated joint, in its frame); and where every link sits."""
+
+    def __init__(self, links: dict[str, Any], base_link: str) -> None:
+        self.links = links
+        self.joints: list[dict[str, Any]] = []
+        self.segments: list[tuple[float, np.ndarray]] = []  # (mass, centre of mass) of each closed segment
+        self.implausible: list[str] = []
+        self.fixed = np.eye(4)  # transform accumulated since the last actuated joint frame
+        self.mass, self.moment = 0.0, np.zeros(3)  # of the segment since the last actuated joint, in its frame
+        self.link_frames: dict[str, tuple[int, np.ndarray]] = {base_link: (-1, np.eye(4))}
+
+    def add(self, joint: Any) -> None:
         origin = joint.origin if joint.origin is not None else np.eye(4)
         if joint.mimic is not None:
             raise KinematicsError(f"joint '{joint.name}' is a mimic joint; mimic joints are not supported in the chain")
         if joint.type == "fixed":
-            fixed = fixed @ origin
-            add_inertial(joint.child, fixed)
-            link_frames[joint.child] = (len(names) - 1, fixed.copy())
-            continue
+            self.fixed = self.fixed @ origin
+            self._inertial(joint.child, self.fixed)
+            self.link_frames[joint.child] = (len(self.joints) - 1, self.fixed.copy())
+            return
         if joint.type not in ACTUATED:
             raise KinematicsError(
                 f"joint '{joint.name}' is of type '{joint.type}'; only revolute, continuous, prismatic and fixed "
                 "joints can be in a serial chain"
             )
-        if names:
-            seg_mass.append(mass)
-            seg_com.append(moment / mass if mass > 0 else np.zeros(3))
-        mass, moment = 0.0, np.zeros(3)
+        if self.joints:  # what sits before the first actuated joint moves with the base: no segment
+            self._close_segment()
+        self.mass, self.moment = 0.0, np.zeros(3)
         axis = np.asarray(joint.axis if joint.axis is not None else [1.0, 0.0, 0.0], dtype=float)
         if np.linalg.norm(axis) < 1e-12:
             raise KinematicsError(f"joint '{joint.name}' has a zero axis")
-        names.append(joint.name)
-        pre.append(fixed @ origin)
-        axes.append(axis / np.linalg.norm(axis))
-        revolute.append(joint.type != "prismatic")
-        is_cont = joint.type == "continuous"
-        continuous.append(is_cont)
-        lim = joint.limit
-        lo = lim.lower if (lim is not None and lim.lower is not None and not is_cont) else -np.inf
-        hi = lim.upper if (lim is not None and lim.upper is not None and not is_cont) else np.inf
-        if not lo <= hi:
-            raise KinematicsError(f"joint '{joint.name}' has lower limit {lo} above upper limit {hi}")
-        lower.append(lo)
-        upper.append(hi)
-        fixed = np.eye(4)
-        add_inertial(joint.child, fixed)
-        link_frames[joint.child] = (len(names) - 1, np.eye(4))
-    if not names:
-        raise KinematicsError(f"the path from '{base_link}' to '{tip_link}' has no actuated joint")
-    seg_mass.append(mass)
-    seg_com.append(moment / mass if mass > 0 else np.zeros(3))
+        lower, upper = _limits(joint)
+        self.joints.append(
+            {
+                "name": joint.name,
+                "pre": self.fixed @ origin,
+                "axis": axis / np.linalg.norm(axis),
+                "revolute": joint.type != "prismatic",
+                "continuous": joint.type == "continuous",
+                "lower": lower,
+                "upper": upper,
+            }
+        )
+        self.fixed = np.eye(4)
+        self._inertial(joint.child, self.fixed)
+        self.link_frames[joint.child] = (len(self.joints) - 1, np.eye(4))
 
-    chain = Chain(
-        base_link=base_link,
-        tip_link=tip_link,
-        joint_names=tuple(names),
-        pre=np.array(pre),
-        axes=np.array(axes),
-        post=fixed,
-        revolute=np.array(revolute, dtype=bool),
-        continuous=np.array(continuous, dtype=bool),
-        lower=np.array(lower, dtype=float),
-        upper=np.array(upper, dtype=float),
-        segment_mass=np.array(seg_mass),
-        segment_com=np.array(seg_com),
-        urdf_sha256=hashlib.sha256(text.encode()).hexdigest(),
-        urdf_text=text,
-        link_frames=link_frames,
-        inertial_warnings=tuple(implausible),
-    )
-    for message in implausible:
-        warnings.warn(message, ImplausibleInertialWarning, stacklevel=2)
-    return chain
+    def _inertial(self, link_name: str, frame: np.ndarray) -> None:
+        """The link's mass into the open segment, at its centre of mass in the segment's frame."""
+        inertial = self.links[link_name].inertial
+        if inertial is None or inertial.mass is None:
+            return
+        origin = inertial.origin if inertial.origin is not None else np.eye(4)
+        problem = _implausible_inertial(float(inertial.mass), origin[:3, 3])
+        if problem:
+            self.implausible.append(f"link '{link_name}': {problem}; its mass is left out of the gravity torques")
+        if problem or inertial.mass == 0:
+            return
+        self.mass += float(inertial.mass)
+        self.moment += float(inertial.mass) * (frame @ origin)[:3, 3]
+
+    def _close_segment(self) -> None:
+        self.segments.append((self.mass, self.moment / self.mass if self.mass > 0 else np.zeros(3)))
+
+    def chain(self, tip_link: str, text: str) -> Chain:
+        base_link = next(iter(self.link_frames))
+        if not self.joints:
+            raise KinematicsError(f"the path from '{base_link}' to '{tip_link}' has no actuated joint")
+        self._close_segment()
+
+        def column(key: str, dtype: type = float) -> np.ndarray:
+            return np.array([j[key] for j in self.joints], dtype=dtype)
+
+        return Chain(
+            base_link=base_link,
+            tip_link=tip_link,
+            joint_names=tuple(j["name"] for j in self.joints),
+            pre=np.array([j["pre"] for j in self.joints]),
+            axes=np.array([j["axis"] for j in self.joints]),
+            post=self.fixed,
+            revolute=column("revolute", bool),
+            continuous=column("continuous", bool),
+            lower=column("lower"),
+            upper=column("upper"),
+            segment_mass=np.array([m for m, _ in self.segments]),
+            segment_com=np.array([c for _, c in self.segments]),
+            urdf_sha256=hashlib.sha256(text.encode()).hexdigest(),
+            urdf_text=text,
+            link_frames=self.link_frames,
+            inertial_warnings=tuple(self.implausible),
+        )
