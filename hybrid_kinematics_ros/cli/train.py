@@ -34,6 +34,40 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bag", nargs="+", required=True, help="pairs bag(s) to train on")
     add_robot_args(p)
     p.add_argument("--out", required=True, type=Path, help="model directory to create")
+    _net_args(p)
+    p.add_argument(
+        "--raw-frame-id", help="raw recordings: frame of their pairs (the base link if the tracker frame is it)"
+    )
+    _stage_args(p)
+    add_payload_args(p)
+    p.add_argument("--val-bag", nargs="+", help="separate validation bag(s); default: 10%% of --bag")
+    p.add_argument("--test-bag", nargs="+", help="separate test bag(s); default: 10%% of --bag")
+    _condition_args(p)
+    p.add_argument(
+        "--shared-target",
+        action="append",
+        metavar="FRAME,FRAME[,...]",
+        help="tracker frames whose stations saw the same target on the flange (not remounted): they share one "
+        "flange-to-target transform; repeat for several groups (default: one per frame)",
+    )
+    p.add_argument(
+        "--split-blocks",
+        type=int,
+        default=SPLIT_BLOCKS,
+        help=f"without --val-bag/--test-bag: cut --bag into this many contiguous time blocks and hold out whole "
+        f"blocks, so that neighbours of a test pair do not train (default {SPLIT_BLOCKS}; 0: single random pairs)",
+    )
+    p.add_argument(
+        "--recipe",
+        type=Path,
+        help="train with the recipe of an earlier model (its directory or model.json): the same preset, budget, "
+        "seed, stage capacity, payload and conditions; no recipe flag may be given with it",
+    )
+    p.set_defaults(run=run, defaults={a.dest: a.default for a in p._actions})
+
+
+def _net_args(p: argparse.ArgumentParser) -> None:
+    """The nets' recipe: preset, architectures, budget, ensemble and seed."""
     p.add_argument("--preset", default="fast", choices=sorted(train.PRESETS), help="training recipe (default fast)")
     p.add_argument(
         "--arch-position",
@@ -60,9 +94,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "training it on beats it, one longer run (preset fast; paper: none)",
     )
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument(
-        "--raw-frame-id", help="raw recordings: frame of their pairs (the base link if the tracker frame is it)"
-    )
+
+
+def _stage_args(p: argparse.ArgumentParser) -> None:
+    """Whether to identify the parametric stage, and the capacity settings given instead of chosen."""
     p.add_argument(
         "--parametric",
         action=argparse.BooleanOptionalAction,
@@ -86,9 +121,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="weight of the orientation residuals against the position ones, m per rad (default: chosen from the "
         "ratio of the two kinds' residuals, on held-out blocks; smaller favours position)",
     )
-    add_payload_args(p)
-    p.add_argument("--val-bag", nargs="+", help="separate validation bag(s); default: 10%% of --bag")
-    p.add_argument("--test-bag", nargs="+", help="separate test bag(s); default: 10%% of --bag")
+
+
+def _condition_args(p: argparse.ArgumentParser) -> None:
+    """The nets' inputs beside the joints: condition channels and the joints' approach directions."""
     p.add_argument(
         "--condition",
         action="append",
@@ -110,27 +146,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "beside the joints, or not: backlash and friction depend on it; the node follows it from /joint_states. "
         "Default: chosen from the data with the stage's capacity (always off with --no-parametric)",
     )
-    p.add_argument(
-        "--shared-target",
-        action="append",
-        metavar="FRAME,FRAME[,...]",
-        help="tracker frames whose stations saw the same target on the flange (not remounted): they share one "
-        "flange-to-target transform; repeat for several groups (default: one per frame)",
-    )
-    p.add_argument(
-        "--split-blocks",
-        type=int,
-        default=SPLIT_BLOCKS,
-        help=f"without --val-bag/--test-bag: cut --bag into this many contiguous time blocks and hold out whole "
-        f"blocks, so that neighbours of a test pair do not train (default {SPLIT_BLOCKS}; 0: single random pairs)",
-    )
-    p.add_argument(
-        "--recipe",
-        type=Path,
-        help="train with the recipe of an earlier model (its directory or model.json): the same preset, budget, "
-        "seed, stage capacity, payload and conditions; no recipe flag may be given with it",
-    )
-    p.set_defaults(run=run, defaults={a.dest: a.default for a in p._actions})
 
 
 class Progress:
