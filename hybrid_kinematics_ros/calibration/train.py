@@ -15,6 +15,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import partial
+from typing import Any
 
 import numpy as np
 import torch
@@ -268,8 +269,7 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
     ensemble of that many instead, and none is added. Where the clock, not the steps, ended the served net's
     run, time may be what it lacks, not a seed's luck: the first added member is then that net trained on
     (the rest of one longer schedule), and if it alone beats the net significantly, one more cycle takes
-    all the time left instead of members (``cycles``). On 100,000 noise-free pairs in 10 minutes, five
-    nets of a fifth of the time each scored 0.0059 mm where one net with all of it scored 0.0041 mm.
+    all the time left instead of members (``cycles``).
     Condition channels offered (``job.offered``: the pairs carry them, nobody named them) are a rung of their
     own after the sizes: the size served, reading them, against that net without them; the rungs after it
     build their nets as it decided, and the last entry says so (``offered``: their names, ``takes_offered``).
@@ -283,26 +283,54 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
     archs = candidates(job.preset.arch)
     for arch in archs[1:]:  # a misspelt larger size fails now, not after the smaller one has trained
         build_net(replace(job, preset=replace(job.preset, arch=arch)))
-    ensemble = job.preset.added + 1
-    offered = bool(job.offered)
-    shares = len(archs) + offered + job.preset.added  # the added members take a rung's share each
-    tests = len(archs) + offered + (ensemble > 1)
-    unit, factor = UNIT[job.kind]
-    served: _Trained | None = None
-    served_arch, served_members = archs[0], job.preset.members  # silenced, the simplest carries the zeros
-    served_cycles = 1  # the training runs of the net served, each on from the last (one longer run)
-    taken = False  # whether the net served reads the offered condition columns
-    nothing = np.linalg.norm(job.y_val, axis=1)
-    served_err = nothing
-    history: list[dict] = []
-    sizes: list[dict] = []
-    first: ResidualNet | None = None
-    start = time.perf_counter()
+    ladder = _Ladder(job, report, archs)
+    ladder.sizes(archs)
+    if job.offered:
+        ladder.offered()
+    if ladder.ensemble > 1:
+        ladder.averaged()
+    return ladder.finish()
 
-    def rung(label: str, arch: str, run: Callable[[float, Callable | None], _Trained], seconds: float, cycle: int = 1):
+
+class _Ladder:
+    """:func:`train_net`'s rungs in one budget: what is served so far (its errors on the validation pairs to
+    beat), the history of every rung and each rung's verdict."""
+
+    def __init__(self, job: NetJob, report: Callable[[dict], None] | None, archs: list[str]) -> None:
+        self.job, self.report = job, report
+        self.ensemble = job.preset.added + 1
+        self.offers = bool(job.offered)
+        self.shares = len(archs) + self.offers + job.preset.added  # the added members take a rung's share each
+        self.tests = len(archs) + self.offers + (self.ensemble > 1)
+        self.unit, self.factor = UNIT[job.kind]
+        self.served: _Trained | None = None
+        self.served_arch, self.served_members = archs[0], job.preset.members  # silenced, the simplest carries zeros
+        self.served_cycles = 1  # the training runs of the net served, each on from the last (one longer run)
+        self.taken = False  # whether the net served reads the offered condition columns
+        self.nothing = np.linalg.norm(job.y_val, axis=1)
+        self.served_err = self.nothing
+        self.history: list[dict] = []
+        self.rungs: list[dict] = []  # each rung's crossed validation error and whether it was kept
+        self.first: ResidualNet | None = None
+        self.start = time.perf_counter()
+
+    def left(self) -> float:
+        return self.job.max_seconds - (time.perf_counter() - self.start)
+
+    def short(self, left: float) -> bool:
+        """Whether ``left`` seconds are too few for another rung."""
+        return left < SIZE_RESERVE * self.job.max_seconds
+
+    def skip(self, label: str, why: str | None = None) -> None:
+        entry = {"arch": label, f"crossed_val_{self.unit}": None, "kept": False, "trained": False}
+        self.rungs.append(entry if why is None else {**entry, "why": why})
+
+    def rung(
+        self, label: str, arch: str, run: Callable[[float, Callable | None], _Trained], seconds: float, cycle: int = 1
+    ) -> tuple[_Trained, bool]:
         """Train one rung of ``arch`` in ``seconds``, record it as ``label``, and say whether the ladder keeps it
         (``(trained, kept)``). ``cycle`` > 1: the rung trains the net served on, its entries say which cycle."""
-        nonlocal served_err
+        job, history = self.job, self.history
         epochs, elapsed = (history[-1]["epoch"], history[-1]["seconds"]) if history else (0, 0.0)
 
         def counted(e: dict) -> dict:
@@ -311,115 +339,136 @@ def train_net(job: NetJob, report: Callable[[dict], None] | None = None) -> tupl
                 out["reads_offered"] = True
             return out if cycle == 1 else {**out, "cycle": cycle}
 
-        relay = None if report is None else (lambda e: report(counted(e)))
+        relay = None if self.report is None else (lambda e: self.report(counted(e)))
         trained = run(seconds, relay)
         history.extend(counted(e) for e in trained.history)
         err = np.linalg.norm(trained.crossed - job.y_val, axis=1)
-        kept = trained.beat and _beats(err - served_err, tests)
-        val = float(err.mean()) * factor if len(err) else None
-        sizes.append({"arch": label, f"crossed_val_{unit}": val, "kept": kept})
+        kept = trained.beat and _beats(err - self.served_err, self.tests)
+        val = float(err.mean()) * self.factor if len(err) else None
+        self.rungs.append({"arch": label, f"crossed_val_{self.unit}": val, "kept": kept})
         if kept:
-            served_err = err
+            self.served_err = err
         return trained, kept
 
-    fit_one = _train_members if job.preset.members > 1 else _train_one
-    for i, arch in enumerate(archs):
-        left = job.max_seconds - (time.perf_counter() - start)
-        if i and left < SIZE_RESERVE * job.max_seconds:  # the simpler sizes took the budget: serve what they gave
-            sizes.append({"arch": arch, f"crossed_val_{unit}": None, "kept": False, "trained": False})
-            continue
-        # each rung takes its steps within an equal share; the last one, whatever time is left
-        seconds = left if i == shares - 1 else min(left, job.max_seconds / shares)
-        one = replace(job, preset=replace(job.preset, arch=arch))
-        trained, kept = rung(arch, arch, lambda t, r, one=one: fit_one(replace(one, max_seconds=t), r), seconds)
-        first = first or trained.net
-        if kept:
-            served, served_arch = trained, arch
-    if offered:
-        # The condition channels offered (not given): the size served (the simplest, if none was: a channel can
-        # explain what the joints cannot) from the same seed, reading them, against the net served without.
-        label = f"{served_arch} + {job.offered_label}"
-        left = job.max_seconds - (time.perf_counter() - start)
-        if left < SIZE_RESERVE * job.max_seconds:
-            sizes.append({"arch": label, f"crossed_val_{unit}": None, "kept": False, "trained": False})
-        else:
-            # one share even when it is the last rung: no longer a run than the net it is judged against
-            seconds = min(left, job.max_seconds / shares)
-            job = replace(job, take_offered=True)
-            one = replace(job, preset=replace(job.preset, arch=served_arch))
-            trained, kept = rung(label, served_arch, lambda t, r: fit_one(replace(one, max_seconds=t), r), seconds)
+    def fit_one(self, job: NetJob, seconds: float, relay: Callable | None) -> _Trained:
+        fit = _train_members if job.preset.members > 1 else _train_one
+        return fit(replace(job, max_seconds=seconds), relay)
+
+    def with_arch(self, arch: str, **changes: Any) -> NetJob:
+        return replace(self.job, preset=replace(self.job.preset, arch=arch, **changes))
+
+    def sizes(self, archs: list[str]) -> None:
+        """The preset's sizes, simplest first, each in an equal share; the last one, whatever time is left."""
+        for i, arch in enumerate(archs):
+            left = self.left()
+            if i and self.short(left):  # the simpler sizes took the budget: serve what they gave
+                self.skip(arch)
+                continue
+            seconds = left if i == self.shares - 1 else min(left, self.job.max_seconds / self.shares)
+            one = self.with_arch(arch)
+            trained, kept = self.rung(arch, arch, lambda t, r, one=one: self.fit_one(one, t, r), seconds)
+            self.first = self.first or trained.net
             if kept:
-                served, taken = trained, True
-            else:
-                job = replace(job, take_offered=False)  # the rungs after it build nets without the columns
-    name = served_arch + (f" + {job.offered_label}" if taken else "")  # the served net's rung, as labelled
-    if ensemble > 1:
-        label = f"{name} x{ensemble}"
-        left = job.max_seconds - (time.perf_counter() - start)
-        if served is None or left < SIZE_RESERVE * job.max_seconds:  # nothing to average, or no time to
-            why = "no size served" if served is None else "the sizes took the budget"
-            sizes.append({"arch": label, f"crossed_val_{unit}": None, "kept": False, "trained": False, "why": why})
+                self.served, self.served_arch = trained, arch
+
+    def offered(self) -> None:
+        """The condition channels offered (not given): the size served (the simplest, if none was: a channel can
+        explain what the joints cannot) from the same seed, reading them, against the net served without."""
+        label = f"{self.served_arch} + {self.job.offered_label}"
+        left = self.left()
+        if self.short(left):
+            self.skip(label)
+            return
+        # one share even when it is the last rung: no longer a run than the net it is judged against
+        seconds = min(left, self.job.max_seconds / self.shares)
+        self.job = replace(self.job, take_offered=True)
+        one = self.with_arch(self.served_arch)
+        trained, kept = self.rung(label, self.served_arch, lambda t, r: self.fit_one(one, t, r), seconds)
+        if kept:
+            self.served, self.taken = trained, True
         else:
-            single, continued = served, None
-            if single.clocked and ensemble > 2:
-                # The clock ended the served net's run, so the time left may serve one longer run better than
-                # members: the first added member is that net trained on, as the rest of one longer schedule
-                # (:func:`_fit`; batches in member 1's order). If it alone beats the net significantly, time
-                # is what the net lacks: one more cycle takes all the time left, and no member is added. Else
-                # it is member 1 (a snapshot).
-                on = replace(job, preset=replace(job.preset, arch=served_arch), seed=job.seed + MEMBER_SEED_STRIDE)
-                trained_for = single.history[-1]["seconds"]
-                for cycle in (2, 3):  # the first with a rung's share; the second, if the first won, all the rest
-                    left = job.max_seconds - (time.perf_counter() - start)
-                    if left < SIZE_RESERVE * job.max_seconds:
-                        break
-                    seconds = min(left, job.max_seconds / shares) if cycle == 2 else left
-                    # Each cycle is one more rung judged; the sizes were judged before a cycle was known to
-                    # be tried, so along one path the ladder's level is exceeded by at most a sixth
-                    # (Bonferroni sums: 1/3 + 1/3 + 1/4 + 1/4 of 1 - GATE_CONFIDENCE with two sizes).
-                    tests += 1
-                    # judged against the net as served: the cycle starts from weights chosen on every
-                    # validation pair, so its crossed errors share that choice, as the served net's do
-                    served_err = np.linalg.norm(_predict(served.net, torch.tensor(job.q_val)) - job.y_val, axis=1)
-                    # the rest of one cosine schedule over the whole run so far and this cycle
-                    resume = trained_for / (trained_for + seconds)
-                    run = partial(_continue, on, served.net, resume)
-                    continued, kept = rung(f"{name}, {cycle} cycles", served_arch, run, seconds, cycle)
-                    if not kept:
-                        break
-                    served, served_cycles = continued, cycle
-                    trained_for += continued.history[-1]["seconds"]
-                left = job.max_seconds - (time.perf_counter() - start)
-            if served is not single or left < SIZE_RESERVE * job.max_seconds:
-                why = "one longer run beat the net" if served is not single else "the longer run took the budget"
-                sizes.append({"arch": label, f"crossed_val_{unit}": None, "kept": False, "trained": False, "why": why})
-            else:
-                many = replace(job, preset=replace(job.preset, arch=served_arch, members=ensemble))
-                # judged against the single net as its member 0 counts in the ensemble: as served, where the
-                # other half chose no epoch of it (zero there would favour the ensemble by the served epoch's own
-                # pairs)
-                served_err = np.linalg.norm(_filled(single, job.q_val) - job.y_val, axis=1)
-                run = lambda t, r: _train_members(replace(many, max_seconds=t), r, single, continued)  # noqa: E731
-                trained, kept = rung(label, served_arch, run, left)
-                if kept:
-                    served, served_members = trained, ensemble
-    net = first if served is None else served.net
-    history[-1] = {k: v for k, v in history[-1].items() if k not in ("silenced", "served")}
-    history[-1].update({"served": served_arch, "members": served_members})
-    if offered:
-        history[-1].update({"offered": job.offered_label, "takes_offered": taken})
-    if served_cycles > 1:
-        history[-1]["cycles"] = served_cycles
-    if served is None:  # what is served is correcting nothing: its figures, not those of a size trained
-        net.silence()
-        best = float(nothing.mean()) * factor if len(nothing) else None
-        history[-1].update({f"best_val_{unit}": best, "silenced": True})
-    else:  # the served net's validation figures, not those of a later rung's last epoch
-        history[-1].update({k: v for k, v in served.history[-1].items() if k.startswith("best_val_")})
-    if len(sizes) > 1:
-        history[-1]["sizes"] = sizes
-    net.eval()
-    return net, history
+            self.job = replace(self.job, take_offered=False)  # the rungs after it build nets without the columns
+
+    @property
+    def name(self) -> str:
+        """The served net's rung, as labelled."""
+        return self.served_arch + (f" + {self.job.offered_label}" if self.taken else "")
+
+    def averaged(self) -> None:
+        """The last rung: one longer run where the clock ended the served net's (:meth:`cycles`), else an
+        ensemble of the size served."""
+        label = f"{self.name} x{self.ensemble}"
+        if self.served is None or self.short(self.left()):  # nothing to average, or no time to
+            self.skip(label, "no size served" if self.served is None else "the sizes took the budget")
+            return
+        single, continued = self.served, None
+        if single.clocked and self.ensemble > 2:
+            continued = self.cycles(single)
+        left = self.left()
+        if self.served is not single or self.short(left):
+            why = "one longer run beat the net" if self.served is not single else "the longer run took the budget"
+            self.skip(label, why)
+            return
+        many = self.with_arch(self.served_arch, members=self.ensemble)
+        # judged against the single net as its member 0 counts in the ensemble: as served, where the other half
+        # chose no epoch of it (zero there would favour the ensemble by the served epoch's own pairs)
+        self.served_err = np.linalg.norm(_filled(single, self.job.q_val) - self.job.y_val, axis=1)
+        run = lambda t, r: _train_members(replace(many, max_seconds=t), r, single, continued)  # noqa: E731
+        trained, kept = self.rung(label, self.served_arch, run, left)
+        if kept:
+            self.served, self.served_members = trained, self.ensemble
+
+    def cycles(self, single: _Trained) -> _Trained | None:
+        """The clock ended the served net's run, so the time left may serve one longer run better than members:
+        the first added member is that net trained on, as the rest of one longer schedule (:func:`_fit`; batches
+        in member 1's order). If it alone beats the net significantly, time is what the net lacks: one more cycle
+        takes all the time left, and no member is added. Else it is member 1 (a snapshot), returned."""
+        job = self.job
+        on = replace(self.with_arch(self.served_arch), seed=job.seed + MEMBER_SEED_STRIDE)
+        trained_for = single.history[-1]["seconds"]
+        continued = None
+        for cycle in (2, 3):  # the first with a rung's share; the second, if the first won, all the rest
+            left = self.left()
+            if self.short(left):
+                break
+            seconds = min(left, job.max_seconds / self.shares) if cycle == 2 else left
+            # Each cycle is one more rung judged; the sizes were judged before a cycle was known to be tried, so
+            # along one path the ladder's level is exceeded by at most a sixth (Bonferroni sums: 1/3 + 1/3 + 1/4
+            # + 1/4 of 1 - GATE_CONFIDENCE with two sizes).
+            self.tests += 1
+            # judged against the net as served: the cycle starts from weights chosen on every validation pair, so
+            # its crossed errors share that choice, as the served net's do
+            self.served_err = np.linalg.norm(_predict(self.served.net, torch.tensor(job.q_val)) - job.y_val, axis=1)
+            # the rest of one cosine schedule over the whole run so far and this cycle
+            resume = trained_for / (trained_for + seconds)
+            run = partial(_continue, on, self.served.net, resume)
+            continued, kept = self.rung(f"{self.name}, {cycle} cycles", self.served_arch, run, seconds, cycle)
+            if not kept:
+                break
+            self.served, self.served_cycles = continued, cycle
+            trained_for += continued.history[-1]["seconds"]
+        return continued
+
+    def finish(self) -> tuple[ResidualNet, list[dict]]:
+        """The net served and the history, its last entry carrying the choice."""
+        served, history, unit = self.served, self.history, self.unit
+        net = self.first if served is None else served.net
+        history[-1] = {k: v for k, v in history[-1].items() if k not in ("silenced", "served")}
+        history[-1].update({"served": self.served_arch, "members": self.served_members})
+        if self.offers:
+            history[-1].update({"offered": self.job.offered_label, "takes_offered": self.taken})
+        if self.served_cycles > 1:
+            history[-1]["cycles"] = self.served_cycles
+        if served is None:  # what is served is correcting nothing: its figures, not those of a size trained
+            net.silence()
+            best = float(self.nothing.mean()) * self.factor if len(self.nothing) else None
+            history[-1].update({f"best_val_{unit}": best, "silenced": True})
+        else:  # the served net's validation figures, not those of a later rung's last epoch
+            history[-1].update({k: v for k, v in served.history[-1].items() if k.startswith("best_val_")})
+        if len(self.rungs) > 1:
+            history[-1]["sizes"] = self.rungs
+        net.eval()
+        return net, history
 
 
 def _continue(job: NetJob, net: ResidualNet, resume: float, seconds: float, report: Callable | None) -> _Trained:
