@@ -17,7 +17,7 @@ from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.alignment import align_raw
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import evaluate, pose_errors_of, target_errors
-from hybrid_kinematics_ros.calibration.floor import measurement_floor
+from hybrid_kinematics_ros.calibration.floor import measurement_floor, tracker_line
 from hybrid_kinematics_ros.calibration.parametric import HARMONIC_PRIOR, ParametricResult, identify, linearise
 from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.calibration.referencing import (
@@ -33,6 +33,8 @@ from hybrid_kinematics_ros.io.pairs import (
     RAW_POSE_TOPIC,
     Pairs,
     bag_topics,
+    floor_summary,
+    pooled_floor,
     read_pairs,
 )
 from hybrid_kinematics_ros.kinematics import approach
@@ -293,11 +295,16 @@ def fit(
     manifest["metrics"] = {"test": evaluate(model, sets[2], errors) if errors else evaluate(model, sets[2])}
     floor = measurement_floor(_by_frame(raw), chain, rigid_refs)
     manifest["floor"] = None if floor is None else floor.manifest()
+    tracker = pooled_floor(raw[0])
+    if tracker is not None:
+        manifest["tracker_floor"] = floor_summary(tracker)
     held_out = manifest["metrics"]["test"]["hybrid"].get("position_mm_mean")
     if floor is not None and held_out is not None:
         log(floor.line(held_out))
     elif floor is None:
         log("no measurement floor: no two poses repeat the same joints (within 1 mrad); repeat a few to know it")
+    if tracker is not None and held_out is not None:
+        log(tracker_line(tracker, held_out))
     curve = manifest.get("capacity", {}).get("learning_curve")
     if curve is not None:
         log(capacity_module.curve_line(curve, None if floor is None else floor.position_mm))

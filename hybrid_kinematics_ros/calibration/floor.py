@@ -49,6 +49,16 @@ class Floor:
         )
 
 
+def tracker_line(floor: tuple[float, float], held_out_mm: float) -> str:
+    """What ``train`` says of a held-out mean position error (mm) against the tracker's own floor (m, rad:
+    :attr:`Pairs.floor`)."""
+    mm = 1e3 * floor[0]
+    return (
+        f"held-out error {held_out_mm:.4f} mm, {held_out_mm / mm:.2f}x the tracker's own floor ({mm:.4f} mm, from "
+        "the scatter of its reflectors; what the robot does not repeat comes on top)"
+    )
+
+
 def measurement_floor(stations: Sequence[Pairs], chain: Chain, referencings: Mapping[str, Referencing]) -> Floor | None:
     """The floor of ``stations`` (one :class:`Pairs` per frame; repeats are paired within a station), each
     moved into the base frame with ``referencings``; None when no configuration repeats."""

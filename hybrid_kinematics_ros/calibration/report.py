@@ -416,7 +416,15 @@ def _summary_section(s: dict[str, Any]) -> list[str]:
             else "AP and RP: the test data repeats no pose.</p>"
         )
     )
-    parts.append(_floor_line(s.get("floor"), s["errors"].get("hybrid", {}).get("position_mm_mean")))
+    hybrid_mm = s["errors"].get("hybrid", {}).get("position_mm_mean")
+    parts.append(_floor_line(s.get("floor"), hybrid_mm))
+    if s.get("tracker_floor"):
+        tracker = s["tracker_floor"]["position_mm"]
+        ratio = f": the test mean is {hybrid_mm / tracker:.2f}× it" if hybrid_mm else ""
+        parts.append(
+            f"<p><b>The tracker's own floor</b> {tracker:.4f} mm, from the scatter of its reflectors about their "
+            f"rigid layout{ratio}. What the robot does not repeat comes on top of it.</p>"
+        )
     if s.get("learning_curve"):
         floor_mm = (s.get("floor") or {}).get("position_mm")
         line = capacity_module.curve_line(s["learning_curve"], floor_mm)

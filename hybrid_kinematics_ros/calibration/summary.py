@@ -208,6 +208,7 @@ def summarise(
         "iso9283": iso_summary(iso),
         "capacity": capacity_lines(model.manifest),
         "floor": model.manifest.get("floor"),
+        "tracker_floor": model.manifest.get("tracker_floor"),
         "learning_curve": (model.manifest.get("capacity") or {}).get("learning_curve"),
         "working_range": {**working_range(model), "inside": report["inside_calibrated_range"]},
         "verdict": None if tolerance_mm is None else verdict(hybrid_pos, hybrid_rot, tolerance_mm, tolerance_deg),

@@ -515,9 +515,8 @@ def _fit(
 ) -> _Fitted:
     """The training loop of one net (one body), keeping the best epoch on every validation pair and on each
     half of them (:func:`_halves`). ``weights``: to train on from, else the seed's; ``resume``: the
-    share of a longer cosine schedule already run, which this run finishes. Trained on for as long again,
-    a net resumed at 0.5 scored as one run of the whole length (0.0077 mm both, table1's UR10 position net,
-    90 + 90 s against 180 s), where a restart at the full rate lost half of that gain (0.0088 mm)."""
+    share of a longer cosine schedule already run, which this run finishes: a net resumed so scores as one
+    run of the whole length, where a restart at the full rate loses much of what the longer run gains."""
     torch.manual_seed(job.seed)
     p = job.preset
     net = build_net(job)

@@ -328,6 +328,7 @@ def run(args: argparse.Namespace) -> int:
                 **({"test_parametric": test["parametric"]} if "parametric" in test else {}),
                 "test_hybrid": test["hybrid"],
                 "floor": manifest.get("floor"),
+                **({"tracker_floor": manifest["tracker_floor"]} if "tracker_floor" in manifest else {}),
             }
         )
     )

@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.io.import_spec import ImportSpec, RowFilter
-from hybrid_kinematics_ros.io.pairs import Pairs
+from hybrid_kinematics_ros.io.pairs import Pairs, floor_summary
 from hybrid_kinematics_ros.kinematics import se3
 
 
@@ -47,6 +47,7 @@ class ImportResult:
             "frame_id": self.pairs.frame_id,
             "position_only": self.pairs.position_only,
             "conditions": sorted(self.pairs.conditions),
+            **({} if self.pairs.floor is None else {"tracker_floor": floor_summary(self.pairs.floor)}),
         }
 
 
@@ -294,6 +295,7 @@ def import_table(path: str | Path, spec: ImportSpec, model_joints: Sequence[str]
     if spec.joint_unit == "deg":
         q = np.radians(q)
     T = np.tile(np.eye(4), (n, 1, 1))
+    residual = None
     if spec.points is not None:
         measured = np.stack([stack(cols) for cols in spec.points.columns], axis=1) * spec.length_unit
         fitted, residual = se3.fit_rigid(spec.points.nominal, np.where(keep[:, None, None], measured, 0.0))
@@ -331,8 +333,25 @@ def import_table(path: str | Path, spec: ImportSpec, model_joints: Sequence[str]
         spec.frame_id,
         position_only=spec.orientation == "none",
         conditions=conditions,
+        floor=None if residual is None else reflector_floor(spec.points.nominal, residual[keep]),
     )
     return ImportResult(pairs, total, filtered, dropped)
+
+
+FLOOR_TRIALS = 4000  # simulated measurements of the layout: the floor to about 1 %
+
+
+def reflector_floor(layout: np.ndarray, residual: np.ndarray) -> tuple[float, float]:
+    """One measurement's mean position (m) and orientation (rad) error at the tool's origin from the reflectors'
+    own scatter. Each row's rigid fit of the ``layout (k, 3)`` leaves ``residual`` (rms over its points), whose
+    square has ``(3k − 6) / k · σ²`` as expectation for a per-coordinate noise ``σ``; that noise is then sent
+    through the same fit, by simulation, to the pose it gives."""
+    k = len(layout)
+    sigma = float(np.sqrt(np.mean(residual**2) * k / (3 * k - 6)))
+    noisy = layout + np.random.default_rng(0).normal(0.0, sigma, (FLOOR_TRIALS, k, 3))
+    fitted, _ = se3.fit_rigid(layout, noisy)
+    position = np.linalg.norm(fitted[:, :3, 3], axis=1)
+    return float(np.mean(position)), float(np.mean(se3.rotation_angle(fitted[:, :3, :3])))
 
 
 def _joint_names(spec: ImportSpec, model: Sequence[str] | None) -> tuple[tuple[str, ...], list[int]]:

@@ -19,8 +19,10 @@ from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import yaml
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
@@ -68,6 +70,9 @@ class Pairs:
     # (N, 4, 4): where the measured target sits in the tip frame, set by referencing (each tracker station
     # has its own); None: at the tip. Position-only pairs in the base frame hold that target's points.
     target: np.ndarray | None = None
+    # (m, rad; NaN rad position-only): one measurement's mean error from the tracker's own scatter, where the
+    # export tells it (the spread of rigid reflectors, :mod:`io.importer`); None: not known
+    floor: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         for name, values in self.conditions.items():
@@ -129,6 +134,7 @@ class Pairs:
             first.position_only,
             {n: np.concatenate([p.conditions[n] for p in parts]) for n in names},
             None if all(p.target is None for p in parts) else np.concatenate([p.targets for p in parts]),
+            pooled_floor(parts),
         )
 
 
@@ -157,6 +163,44 @@ def condition_msg(ns: int, name: str, value: float):
     return _T[msgtype](header=header, **{value_field: float(value)}, variance=0.0)
 
 
+def pooled_floor(parts: Sequence[Pairs]) -> tuple[float, float] | None:
+    """The parts' tracker floor, each weighted by its pairs; None unless every part has one."""
+    if any(p.floor is None for p in parts):
+        return None
+    counts = np.array([len(p) for p in parts], dtype=float)
+    floors = np.array([p.floor for p in parts])
+    return float(counts @ floors[:, 0] / counts.sum()), float(counts @ floors[:, 1] / counts.sum())
+
+
+def floor_summary(floor: tuple[float, float]) -> dict[str, Any]:
+    """A tracker floor (m, rad: :attr:`Pairs.floor`) as summaries and ``model.json`` give it (mm, deg)."""
+    position, orientation = floor
+    return {
+        "position_mm": 1e3 * position,
+        "orientation_deg": None if np.isnan(orientation) else float(np.degrees(orientation)),
+        "from": "the scatter of the reflectors about their rigid layout",
+    }
+
+
+FLOOR_KEYS = ("tracker_floor_position_m", "tracker_floor_orientation_rad")  # the bag's custom data
+
+
+def bag_floor(path: str | Path) -> tuple[float, float] | None:
+    """The tracker floor a pairs bag records in its metadata (rosbag2's ``custom_data``), or None."""
+    path = Path(path)
+    meta = (path if path.is_dir() else path.parent) / "metadata.yaml"
+    if not meta.is_file():
+        return None
+    info = yaml.safe_load(meta.read_text()).get("rosbag2_bagfile_information", {})
+    custom = info.get("custom_data") or {}
+    if not all(key in custom for key in FLOOR_KEYS):
+        return None
+    try:
+        return float(custom[FLOOR_KEYS[0]]), float(custom[FLOOR_KEYS[1]])
+    except ValueError as exc:
+        raise DataError(f"bag {path}: custom data {FLOOR_KEYS}: {exc}") from exc
+
+
 class PairsWriter:
     """Streams pairs into a new bag; use as a context manager so a crash still closes the file."""
 
@@ -167,9 +211,11 @@ class PairsWriter:
         frame_id: str,
         position_only: bool = False,
         conditions: Sequence[str] = (),
+        floor: tuple[float, float] | None = None,
     ) -> None:
         self.path = Path(path)
         self.position_only = position_only
+        self.floor = floor
         unknown = sorted(set(conditions) - set(CONDITION_TYPES))
         if unknown:
             raise DataError(f"unknown condition channel(s) {unknown}; known: {', '.join(CONDITION_TYPES)}")
@@ -185,6 +231,9 @@ class PairsWriter:
 
     def __enter__(self) -> PairsWriter:
         self._writer.open()
+        if self.floor is not None:
+            for key, value in zip(FLOOR_KEYS, self.floor, strict=True):
+                self._writer.set_custom_data(key, repr(float(value)))
         self._joints = self._writer.add_connection(JOINTS_TOPIC, JOINT_STATE, typestore=TYPESTORE)
         self._poses = self._writer.add_connection(POSE_TOPIC, POSE_STAMPED, typestore=TYPESTORE)
         self._conditions = {
@@ -221,7 +270,9 @@ class PairsWriter:
 def write_pairs(path: str | Path, pairs: Pairs) -> None:
     """Approach directions are not written: they are derived from the order of the samples when read."""
     conditions = {k: v for k, v in pairs.conditions.items() if not is_channel(k)}
-    with PairsWriter(path, pairs.joint_names, pairs.frame_id, pairs.position_only, list(conditions)) as writer:
+    with PairsWriter(
+        path, pairs.joint_names, pairs.frame_id, pairs.position_only, list(conditions), pairs.floor
+    ) as writer:
         writer.write(pairs.q, pairs.T, pairs.stamps, conditions)
 
 
@@ -270,7 +321,7 @@ def read_pairs(path: str | Path, joint_names: Sequence[str] | None = None) -> Pa
             read.take(conn.topic, TYPESTORE.deserialize_cdr(raw, conn.msgtype))
     finally:
         reader.close()
-    return read.pairs()
+    return replace(read.pairs(), floor=bag_floor(path))
 
 
 def _checked_topics(path: Path, conns: dict) -> dict[str, str]:

@@ -242,9 +242,8 @@ class HybridModel:
         """:meth:`error_bounds` under another payload than the calibrated one (:meth:`with_payload`), where no
         bound was calibrated: what no measurement checked is added to the stage's calibrated bound (the
         triangle inequality, as beyond the trained range): the move of the stage's answer that the payload
-        change made, and, where the nets serve, their whole correction. Loose, but it holds: a virtual UR10's
-        stage error grew from 0.002 to 0.04 mm (median) with 15 kg instead of 2 kg, where the nets' bound
-        calibrated under 2 kg said 0.0004 mm and covered none of the errors (``test_bounds.py``, docs/model.md)."""
+        change made, and, where the nets serve, their whole correction. Loose, but it holds where a bound
+        calibrated under the old payload would cover none of the new errors (``test_bounds.py``)."""
         q = self.same_turn(np.atleast_2d(np.asarray(q, dtype=float)))
         x = excess(q, self.trained_lower, self.trained_upper, self.chain.revolute)
         position, orientation = self.bounds.of(

@@ -153,3 +153,34 @@ def test_reflector_points_quaternions_and_a_row_filter_by_flags(tmp_path, capsys
         pairs = read_pairs(tmp_path / bag, ("j1", "j2", "j3"))
         np.testing.assert_allclose(pairs.T, T[part == 1], rtol=0, atol=1e-12)
         np.testing.assert_array_equal(pairs.q, q[part == 1])
+
+
+def test_the_reflectors_scatter_gives_the_trackers_floor_and_the_bag_keeps_it(tmp_path, capsys):
+    """Four reflectors measured with 20 µm of noise each: the import estimates that noise from how far each
+    row leaves the rigid layout, and the floor it reports is what that noise does to the pose's origin."""
+    rows, sigma_mm = 400, 0.02
+    rng = np.random.default_rng(4)
+    T = se3.from_rotvec(rng.uniform(-2, 2, (rows, 3)), rng.uniform(-1, 1, (rows, 3)))
+    layout_mm = np.array([[0.0, 0.0, 0.0], [150.0, 0.0, 0.0], [130.0, 90.0, 0.0], [20.0, 100.0, 5.0]])
+    points = np.einsum("bij,kj->bki", T[:, :3, :3], layout_mm) + 1e3 * T[:, None, :3, 3]
+    points += rng.normal(0.0, sigma_mm, points.shape)
+    header = "a1,a2,a3," + ",".join(f"p{k}{a}" for k in range(4) for a in "xyz")
+    table = np.hstack([rng.uniform(-3, 3, (rows, 3)), points.reshape(rows, 12)])
+    path = tmp_path / "t.csv"
+    path.write_text(header + "\n" + "\n".join(",".join(repr(float(v)) for v in row) for row in table) + "\n")
+    flags = ["import", "--csv", str(path), "--frame-id", "f", "--joints", "j1=a1,j2=a2,j3=a3", "--joint-unit", "rad"]
+    flags += ["--orientation", "points", "--point-unit", "mm", "--out", str(tmp_path / "pairs")]
+    for k in range(4):
+        flags += ["--point", f"p{k}x,p{k}y,p{k}z=" + ",".join(str(v) for v in layout_mm[k])]
+    assert main(flags) == 0
+    floor = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["tracker_floor"]
+    # what 20 µm per reflector does to the fitted pose, simulated here apart from the importer
+    noisy = layout_mm + np.random.default_rng(9).normal(0.0, sigma_mm, (20_000, 4, 3))
+    fitted, _ = se3.fit_rigid(layout_mm, noisy)
+    expected_mm = np.linalg.norm(fitted[:, :3, 3], axis=1).mean()
+    expected_deg = np.degrees(se3.rotation_angle(fitted[:, :3, :3])).mean()
+    assert abs(floor["position_mm"] / expected_mm - 1.0) < 0.1
+    assert abs(floor["orientation_deg"] / expected_deg - 1.0) < 0.1
+    pairs = read_pairs(tmp_path / "pairs", ("j1", "j2", "j3"))
+    assert pairs.floor is not None and np.isclose(1e3 * pairs.floor[0], floor["position_mm"])
+    assert read_pairs(tmp_path / "pairs", ("j1", "j2", "j3")).subset(np.arange(10)).floor == pairs.floor
