@@ -42,6 +42,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     g = p.add_argument_group("measured pose")
     g.add_argument("--position", help="position columns X,Y,Z")
     g.add_argument("--position-unit", choices=("mm", "m"))
+    g.add_argument(
+        "--position-uncertainty",
+        metavar="U or UX,UY,UZ",
+        help="the tracker's uncertainty of each position: one column (every axis) or three, in the positions' unit",
+    )
+    g.add_argument(
+        "--uncertainty-coverage", type=float, help="the coverage factor the uncertainty is given at (default 1)"
+    )
     g.add_argument("--orientation", choices=ORIENTATIONS, help="how the orientation is given")
     g.add_argument("--quaternion", help="quaternion columns, in --quaternion-order")
     g.add_argument("--quaternion-order", choices=("wxyz", "xyzw"))
@@ -109,6 +117,10 @@ def spec_dict_from_args(args: argparse.Namespace) -> dict[str, Any]:
         section("position")["columns"] = args.position
     if args.position_unit:
         section("position")["unit"] = args.position_unit
+    if args.position_uncertainty:
+        section("position")["uncertainty"] = args.position_uncertainty
+    if args.uncertainty_coverage is not None:
+        section("position")["coverage"] = args.uncertainty_coverage
     orient = data.get("orientation") if isinstance(data.get("orientation"), dict) else {}
     if args.orientation and args.orientation != orient.get("kind"):
         data["orientation"] = {"kind": args.orientation}  # another kind: none of the old keys apply

@@ -71,6 +71,10 @@ class ImportSpec:
     euler_sequence: str = "XYZ"  # scipy's: upper case intrinsic, lower case extrinsic
     angle_unit: str = "deg"
     points: Points | None = None
+    # the tracker's uncertainty of each position: one column (the same for every axis) or one per axis, in the
+    # positions' unit, and the coverage factor it is given at (2: twice the standard deviation)
+    uncertainty_columns: tuple[str, ...] = ()
+    uncertainty_coverage: float = 1.0
     separator: str = ","  # "whitespace": runs of spaces and tabs
     decimal: str = "."
     skip_lines: int = 0
@@ -95,7 +99,8 @@ class ImportSpec:
     def numeric_columns(self) -> tuple[str, ...]:
         cond = tuple(col for col, _ in self.conditions.values())
         stamp = (self.stamp_column,) if self.stamp_column and self._numeric_stamp else ()
-        return tuple(dict.fromkeys(self.joint_columns + self.measured_columns + cond + stamp))
+        measured = self.measured_columns + self.uncertainty_columns
+        return tuple(dict.fromkeys(self.joint_columns + measured + cond + stamp))
 
     @property
     def _numeric_stamp(self) -> bool:
@@ -286,9 +291,14 @@ def _pose_section(data: Mapping[str, Any], source: str) -> dict[str, Any]:
         out["length_unit"] = scale
         out["points"] = _points(orient, scale)
     else:
-        position.known("columns", "unit")
+        position.known("columns", "unit", "uncertainty", "coverage")
         out["position_columns"] = position.columns("columns", 3, position.require("columns"))
         out["length_unit"] = LENGTH_UNITS[position.choice("unit", tuple(LENGTH_UNITS))]
+        if position.get("uncertainty") is not None:
+            out["uncertainty_columns"] = position.columns("uncertainty")
+            if len(out["uncertainty_columns"]) not in (1, 3):
+                raise position.error("uncertainty", "needs one column (every axis) or three (x, y, z)")
+            out["uncertainty_coverage"] = position.number("coverage", 1.0, positive=True)
         if kind == "quaternion":
             orient.known("kind", "columns", "order", "tolerance")
             out["orientation_columns"] = orient.columns("columns", 4, orient.require("columns"))

@@ -15,7 +15,7 @@ import calendar
 import csv
 import datetime as dt
 from collections import Counter
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -333,12 +333,33 @@ def import_table(path: str | Path, spec: ImportSpec, model_joints: Sequence[str]
         spec.frame_id,
         position_only=spec.orientation == "none",
         conditions=conditions,
-        floor=None if residual is None else reflector_floor(spec.points.nominal, residual[keep]),
+        floor=_floor(spec, stack, keep, residual),
     )
     return ImportResult(pairs, total, filtered, dropped)
 
 
-FLOOR_TRIALS = 4000  # simulated measurements of the layout: the floor to about 1 %
+FLOOR_TRIALS = 4000  # simulated measurements: the floor to about 1 %
+
+
+def _floor(
+    spec: ImportSpec, stack: Callable[[Sequence[str]], np.ndarray], keep: np.ndarray, residual: np.ndarray | None
+) -> tuple[float, float] | None:
+    """The tracker's own floor (m, rad), where the export tells it: from the reflectors' scatter about their
+    layout, or from its uncertainty columns (position only); None otherwise."""
+    if residual is not None:
+        return reflector_floor(spec.points.nominal, residual[keep])
+    if spec.uncertainty_columns:
+        sigma = stack(spec.uncertainty_columns)[keep] * spec.length_unit / spec.uncertainty_coverage
+        return uncertainty_floor(np.broadcast_to(sigma, (len(sigma), 3))), float("nan")
+    return None
+
+
+def uncertainty_floor(sigma: np.ndarray) -> float:
+    """The mean length (m) of position errors with standard deviations ``sigma (N, 3)`` (m, per axis), over the
+    rows, by simulation: at least :data:`FLOOR_TRIALS` draws in all."""
+    repeats = -(-FLOOR_TRIALS // len(sigma))
+    draws = np.random.default_rng(0).normal(0.0, 1.0, (len(sigma), repeats, 3))
+    return float(np.mean(np.linalg.norm(sigma[:, None, :] * draws, axis=2)))
 
 
 def reflector_floor(layout: np.ndarray, residual: np.ndarray) -> tuple[float, float]:

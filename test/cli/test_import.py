@@ -8,6 +8,7 @@ import subprocess
 from pathlib import Path
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.cli.main import main
@@ -184,3 +185,26 @@ def test_the_reflectors_scatter_gives_the_trackers_floor_and_the_bag_keeps_it(tm
     pairs = read_pairs(tmp_path / "pairs", ("j1", "j2", "j3"))
     assert pairs.floor is not None and np.isclose(1e3 * pairs.floor[0], floor["position_mm"])
     assert read_pairs(tmp_path / "pairs", ("j1", "j2", "j3")).subset(np.arange(10)).floor == pairs.floor
+
+
+def test_the_trackers_uncertainty_columns_give_its_floor(tmp_path, capsys):
+    """An export with the tracker's uncertainty per position (twice the standard deviation, one column for every
+    axis or one per axis): the floor is the mean length of errors of that size."""
+    rows = 200
+    rng = np.random.default_rng(6)
+    table = np.hstack([rng.uniform(-3, 3, (rows, 3)), rng.uniform(-1000, 1000, (rows, 3))])
+    sigma_mm = rng.uniform(0.005, 0.015, rows)  # a tracker's uncertainty grows with the distance
+    header = "a1,a2,a3,x,y,z,u,ux,uy,uz"
+    table = np.hstack([table, 2 * sigma_mm[:, None], 2 * sigma_mm[:, None] * [1.0, 1.0, 0.0]])
+    path = tmp_path / "t.csv"
+    path.write_text(header + "\n" + "\n".join(",".join(repr(float(v)) for v in row) for row in table) + "\n")
+    flags = ["import", "--csv", str(path), "--frame-id", "f", "--joints", "j1=a1,j2=a2,j3=a3", "--joint-unit", "rad"]
+    flags += ["--position", "x,y,z", "--position-unit", "mm", "--orientation", "none", "--uncertainty-coverage", "2"]
+    assert main([*flags, "--position-uncertainty", "u", "--out", str(tmp_path / "one")]) == 0
+    assert main([*flags, "--position-uncertainty", "ux,uy,uz", "--out", str(tmp_path / "three")]) == 0
+    one, three = (json.loads(line)["tracker_floor"] for line in capsys.readouterr().out.strip().splitlines())
+    # the mean length of a 3-D Gaussian error of σ per axis is σ √(8/π); of a 2-D one, σ √(π/2)
+    assert one["position_mm"] == pytest.approx(np.mean(sigma_mm) * np.sqrt(8 / np.pi), rel=0.03)
+    assert three["position_mm"] == pytest.approx(np.mean(sigma_mm) * np.sqrt(np.pi / 2), rel=0.03)
+    assert one["orientation_deg"] is None
+    assert read_pairs(tmp_path / "three", ("j1", "j2", "j3")).floor[0] == pytest.approx(1e-3 * three["position_mm"])
