@@ -25,9 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from hybrid_kinematics_ros.ik import round_kernel
-from hybrid_kinematics_ros.ik.lm import error6, error6_batch, joint_limits
+from hybrid_kinematics_ros.ik.lm import joint_limits
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import Chain
+from hybrid_kinematics_ros.kinematics.se3 import error6, error6_batch
 
 # Axes this close are parallel (rad), and lines this close meet (m). A URDF's rounded π/2 (1.57079633)
 # leaves a wrist 7e-10 m from spherical: the branches are checked, and polished, on our own FK.
@@ -230,7 +231,7 @@ class AnalyticIK:
 
     def nearest_checked(self, target: np.ndarray, seed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The first row of :meth:`branches` for the cost of one, with its pose error ``(6,)``
-        (:func:`~hybrid_kinematics_ros.ik.lm.error6`) and Jacobian on our FK: the exact branch within the
+        (:func:`~hybrid_kinematics_ros.kinematics.se3.error6`) and Jacobian on our FK: the exact branch within the
         limits nearest the seed, checked; None where it fails the check (another branch may then be the
         nearest that passes)."""
         q = self.nearest(target, seed)

@@ -17,9 +17,10 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from hybrid_kinematics_ros.ik.errors import IKError
-from hybrid_kinematics_ros.ik.lm import error6, joint_limits
+from hybrid_kinematics_ros.ik.lm import joint_limits
 from hybrid_kinematics_ros.ik.refine import HybridRefiner
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKResult, IKSolver, SolveRequest, compensated_target
+from hybrid_kinematics_ros.kinematics.se3 import error6
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 COSTS = ("pose6", "eq2")

@@ -54,46 +54,6 @@ _CONSTANTS = np.array(
 )
 
 
-def log_so3(r: np.ndarray) -> np.ndarray:
-    """Rotation vector of one rotation matrix; accurate near zero, scipy near π."""
-    return np.array(_log_so3_floats(r))
-
-
-def _log_so3_floats(r: np.ndarray) -> tuple[float, float, float]:
-    """:func:`log_so3` in Python floats: the IK's inner loops take it once a step, where each numpy call
-    costs a microsecond or more."""
-    (a, b, c), (d, e, f), (g, h, i) = r.tolist()
-    x, y, z = h - f, c - g, d - b
-    s = 0.5 * math.sqrt(x * x + y * y + z * z)
-    angle = math.atan2(s, 0.5 * (a + e + i - 1.0))
-    if angle > 3.0:
-        return tuple(se3.rotvec(r[None])[0].tolist())
-    k = 0.5 if angle < 1e-9 else angle / (2.0 * s)
-    return k * x, k * y, k * z
-
-
-def error6(target: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """``[p_t − p; log(R_t Rᵀ)]`` in m and rad, base frame."""
-    (tx, ty, tz), (px, py, pz) = target[:3, 3].tolist(), T[:3, 3].tolist()
-    return np.array((tx - px, ty - py, tz - pz, *_log_so3_floats(target[:3, :3] @ T[:3, :3].T)))
-
-
-def error6_batch(targets: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """``(B, 6)``: :func:`error6` of poses ``T (B, 4, 4)`` against ``targets`` ``(B, 4, 4)`` or one ``(4, 4)``.
-    The rotation vector in closed form as :func:`log_so3` (scipy's Rotation costs more than the rest for a few
-    poses, on the valley search's and the closed forms' paths), scipy's where the angle nears π."""
-    r = targets[..., :3, :3] @ T[:, :3, :3].mT
-    skew = np.stack([r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0], r[:, 1, 0] - r[:, 0, 1]], axis=1)
-    s = 0.5 * np.linalg.norm(skew, axis=1)
-    angle = np.arctan2(s, 0.5 * (np.trace(r, axis1=1, axis2=2) - 1.0))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rotation = np.where(angle < 1e-9, 0.5, angle / (2.0 * s))[:, None] * skew
-    far = angle > 3.0
-    if far.any():
-        rotation[far] = se3.rotvec(r[far])
-    return np.concatenate([targets[..., :3, 3] - T[:, :3, 3], rotation], axis=1)
-
-
 def joint_limits(chain: Chain) -> Limits:
     """The chain's limits for the solvers: an unlimited joint gets ±2π (every angle, once)."""
     lower = np.where(np.isfinite(chain.lower), chain.lower, -2 * np.pi)
@@ -171,7 +131,7 @@ def lm_solve(
     lower, upper, revolute = limits
     q = project(seed, lower, upper, revolute)
     T, J = fk_jac(q)
-    e = error6(target, T)
+    e = se3.error6(target, T)
     cost = e @ e
     lam = damping
     iterations = slow = 0
@@ -190,7 +150,7 @@ def lm_solve(
         step = np.linalg.solve(jtj + lam * (np.diag(np.diag(jtj)) + 1e-9 * np.eye(len(q))), J.T @ e)
         q_new = project(q + step, lower, upper, revolute)
         T_new, J_new = fk_jac(q_new)
-        e_new = error6(target, T_new)
+        e_new = se3.error6(target, T_new)
         cost_new = e_new @ e_new
         if cost_new < cost:
             # a floor, not a solution: the target lies beyond this model's reach here, or in a local minimum

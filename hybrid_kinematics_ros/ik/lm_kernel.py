@@ -21,7 +21,7 @@ RUNNING, DONE = 0, 1  # the state a call ends in: it may go on (steps used up), 
 
 @numba.njit(cache=True, nogil=True)
 def error6(target, T, out):
-    """``lm.error6`` into ``out (6,)``; near π (beyond 3 rad) the axis from the rotation's symmetric part, as
+    """``se3.error6`` into ``out (6,)``; near π (beyond 3 rad) the axis from the rotation's symmetric part, as
     scipy's rotation vector does there."""
     for i in range(3):
         out[i] = target[i, 3] - T[i, 3]

@@ -19,8 +19,9 @@ import time
 
 import numpy as np
 
-from hybrid_kinematics_ros.ik.lm import FkJac, Limits, error6_batch, lm_solve, project
+from hybrid_kinematics_ros.ik.lm import FkJac, Limits, lm_solve, project
 from hybrid_kinematics_ros.kinematics import se3
+from hybrid_kinematics_ros.kinematics.se3 import error6_batch
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 # From a classical answer Gauss-Newton converges in a handful of chord steps; a run that needs more than

@@ -3,7 +3,7 @@
 A round takes the hybrid pose at its configuration, its error to the target, the compensated target and the
 closed forms' branch nearest it: a UR10 solve makes five rounds, and in numpy each of these steps costs a
 dozen calls of a microsecond or more, most of a round once the hybrid pose is one compiled call
-(``model/pose_kernel.py``). The maths is that of ``lm.error6``, ``solver.compensated_target`` and
+(``model/pose_kernel.py``). The maths is that of ``se3.error6``, ``solver.compensated_target`` and
 ``analytic.fold``; tests check these kernels against them.
 """
 
@@ -22,7 +22,7 @@ TAU = 2.0 * math.pi
 
 @numba.njit(cache=True, nogil=True)
 def error_and_compensated(target, hybrid, q, generators, revolute, post, axes):
-    """``lm.error6(target, hybrid)`` ``(6,)`` (``lm_kernel.error6``) and the compensated target
+    """``se3.error6(target, hybrid)`` ``(6,)`` (``lm_kernel.error6``) and the compensated target
     ``target · hybrid⁻¹ · T_URDF(q)`` ``(4, 4)`` (``solver.compensated_target``), the URDF pose from the chain's
     kernel operands."""
     e = np.empty(6)

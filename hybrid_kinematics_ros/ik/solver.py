@@ -78,10 +78,11 @@ from hybrid_kinematics_ros.ik import round_kernel
 from hybrid_kinematics_ros.ik import seeds as seeding
 from hybrid_kinematics_ros.ik.analytic import AnalyticIK, turns
 from hybrid_kinematics_ros.ik.errors import IKError
-from hybrid_kinematics_ros.ik.lm import ChainFkJac, error6, joint_limits, lm_solve
+from hybrid_kinematics_ros.ik.lm import ChainFkJac, joint_limits, lm_solve
 from hybrid_kinematics_ros.ik.refine import HybridRefiner
 from hybrid_kinematics_ros.ik.valley import valley_starts, warm_up
 from hybrid_kinematics_ros.kinematics import approach, se3
+from hybrid_kinematics_ros.kinematics.se3 import error6
 from hybrid_kinematics_ros.model.hybrid import COMPILED_ROWS, HybridModel
 
 # Budget shares. CLASSICAL_SHARE: a target the URDF model cannot reach exactly (near the edge of its

@@ -48,7 +48,8 @@ from collections.abc import Iterator
 import numpy as np
 
 from hybrid_kinematics_ros.ik import valley_kernel
-from hybrid_kinematics_ros.ik.lm import Limits, error6_batch, joint_limits, project, turned, wrap
+from hybrid_kinematics_ros.ik.lm import Limits, joint_limits, project, turned, wrap
+from hybrid_kinematics_ros.kinematics.se3 import error6_batch
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 # Each valley is traced from its first point, TRACE_STEP (rad, joint space) apart, one period or from limit to

@@ -216,3 +216,61 @@ def fit_rigid(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.nd
     fitted = np.einsum("bij,bkj->bki", rotation, source) + out[:, None, :3, 3]
     residual = np.sqrt(np.mean(np.sum((fitted - target) ** 2, axis=-1), axis=-1))
     return out, residual
+
+
+def log_so3(r: np.ndarray) -> np.ndarray:
+    """Rotation vector of one rotation matrix; accurate near zero, scipy near π."""
+    return np.array(_log_so3_floats(r))
+
+
+def _log_so3_floats(r: np.ndarray) -> tuple[float, float, float]:
+    """:func:`log_so3` in Python floats: the IK's inner loops take it once a step, where each numpy call
+    costs a microsecond or more."""
+    (a, b, c), (d, e, f), (g, h, i) = r.tolist()
+    x, y, z = h - f, c - g, d - b
+    s = 0.5 * math.sqrt(x * x + y * y + z * z)
+    angle = math.atan2(s, 0.5 * (a + e + i - 1.0))
+    if angle > 3.0:
+        return tuple(rotvec(r[None])[0].tolist())
+    k = 0.5 if angle < 1e-9 else angle / (2.0 * s)
+    return k * x, k * y, k * z
+
+
+def error6(target: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``[p_t − p; log(R_t Rᵀ)]`` in m and rad, base frame."""
+    (tx, ty, tz), (px, py, pz) = target[:3, 3].tolist(), T[:3, 3].tolist()
+    return np.array((tx - px, ty - py, tz - pz, *_log_so3_floats(target[:3, :3] @ T[:3, :3].T)))
+
+
+def error6_batch(targets: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``(B, 6)``: :func:`error6` of poses ``T (B, 4, 4)`` against ``targets`` ``(B, 4, 4)`` or one ``(4, 4)``.
+    The rotation vector in closed form as :func:`log_so3` (scipy's Rotation costs more than the rest for a few
+    poses, on the valley search's and the closed forms' paths), scipy's where the angle nears π."""
+    r = targets[..., :3, :3] @ T[:, :3, :3].mT
+    skew = np.stack([r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0], r[:, 1, 0] - r[:, 0, 1]], axis=1)
+    s = 0.5 * np.linalg.norm(skew, axis=1)
+    angle = np.arctan2(s, 0.5 * (np.trace(r, axis1=1, axis2=2) - 1.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rotation = np.where(angle < 1e-9, 0.5, angle / (2.0 * s))[:, None] * skew
+    far = angle > 3.0
+    if far.any():
+        rotation[far] = rotvec(r[far])
+    return np.concatenate([targets[..., :3, 3] - T[:, :3, 3], rotation], axis=1)
+
+
+def left_jacobian_so3(w: np.ndarray) -> np.ndarray:
+    """``(B, 3, 3)``: maps d(ω) to the angular velocity of ``exp(ω)`` in the base frame; ``(3, 3)`` for one
+    vector ``(3,)``, in Python floats (faster than numpy for one)."""
+    if w.shape == (3,):
+        x, y, z = w.tolist()
+        t = math.sqrt(x * x + y * y + z * z)
+        if t < 1e-8:
+            return rodrigues_one(x, y, z, 0.5, 1.0 / 6.0)
+        return rodrigues_one(x, y, z, (1.0 - math.cos(t)) / (t * t), (t - math.sin(t)) / (t * t * t))
+    theta = np.linalg.norm(w, axis=-1)[..., None, None]
+    k = skew(w)
+    small = theta < 1e-8
+    t = np.where(small, 1.0, theta)
+    a = np.where(small, 0.5, (1.0 - np.cos(t)) / t**2)
+    b = np.where(small, 1.0 / 6.0, (t - np.sin(t)) / t**3)
+    return np.eye(3) + a * k + b * (k @ k)

@@ -22,7 +22,6 @@ them.
 from __future__ import annotations
 
 import copy
-import math
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -37,7 +36,7 @@ from hybrid_kinematics_ros.io.model_dir import load_model_dir
 from hybrid_kinematics_ros.kinematics import approach, fk
 from hybrid_kinematics_ros.kinematics.chain import Chain, chain_from_urdf
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
-from hybrid_kinematics_ros.kinematics.se3 import exp_so3, pose_errors, rodrigues_one, skew
+from hybrid_kinematics_ros.kinematics.se3 import exp_so3, left_jacobian_so3, pose_errors
 from hybrid_kinematics_ros.kinematics.unrolled import Rows, unrolled_fk
 from hybrid_kinematics_ros.model import pose_kernel
 from hybrid_kinematics_ros.model.bounds import DISTANCE, Bounds, excess
@@ -51,24 +50,6 @@ from hybrid_kinematics_ros.model.referencing import Referencing
 # which spends small batches on operator dispatch: the batches of the IK's valley search (a valley's 20-40 traced
 # points) and of several solutions, and a service's few configurations.
 COMPILED_ROWS = 64
-
-
-def left_jacobian_so3(w: np.ndarray) -> np.ndarray:
-    """``(B, 3, 3)``: maps d(ω) to the angular velocity of ``exp(ω)`` in the base frame; ``(3, 3)`` for one
-    vector ``(3,)``, in Python floats (faster than numpy for one)."""
-    if w.shape == (3,):
-        x, y, z = w.tolist()
-        t = math.sqrt(x * x + y * y + z * z)
-        if t < 1e-8:
-            return rodrigues_one(x, y, z, 0.5, 1.0 / 6.0)
-        return rodrigues_one(x, y, z, (1.0 - math.cos(t)) / (t * t), (t - math.sin(t)) / (t * t * t))
-    theta = np.linalg.norm(w, axis=-1)[..., None, None]
-    k = skew(w)
-    small = theta < 1e-8
-    t = np.where(small, 1.0, theta)
-    a = np.where(small, 0.5, (1.0 - np.cos(t)) / t**2)
-    b = np.where(small, 1.0 / 6.0, (t - np.sin(t)) / t**3)
-    return np.eye(3) + a * k + b * (k @ k)
 
 
 class HybridModel:

@@ -14,12 +14,12 @@ from scipy.spatial.transform import Rotation
 from bench.bench_ik_singular import cases
 from hybrid_kinematics_ros.ik.analytic import CHECK_M, AnalyticIK, classify, fold, geometry
 from hybrid_kinematics_ros.ik.errors import IKError
-from hybrid_kinematics_ros.ik.lm import error6, error6_batch
 from hybrid_kinematics_ros.ik.seeds import NEAR_M, NEAR_RAD
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.chain import chain_from_urdf
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.kinematics.se3 import error6, error6_batch
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from test.ik.test_valley import hybrid_errors
 

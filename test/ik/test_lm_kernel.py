@@ -10,9 +10,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.ik import lm_kernel
-from hybrid_kinematics_ros.ik.lm import ChainFkJac, error6, joint_limits, lm_solve
+from hybrid_kinematics_ros.ik.lm import ChainFkJac, joint_limits, lm_solve
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.kinematics.se3 import error6
 
 
 def test_the_compiled_loop_gives_the_python_loops_answers():

@@ -7,10 +7,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.ik.analytic import fold
-from hybrid_kinematics_ros.ik.lm import error6
 from hybrid_kinematics_ros.ik.round_kernel import chord_step, error_and_compensated, nearest_copy
 from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.kinematics.se3 import error6
 
 
 def _pose(rotation: Rotation, position: np.ndarray) -> np.ndarray:

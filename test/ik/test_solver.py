@@ -223,7 +223,7 @@ def test_the_pose_error_is_scipys_rotation_vector():
     """error6's Python-float rotation vector against scipy's, from nearly zero to nearly a half turn."""
     from scipy.spatial.transform import Rotation
 
-    from hybrid_kinematics_ros.ik.lm import error6
+    from hybrid_kinematics_ros.kinematics.se3 import error6
 
     rng = np.random.default_rng(4)
     for angle in (1e-12, 1e-7, 0.3, 2.0, 2.99, 3.01, np.pi - 1e-6):

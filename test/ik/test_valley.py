@@ -14,7 +14,7 @@ import pytest
 from bench.bench_ik_singular import cases
 from hybrid_kinematics_ros.ik import seeds as seeding
 from hybrid_kinematics_ros.ik import valley as valley_module
-from hybrid_kinematics_ros.ik.lm import error6, joint_limits, lm_solve
+from hybrid_kinematics_ros.ik.lm import joint_limits, lm_solve
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, SolveRequest
 from hybrid_kinematics_ros.ik.valley import (
     NEAR_SINGULAR,
@@ -26,6 +26,7 @@ from hybrid_kinematics_ros.ik.valley import (
     weak_direction,
 )
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.kinematics.se3 import error6
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 TOL_M = 1e-8  # the solver's inner tolerance at its default 1e-4 mm

@@ -7,9 +7,10 @@ from __future__ import annotations
 import numpy as np
 
 from hybrid_kinematics_ros.ik import valley, valley_kernel
-from hybrid_kinematics_ros.ik.lm import error6, joint_limits, project
+from hybrid_kinematics_ros.ik.lm import joint_limits, project
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.kinematics.se3 import error6
 
 
 def _numpy_onto(chain, pose, x, border, v):

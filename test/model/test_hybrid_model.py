@@ -14,8 +14,9 @@ from hybrid_kinematics_ros.calibration.evaluate import coverage_report, evaluate
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics import fk, se3
 from hybrid_kinematics_ros.kinematics.robot_config import CONFIG_DIR
+from hybrid_kinematics_ros.kinematics.se3 import left_jacobian_so3
 from hybrid_kinematics_ros.model.errors import ModelError
-from hybrid_kinematics_ros.model.hybrid import HybridModel, left_jacobian_so3
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.model.nets import AxisTurn, FastResidual, to_joint1_frame
 
 
