@@ -22,6 +22,7 @@ import yourdfpy
 from lxml import etree
 
 from hybrid_kinematics_ros.kinematics.errors import KinematicsError
+from hybrid_kinematics_ros.kinematics.fk_kernel import ChainOperands
 from hybrid_kinematics_ros.kinematics.paths import resolve_path
 from hybrid_kinematics_ros.kinematics.se3 import skew
 
@@ -92,12 +93,14 @@ class Chain:
         return len(self.joint_names)
 
     @cached_property
-    def kernel_operands(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The arguments after ``q`` of :mod:`~hybrid_kinematics_ros.kinematics.fk_kernel`'s kernels, built once:
-        the generators ``(n, 3, 4, 4)``, which joints are revolute, ``post`` and the axes, contiguous."""
-        return tuple(
-            np.ascontiguousarray(a, dtype=dtype)
-            for a, dtype in ((self.generators, float), (self.revolute, bool), (self.post, float), (self.axes, float))
+    def kernel_operands(self) -> ChainOperands:
+        """The arguments after ``q`` of :mod:`~hybrid_kinematics_ros.kinematics.fk_kernel`'s kernels, built once,
+        contiguous (unpacked into each call: the kernels take plain arrays)."""
+        return ChainOperands(
+            generators=np.ascontiguousarray(self.generators, dtype=float),
+            revolute=np.ascontiguousarray(self.revolute, dtype=bool),
+            post=np.ascontiguousarray(self.post, dtype=float),
+            axes=np.ascontiguousarray(self.axes, dtype=float),
         )
 
     @cached_property

@@ -279,19 +279,29 @@ class ElasticChain:
         return tip, jac
 
     @cached_property
-    def _kernel_operands(self) -> tuple:
-        """:func:`fk_kernel.elastic_pose`'s constants after the chain's: the loads, gravity and the stage's
-        parameters (the optional terms as zeros), contiguous."""
+    def _kernel_operands(self) -> fk_kernel.ElasticOperands:
+        """:func:`fk_kernel.elastic_pose`'s operands after the joints, contiguous (unpacked into each call)."""
         mass = np.append(self.chain.segment_mass, self.payload_mass)
         zeros = np.zeros(self.dof)
 
         def c(a: np.ndarray | None) -> np.ndarray:
             return zeros if a is None else np.ascontiguousarray(a, dtype=float)
 
-        loads = (c(self.chain.segment_com), mass, np.cumsum(mass[::-1])[::-1][:-1], c(self.payload_com))
-        stiffness = (c(self.compliance), float(self.cubic_ratio), float(self.torque_ref))
-        extra = (c(self.cubic_compliance), c(self.signed_compliance), c(self.bending), bool(np.any(self.bending)))
-        return (*self.chain.kernel_operands, *loads, c(self.gravity), *stiffness, *extra)
+        return fk_kernel.ElasticOperands(
+            *self.chain.kernel_operands,
+            segment_com=c(self.chain.segment_com),
+            mass=mass,
+            beyond=np.cumsum(mass[::-1])[::-1][:-1],
+            payload_com=c(self.payload_com),
+            gravity=c(self.gravity),
+            compliance=c(self.compliance),
+            cubic_ratio=float(self.cubic_ratio),
+            torque_ref=float(self.torque_ref),
+            cubic_compliance=c(self.cubic_compliance),
+            signed_compliance=c(self.signed_compliance),
+            bending=c(self.bending),
+            bends=bool(np.any(self.bending)),
+        )
 
     @cached_property
     def pose_operands(self) -> tuple | None:
@@ -302,7 +312,7 @@ class ElasticChain:
             return None
         coefficients = self._cyclic_coefficients if self.joint_error is not None else np.zeros((self.dof, 0, 2))
         offset = np.ascontiguousarray(self.zero_offset, dtype=float)
-        return offset, coefficients, self.is_elastic, self._kernel_operands
+        return offset, coefficients, self.is_elastic, tuple(self._kernel_operands)  # a plain tuple: one argument
 
     def _single(self, q: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray]:
         """The tip ``(4, 4)`` and (zeros unless ``jacobian``) the Jacobian ``(6, n)`` of one configuration, before

@@ -13,9 +13,42 @@ code's to rounding (~1e-15), not bit for bit. Compiled on first use and cached o
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
+
+
+class ChainOperands(NamedTuple):
+    """The rigid chain as the compiled kernels take it after the joints, named in their parameters' order
+    (:attr:`Chain.kernel_operands`; every kernel of the IK that takes the chain ends with these)."""
+
+    generators: np.ndarray  # (n, 3, 4, 4): each joint's factor G0 + a G1 + b G2
+    revolute: np.ndarray  # (n,) bool
+    post: np.ndarray  # (4, 4): the last joint's frame to the tip
+    axes: np.ndarray  # (n, 3): each joint's axis in its own frame
+
+
+class ElasticOperands(NamedTuple):
+    """:func:`elastic_pose`'s operands after the joints, named in its parameters' order: the chain's, the loads,
+    gravity and the stage's parameters (the optional ones as zeros)."""
+
+    generators: np.ndarray
+    revolute: np.ndarray
+    post: np.ndarray
+    axes: np.ndarray
+    segment_com: np.ndarray  # (n, 3) m, each segment's centre of mass in its joint's frame
+    mass: np.ndarray  # (n + 1,) kg: each segment's, then the payload's
+    beyond: np.ndarray  # (n,) kg: the mass each joint carries
+    payload_com: np.ndarray  # (3,) m, tip frame
+    gravity: np.ndarray  # (3,) m/s², base frame
+    compliance: np.ndarray  # (n,) rad per N·m
+    cubic_ratio: float
+    torque_ref: float  # N·m
+    cubic_compliance: np.ndarray  # (n,)
+    signed_compliance: np.ndarray  # (n,)
+    bending: np.ndarray  # (n, 3)
+    bends: bool  # whether any link bends
 
 
 @numba.njit(cache=True, nogil=True)
