@@ -36,8 +36,8 @@ def trained_model(robot: str, tmp: Path, minutes: float) -> HybridModel:
 
 
 def paper_protocol(model: HybridModel, n: int, options: IKOptions) -> tuple[list, list]:
-    solver = IKSolver(model, options)
-    patient = IKSolver(model, replace(options, timeout_s=LONG_BUDGET_S))
+    solver = IKSolver(model, options).warm_up()
+    patient = IKSolver(model, replace(options, timeout_s=LONG_BUDGET_S)).warm_up()
     freeze_heap()  # as the node does: no full collection of the loaded models inside a timed solve
     one_blas_thread()  # and BLAS on this thread only (no pool's stall)
     q = np.random.default_rng(11).uniform(model.chain.lower, model.chain.upper, (n, model.chain.dof))
@@ -101,7 +101,7 @@ def main() -> None:
         # cost comparison on the UR10
         cost_rows = []
         for cost, refine in (("pose6", "scipy"), ("eq2", "scipy"), ("pose6", "lm")):
-            solver = IKSolver(ur10, options) if refine == "lm" else scipy_refine_solver(ur10, options, cost)
+            solver = IKSolver(ur10, options).warm_up() if refine == "lm" else scipy_refine_solver(ur10, options, cost)
             results = [solver.solve(t) for t in ur10_targets[:500]]
             cost_rows.append(
                 [
@@ -117,7 +117,7 @@ def main() -> None:
         analytic = HybridModel.analytic_only(chain)
         solver = IKSolver(
             analytic, IKOptions(timeout_s=0.005, position_tolerance_mm=1e-2, orientation_tolerance_deg=np.degrees(1e-5))
-        )
+        ).warm_up()
         q = np.random.default_rng(5).uniform(chain.lower, chain.upper, (10_000, chain.dof))
         targets = analytic.fk(q)
         times, ok = [], 0
@@ -127,7 +127,7 @@ def main() -> None:
             ok += r.success
         trac = (100 * ok / len(targets), 1e3 * np.mean(times))
         # trajectory: each pose seeded by the previous answer, against independent solves
-        solver = IKSolver(ur10, options)
+        solver = IKSolver(ur10, options).warm_up()
         q0 = np.array([0.2, -1.3, 1.4, -1.2, 1.0, 0.1])
         path = q0 + np.linspace(0, 1, 1000)[:, None] * np.array([0.8, 0.4, -0.5, 0.3, 0.4, 0.6])
         targets = ur10.fk(path)

@@ -55,7 +55,7 @@ def single_moves(cell: BacklashCell, models: dict[str, HybridModel], count: int)
             model = models["plain" if way == WAYS[0] else "approach"]
             if way != WAYS[0]:
                 model = model.with_approach(-arrive)  # the joints last moved the other way
-            result = IKSolver(model, replace(OPTIONS, arrive_from_seed=way == WAYS[2])).solve(target, seed)
+            result = IKSolver(model, replace(OPTIONS, arrive_from_seed=way == WAYS[2])).warm_up().solve(target, seed)
             directions = arrival_directions(seed, result.q, -arrive)
             out[way][0].append(cell.miss_mm(result.q, directions, target)[0] if result.success else np.nan)
             out[way][1].append(result.seconds)
@@ -83,7 +83,8 @@ def trajectories(cell: BacklashCell, models: dict[str, HybridModel], count: int)
             if way != WAYS[0]:
                 model = model.with_approach(np.zeros(chain.dof))
             start = time.perf_counter()
-            results = IKSolver(model, replace(OPTIONS, arrive_from_seed=way == WAYS[2])).solve_trajectory(targets, seed)
+            solver = IKSolver(model, replace(OPTIONS, arrive_from_seed=way == WAYS[2])).warm_up()
+            results = solver.solve_trajectory(targets, seed)
             seconds = (time.perf_counter() - start) / len(targets)
             q = np.array([r.q for r in results])
             directions = approach_directions(np.vstack([seed, q]), start=np.zeros(chain.dof))[1:]

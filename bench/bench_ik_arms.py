@@ -50,7 +50,7 @@ def chains() -> list[tuple[str, str, Chain]]:
 
 def measure(chain: Chain, n: int) -> dict:
     model = HybridModel.analytic_only(chain)
-    solver = IKSolver(model, IKOptions())
+    solver = IKSolver(model, IKOptions()).warm_up()
     freeze_heap()  # as the node does: no full collection of the loaded models inside a timed solve
     one_blas_thread()  # and BLAS on this thread only (no pool's stall)
     lower = np.where(np.isfinite(chain.lower), chain.lower, -np.pi)
@@ -59,7 +59,7 @@ def measure(chain: Chain, n: int) -> dict:
     results = [solver.solve(t) for t in targets]
     ok = np.array([r.success for r in results])
     ms = 1e3 * np.array([r.seconds for r in results])
-    patient = IKSolver(model, IKOptions(timeout_s=2.0))
+    patient = IKSolver(model, IKOptions(timeout_s=2.0)).warm_up()
     missed = np.flatnonzero(~ok)
     late = [int(i) for i in missed if patient.solve(targets[i]).success]
     return {"ok": ok, "ms": ms, "late": late, "never": [int(i) for i in missed if i not in late]}

@@ -95,17 +95,17 @@ def run(solver: IKSolver, targets: np.ndarray, analytic: bool) -> tuple[float, f
 def side_by_side(model: HybridModel, targets: np.ndarray, analytic: bool, options: IKOptions) -> list[str]:
     """Iterative / closed forms without the valley search / with it (the URDF model has no valley search: its
     middle figure is left out)."""
-    solvers = [IKSolver(model, replace(options, closed_form=False))]
+    solvers = [IKSolver(model, replace(options, closed_form=False)).warm_up()]
     if not analytic:
-        solvers.append(IKSolver(model, replace(options, valley=False)))
-    solvers.append(IKSolver(model, options))
+        solvers.append(IKSolver(model, replace(options, valley=False)).warm_up())
+    solvers.append(IKSolver(model, options).warm_up())
     figures = [run(solver, targets, analytic) for solver in solvers]
     return [" / ".join(f"{f[k]:{spec}}" for f in figures) for k, spec in enumerate((".2f", ".3f", ".1f", ".3f"))]
 
 
 def branch_counts(model: HybridModel, n: int) -> tuple[int, int]:
     """Targets where all branches (``solve_many``, URDF model) number as many as IK-Geo's exact in-limit ones."""
-    solver = IKSolver(model, IKOptions())
+    solver = IKSolver(model, IKOptions()).warm_up()
     chain = model.chain
     q = np.random.default_rng(3).uniform(chain.lower, chain.upper, (n, chain.dof))
     agree = 0
@@ -140,7 +140,7 @@ def main() -> None:
             # several solutions through the hybrid model
             targets = model.fk(rng.uniform(model.chain.lower, model.chain.upper, (args.targets, 6)))
             for closed in (False, True):
-                solver = IKSolver(model, replace(options, closed_form=closed))
+                solver = IKSolver(model, replace(options, closed_form=closed)).warm_up()
                 start = time.perf_counter()
                 found = [
                     len(solver.solve_many(t, max_solutions=8, deadline=time.perf_counter() + 8 * BUDGET_S))

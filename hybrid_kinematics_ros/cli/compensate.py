@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
         require_calibrated_range=args.out_of_range == "refuse",
     )
     result = compensate(
-        IKSolver(model, options),
+        IKSolver(model, options).warm_up(),
         q,
         t,
         rates["velocity"],

@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
         raise DataError(f"--solutions must be at least 1, got {args.solutions}")
     bounded = args.bounds or args.rank_by_bound
     names = bound_names(model, args) if bounded else []
-    solver = IKSolver(model, IKOptions(timeout_s=args.timeout_ms / 1e3))
+    solver = IKSolver(model, IKOptions(timeout_s=args.timeout_ms / 1e3)).warm_up()
     out_rows = []
     failed = 0
     for i, target in enumerate(tqdm(targets, desc="ik", unit="pose")):

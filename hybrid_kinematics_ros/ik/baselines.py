@@ -91,7 +91,7 @@ def scipy_refine_solver(
     limits = joint_limits(model.chain)
     tolerances = (o.position_tolerance_mm, o.orientation_tolerance_deg, o.refine_width_rad, o.timeout_s)
     refiner = ScipyRefiner(model, limits, *tolerances, cost=cost, rotation_scale_mm=rotation_scale_mm)
-    return IKSolver(model, o, refiner)
+    return IKSolver(model, o, refiner).warm_up()
 
 
 def wang_baseline(

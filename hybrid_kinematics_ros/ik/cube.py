@@ -14,7 +14,7 @@ from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 def cube_waypoints(chain: Chain, centre_q: np.ndarray, side_m: float = 0.3) -> np.ndarray:
     """ISO 9283 cube: centre and 8 corners around the tip pose at ``centre_q``, orientation kept."""
-    solver = IKSolver(HybridModel.analytic_only(chain), IKOptions(timeout_s=0.5))
+    solver = IKSolver(HybridModel.analytic_only(chain), IKOptions(timeout_s=0.5)).warm_up()
     centre = fk.fk_single(chain, centre_q)
     out = [np.asarray(centre_q, dtype=float)]
     half = side_m / 2

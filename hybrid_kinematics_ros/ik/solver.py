@@ -229,10 +229,16 @@ class IKSolver:
         self.path = f"closed form ({self.closed_form.family})" if self.closed_form else "iterative"
         self._last_rank: tuple[bytes, bool] | None = None  # see _rank_lost
         self._mid = model.chain.mid_limits()  # the seed of a request without one
-        # the compiled kernels (LM, the fixed point's round, the URDF model's pose) load here, or on a fresh
-        # checkout compile (a few seconds, once), not in a first request: an LM step, one solve off the middle of
-        # the limits, a chord step. The URDF pose is what a near-singular request checks its branches with, and
-        # no regular solve calls it: loaded there, it would take half a first such request's budget
+
+    def warm_up(self) -> IKSolver:
+        """Load the compiled kernels (LM, the fixed point's round, the URDF model's pose, the valley trace's step)
+        and the model's batched paths now, or on a fresh checkout compile them (a few seconds, once per
+        machine), so that no first request spends its budget on them: an LM step, one solve off the middle of
+        the limits, a chord step. The URDF pose is what a near-singular request checks its branches with, and no
+        regular solve calls it: loaded there, it would take half a first such request's budget. A server calls
+        this once before it answers; the kernels stay loaded for every solver of the process. Returns the
+        solver."""
+        model = self.model
         target = model.fk_single(self._mid + 0.025 * (self.upper - self.lower))  # finite: ±2π where unlimited
         model.fk_single(self._mid, analytic=True)
         # and the batched hybrid FK's two paths (compiled up to COMPILED_ROWS rows, TorchScript beyond), which the
@@ -246,6 +252,7 @@ class IKSolver:
             self._newton_step(self._mid, np.zeros(6))  # a solve may end before its chord steps
             if model.chain.dof == 6:  # and the valley trace's step (valley.warm_up)
                 warm_up(model, self._mid)
+        return self
 
     def with_model(self, model: HybridModel) -> IKSolver:
         """This solver over ``model``, another value of the same calibration (its condition values or approach

@@ -376,7 +376,7 @@ class KinematicsNode(Node):
 
     def _solver(self, model: HybridModel) -> IKSolver:
         options = IKOptions(timeout_s=self.ik_timeout_ms / 1e3, require_calibrated_range=self.range_policy == "refuse")
-        return IKSolver(model, options)
+        return IKSolver(model, options).warm_up()
 
     def _compensator(self, model: HybridModel) -> IKSolver:
         """The IK of compensate_trajectory: the node's options with the compensation's tolerances."""
@@ -387,7 +387,7 @@ class KinematicsNode(Node):
             position_tolerance_mm=mm,
             orientation_tolerance_deg=deg,
         )
-        return IKSolver(model, options)
+        return IKSolver(model, options).warm_up()
 
     # ------------------------------------------------------------------ callbacks
     def _on_joint_state(self, msg: JointState) -> None:

@@ -47,7 +47,7 @@ from hybrid_kinematics_ros.model.hybrid import HybridModel
 chain = robot_config.load_robot_config("ur10").chain
 torch.manual_seed(0)
 net = torch.jit.script(ResidualNet("mlp:32x2", chain.lower, chain.upper, np.zeros(3), np.full(3, 2e-4)))
-solver = IKSolver(HybridModel(chain, {"position": net}))
+solver = IKSolver(HybridModel(chain, {"position": net})).warm_up()
 kernels = [getattr(m, n) for m in (lm_kernel, round_kernel, fk_kernel) for n in dir(m)]
 kernels = [k for k in kernels if isinstance(k, numba.core.registry.CPUDispatcher)]
 loaded = sum(len(k.signatures) for k in kernels)
@@ -60,11 +60,11 @@ print(sum(len(k.signatures) for k in kernels) - loaded)
 """
 
 
-def test_the_solver_loads_its_compiled_kernels_before_the_first_request():
-    """Loading a compiled kernel takes 20-25 ms (on a fresh checkout, seconds to compile), half a request's
-    budget: the solver loads the compiled IK and FK kernels when it is built, the URDF model's pose with them,
-    which regular targets never need and near-singular ones do. In a fresh process, where no other test loaded
-    them first. (The batched hybrid FK's TorchScript path is loaded with them; numba's signatures cannot show
-    that.)"""
+def test_warm_up_loads_the_compiled_kernels_before_the_first_request():
+    """Loading a compiled kernel takes tens of milliseconds (on a fresh checkout, seconds to compile), half a
+    request's budget: ``warm_up`` loads the compiled IK and FK kernels, the URDF model's pose with them, which
+    regular targets never need and near-singular ones do, so that requests load none. In a fresh process, where
+    no other test loaded them first. (The batched hybrid FK's TorchScript path is loaded with them; numba's
+    signatures cannot show that.)"""
     out = subprocess.run([sys.executable, "-c", WARM_SCRIPT], capture_output=True, text=True, check=False)
     assert out.returncode == 0 and out.stdout.strip() == "0", out.stdout + out.stderr
