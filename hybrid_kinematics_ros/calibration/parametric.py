@@ -468,7 +468,7 @@ class StageOptions:
     joint error map's knot spacing (0: no map), fitted last from all the pairs (at most
     :data:`MAP_MAX_PAIRS`), with ``map_smoothness``. ``orientation_length`` (m per rad) weighs the orientation
     residuals against the position ones; ``robust_scale`` (m): residuals well above it are down-weighted (None:
-    chosen from the data, :meth:`Stage.identify`)."""
+    chosen from the data, :meth:`Stage.solve`)."""
 
     payload_mass: float = 0.0
     payload_com: np.ndarray | None = None
