@@ -54,8 +54,8 @@ def tracker_line(floor: tuple[float, float], held_out_mm: float) -> str:
     :attr:`Pairs.floor`)."""
     mm = 1e3 * floor[0]
     return (
-        f"held-out error {held_out_mm:.4f} mm, {held_out_mm / mm:.2f}x the tracker's own floor ({mm:.4f} mm, from "
-        "the scatter of its reflectors; what the robot does not repeat comes on top)"
+        f"held-out error {held_out_mm:.4f} mm, {held_out_mm / mm:.2f}x the tracker's own floor ({mm:.4f} mm, as the "
+        "export tells it; what the robot does not repeat comes on top)"
     )
 
 

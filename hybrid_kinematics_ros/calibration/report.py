@@ -417,14 +417,7 @@ def _summary_section(s: dict[str, Any]) -> list[str]:
         )
     )
     hybrid_mm = s["errors"].get("hybrid", {}).get("position_mm_mean")
-    parts.append(_floor_line(s.get("floor"), hybrid_mm))
-    if s.get("tracker_floor"):
-        tracker = s["tracker_floor"]["position_mm"]
-        ratio = f": the test mean is {hybrid_mm / tracker:.2f}× it" if hybrid_mm else ""
-        parts.append(
-            f"<p><b>The tracker's own floor</b> {tracker:.4f} mm, from the scatter of its reflectors about their "
-            f"rigid layout{ratio}. What the robot does not repeat comes on top of it.</p>"
-        )
+    parts += [_floor_line(s.get("floor"), hybrid_mm), *_tracker_floor_line(s.get("tracker_floor"), hybrid_mm)]
     if s.get("learning_curve"):
         floor_mm = (s.get("floor") or {}).get("position_mm")
         line = capacity_module.curve_line(s["learning_curve"], floor_mm)
@@ -630,6 +623,17 @@ def _uncertainty_lines(uncertainty: dict | None) -> list[str]:
         "<p>σ: the spread expected between calibrations on new poses, from the residuals the stage leaves. "
         f"Condition number (of the parameters' correlation matrix): {uncertainty['condition_number']:.1f}. "
         f"Most correlated: {html.escape(pairs)}.</p>"
+    ]
+
+
+def _tracker_floor_line(floor: dict | None, hybrid_mm: float | None) -> list[str]:
+    """The tracker's own floor, where the export told it (none otherwise), and how far the test error is above it."""
+    if not floor:
+        return []
+    ratio = f": the test mean is {hybrid_mm / floor['position_mm']:.2f}× it" if hybrid_mm else ""
+    return [
+        f"<p><b>The tracker's own floor</b> {floor['position_mm']:.4f} mm, from {floor['from']}{ratio}. What the "
+        "robot does not repeat comes on top of it.</p>"
     ]
 
 

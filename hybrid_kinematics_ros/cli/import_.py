@@ -113,14 +113,14 @@ def spec_dict_from_args(args: argparse.Namespace) -> dict[str, Any]:
         section("joints")["names"] = [c.strip() for c in args.joint_names.split(",")]
     if args.joint_unit:
         section("joints")["unit"] = args.joint_unit
-    if args.position:
-        section("position")["columns"] = args.position
-    if args.position_unit:
-        section("position")["unit"] = args.position_unit
-    if args.position_uncertainty:
-        section("position")["uncertainty"] = args.position_uncertainty
-    if args.uncertainty_coverage is not None:
-        section("position")["coverage"] = args.uncertainty_coverage
+    for flag, key in (
+        ("position", "columns"),
+        ("position_unit", "unit"),
+        ("position_uncertainty", "uncertainty"),
+        ("uncertainty_coverage", "coverage"),
+    ):
+        if getattr(args, flag) is not None:
+            section("position")[key] = getattr(args, flag)
     orient = data.get("orientation") if isinstance(data.get("orientation"), dict) else {}
     if args.orientation and args.orientation != orient.get("kind"):
         data["orientation"] = {"kind": args.orientation}  # another kind: none of the old keys apply

@@ -178,7 +178,7 @@ def floor_summary(floor: tuple[float, float]) -> dict[str, Any]:
     return {
         "position_mm": 1e3 * position,
         "orientation_deg": None if np.isnan(orientation) else float(np.degrees(orientation)),
-        "from": "the scatter of the reflectors about their rigid layout",
+        "from": "the export: the spread of its reflectors about their rigid layout, or its uncertainty columns",
     }
 
 
