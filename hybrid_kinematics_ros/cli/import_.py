@@ -87,6 +87,15 @@ def _pair(text: str, flag: str) -> tuple[str, str]:
     return key.strip(), value.strip()
 
 
+# flags of the spec's position section: flag -> key
+POSITION_FLAGS = {
+    "position": "columns",
+    "position_unit": "unit",
+    "position_uncertainty": "uncertainty",
+    "uncertainty_coverage": "coverage",
+}
+
+
 def spec_dict_from_args(args: argparse.Namespace) -> dict[str, Any]:
     """The spec file's dict (or an empty one) with every given flag written over its key."""
     data: dict[str, Any] = load_spec_dict(args.spec) if args.spec else {}
@@ -113,12 +122,7 @@ def spec_dict_from_args(args: argparse.Namespace) -> dict[str, Any]:
         section("joints")["names"] = [c.strip() for c in args.joint_names.split(",")]
     if args.joint_unit:
         section("joints")["unit"] = args.joint_unit
-    for flag, key in (
-        ("position", "columns"),
-        ("position_unit", "unit"),
-        ("position_uncertainty", "uncertainty"),
-        ("uncertainty_coverage", "coverage"),
-    ):
+    for flag, key in POSITION_FLAGS.items():
         if getattr(args, flag) is not None:
             section("position")[key] = getattr(args, flag)
     orient = data.get("orientation") if isinstance(data.get("orientation"), dict) else {}
