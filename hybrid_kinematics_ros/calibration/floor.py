@@ -53,6 +53,8 @@ def tracker_line(floor: tuple[float, float], held_out_mm: float) -> str:
     """What ``train`` says of a held-out mean position error (mm) against the tracker's own floor (m, rad:
     :attr:`Pairs.floor`)."""
     mm = 1e3 * floor[0]
+    if not mm > 0.0:
+        return f"held-out error {held_out_mm:.4f} mm; the export shows no scatter of the tracker's own"
     return (
         f"held-out error {held_out_mm:.4f} mm, {held_out_mm / mm:.2f}x the tracker's own floor ({mm:.4f} mm, as the "
         "export tells it; what the robot does not repeat comes on top)"

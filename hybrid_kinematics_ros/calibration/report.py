@@ -630,9 +630,10 @@ def _tracker_floor_line(floor: dict | None, hybrid_mm: float | None) -> list[str
     """The tracker's own floor, where the export told it (none otherwise), and how far the test error is above it."""
     if not floor:
         return []
-    ratio = f": the test mean is {hybrid_mm / floor['position_mm']:.2f}× it" if hybrid_mm else ""
+    mm = floor["position_mm"]
+    ratio = f": the test mean is {hybrid_mm / mm:.2f}× it" if hybrid_mm and mm else ""
     return [
-        f"<p><b>The tracker's own floor</b> {floor['position_mm']:.4f} mm, from {floor['from']}{ratio}. What the "
+        f"<p><b>The tracker's own floor</b> {mm:.4f} mm, from {floor['from']}{ratio}. What the "
         "robot does not repeat comes on top of it.</p>"
     ]
 
