@@ -101,7 +101,7 @@ def main() -> None:
         rows.append(row(*cell))
         print(" | ".join(str(v) for v in rows[-1]), flush=True)
     body = (
-        "The robust loss's scale comes from the data: three robust standard deviations (1.4826 × the median "
+        "The robust loss's scale comes from the data: five robust standard deviations (1.4826 × the median "
         "absolute residual) of what each fit leaves, the stage fitted twice (at the scale of its start, then at "
         "that of the first fit's end); an outlier is a pair the stage leaves beyond five of them. The rigid "
         "referencing's outliers are judged the same way against its own residuals. Broken beams: "

@@ -61,9 +61,10 @@ from hybrid_kinematics_ros.model.parametric import Parameter, build_model
 ORIENTATION_LENGTH = 1.0  # m per rad: weighs orientation residuals against position ones, unless chosen (capacity)
 RANK_TOLERANCE = 1e-6  # pivots below this fraction of the largest are unidentifiable
 CORRELATED_PAIRS = 5  # the most correlated pairs of parameters the manifest and the report name
-# The soft-L1 scale, in robust standard deviations of what the fit leaves: a residual as common as the fit's
-# own weighs almost fully, a broken beam or a bumped reflector little.
-ROBUST_SIGMAS = 3.0
+# The soft-L1 scale, in robust standard deviations of what the fit leaves: the fit's ordinary residuals weigh
+# fully (at three, the stage's far residuals lost weight and its error beyond the trained range outgrew the
+# bounds, which least squares measures), a broken beam or a bumped reflector little.
+ROBUST_SIGMAS = 5.0
 ROBUST_MIN_M = 1e-6  # m: the scale of noise-free residuals
 # A pair whose position residual is this many robust standard deviations of one component counts as an
 # outlier: Gaussian scatter leaves about one pair in 10⁵ beyond it.
