@@ -29,10 +29,12 @@ from hybrid_kinematics_ros.simulation.portfolio import CELLS, build_cell
 FORMER = {"elastic": "bending", "harmonics": 40, "harmonic_prior": 30.0, "map_step": 0.01, "map_smoothness": 0.03}
 
 
-def evaluate_cell(config, train_sets: list[Pairs], tests: list[Pairs], approach_inputs: bool, steps: int, fixed):
+def evaluate_cell(
+    config, train_sets: list[Pairs], tests: list[Pairs], approach_inputs: bool, steps: int, fixed, **recipe_fields
+):
     """Fit one model (capacity chosen, or ``fixed``); the errors of each stage on the pooled test pairs.
     Chosen, the data also decide whether the nets take the approach directions; ``fixed``, they take them
-    where ``approach_inputs`` (as the former recipe was told)."""
+    where ``approach_inputs`` (as the former recipe was told). ``recipe_fields``: any other recipe field."""
     conditions = approach.channel_names(config.chain.joint_names) if approach_inputs and fixed else ()
     model, manifest, tr, seconds = fit_recipe(
         config,
@@ -43,6 +45,7 @@ def evaluate_cell(config, train_sets: list[Pairs], tests: list[Pairs], approach_
         steps,
         capacity=fixed,
         choose_capacity=fixed is None,
+        **recipe_fields,
     )
     errors = model_errors(config, model, manifest, tr, tests)
     # the test pairs inside the trained joint range, where the model interpolates, and their hybrid errors

@@ -93,14 +93,24 @@ def noise_floor(pairs: Pairs, chain) -> tuple[float, float, int]:
 
 
 def fit_recipe(
-    cfg, train_sets, preset, conditions, minutes, steps, seed=0, capacity=None, choose_capacity=True, out=None
+    cfg,
+    train_sets,
+    preset,
+    conditions,
+    minutes,
+    steps,
+    seed=0,
+    capacity=None,
+    choose_capacity=True,
+    out=None,
+    **recipe_fields,
 ):
     """Fit one recipe on ``train_sets`` (a tenth of each validates); returns the model, its manifest, the
     training pairs and the seconds. ``steps``: optimiser steps per net, the budget that load does not
     change (the paper's recipe stops early on validation, or at ``minutes``). ``minutes``: the cap per net
     trained, so a recipe that trains more nets (the ladder's sizes, an ensemble's members) gets more.
     ``capacity`` and ``choose_capacity``: the stage's, as :class:`Recipe` takes them. ``out``: the model
-    directory to keep (None: a temporary one)."""
+    directory to keep (None: a temporary one). ``recipe_fields``: any other :class:`Recipe` field."""
     tr, va = zip(*[split(p, seed, (0.1, 0.0))[:2] for p in train_sets], strict=True)
     per_epoch = max(1, sum(len(p) for p in tr) // preset.batch)
     epochs = preset.max_epochs if preset.patience else max(1, steps // per_epoch)
@@ -114,6 +124,7 @@ def fit_recipe(
         payload_com=tuple(cfg.payload_com),
         conditions=tuple(conditions),
         offered=() if preset.name == "paper" else None,  # the paper's nets read the joints alone
+        **recipe_fields,
     )
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()

@@ -213,11 +213,13 @@ Sets = tuple[list[Pairs], list[Pairs], list[Pairs]]  # training, validation and 
 @dataclass(frozen=True)
 class Stage:
     """What the nets learn on: the stage (or the URDF chain), the referencings it was fitted with and, when
-    one was identified and served, its result."""
+    one was identified and served, its result and the training pairs it kept (``train``, one per frame;
+    None: all of them)."""
 
     base: ElasticChain
     refs: dict[str, Referencing]
     result: ParametricResult | None = None
+    train: list[Pairs] | None = None
 
 
 @dataclass(frozen=True)
@@ -281,6 +283,8 @@ def fit(
     stage = _stage(chain, raw, rigid_refs, recipe, manifest, log)
     if stage.refs:
         manifest["referencing"] = [ref.manifest() for ref in stage.refs.values()]
+    if stage.train is not None:
+        raw = (stage.train, raw[1], raw[2])
     sets = tuple(to_base_frame(p, chain, stage.refs) for p in raw)
     inputs = _inputs(chain, recipe, stage, sets, log)
     start = time.perf_counter()
@@ -342,16 +346,12 @@ def _stage(
     if not recipe.parametric:
         return rigid
     start = time.perf_counter()
-    refs, result = identify_stations(
-        chain,
-        raw[0],
-        rigid_refs,
-        recipe.payload,
-        recipe.seed,
-        recipe.capacity,
-        recipe.choose_capacity,
-        recipe.gravity_vector,
-    )
+    refs, result = _identify(chain, raw[0], rigid_refs, recipe)
+    kept, dropped = None, result
+    if recipe.drop_outliers and len(result.outliers):
+        kept = without(raw[0], result.outliers)
+        again = reference_all(chain, kept, recipe.shared_targets, recipe.seed)
+        refs, result = _identify(chain, kept, again, recipe)
     verdict = rigid_verdict(chain, raw[1], (result.model, refs), rigid_refs)
     if verdict is not None and not verdict["better"]:
         log(
@@ -364,13 +364,46 @@ def _stage(
         manifest["capacity"] = result.capacity
         log("parametric stage capacity (cross-validated): " + capacity_module.summary(result.capacity))
     manifest["parametric"] = {**result.manifest(), "seconds": round(time.perf_counter() - start, 1)}
+    if kept is not None:
+        manifest["parametric"]["dropped"] = dropped.manifest()["outliers"]
+        log(
+            f"parametric stage: {len(dropped.outliers)} training pairs beyond {1e3 * dropped.outlier_limit:.4f} mm "
+            "of what it leaves dropped as outliers; the referencing and the stage fitted again without them"
+        )
     log(
         f"parametric stage: {int(result.identifiable.sum())} of {len(result.params)} parameters identifiable; "
         f"rms {result.rms_before['position_mm']:.4f} -> {result.rms_after['position_mm']:.4f} mm; "
         f"{len(result.outliers)} pairs beyond {1e3 * result.outlier_limit:.4f} mm of what it leaves, down-weighted as "
         "outliers"
     )
-    return Stage(result.model, refs, result)
+    return Stage(result.model, refs, result, kept)
+
+
+def _identify(
+    chain: Chain, stations: Sequence[Pairs], rigid_refs: dict[str, Referencing], recipe: Recipe
+) -> tuple[dict[str, Referencing], ParametricResult]:
+    """:func:`identify_stations` as the recipe says."""
+    return identify_stations(
+        chain,
+        stations,
+        rigid_refs,
+        recipe.payload,
+        recipe.seed,
+        recipe.capacity,
+        recipe.choose_capacity,
+        recipe.gravity_vector,
+    )
+
+
+def without(stations: Sequence[Pairs], drop: np.ndarray) -> list[Pairs]:
+    """The ``stations`` without the pairs ``drop`` (indices into all of them, in order); a station that
+    would be left empty is kept whole, so that every tracker frame stays referenced."""
+    out, first = [], 0
+    for p in stations:
+        keep = np.setdiff1d(np.arange(len(p)), np.asarray(drop) - first)
+        first += len(p)
+        out.append(p.subset(keep) if len(keep) else p)
+    return out
 
 
 def _inputs(chain: Chain, recipe: Recipe, stage: Stage, sets: tuple[Pairs, ...], log: Callable[[str], None]) -> Inputs:

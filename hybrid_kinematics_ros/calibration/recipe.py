@@ -38,6 +38,8 @@ class Recipe:
     the stage's defaults. ``conditions`` are channels the nets always take; ``offered`` are channels each
     net takes only where its validation errors show their worth (None: every varied channel the pairs carry,
     unless ``conditions`` names some). ``shared_targets`` groups tracker frames that saw one target.
+    ``drop_outliers``: the training pairs the stage leaves far off (its outliers) are left out, and the
+    referencing, the stage and the nets fitted without them; otherwise they stay in, down-weighted.
     """
 
     preset: train.Preset = field(default_factory=lambda: train.PRESETS["fast"])
@@ -53,6 +55,7 @@ class Recipe:
     conditions: tuple[str, ...] = ()
     offered: tuple[str, ...] | None = None
     shared_targets: tuple[tuple[str, ...], ...] = ()
+    drop_outliers: bool = True
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.capacity) - set(CAPACITY_SETTINGS))

@@ -584,7 +584,7 @@ def _parametric_section(m: dict[str, Any], out_dir: Path) -> list[str]:
         parts += [
             f"<p>{len(fitted)} of {len(par['parameters'])} parameters identified; rms position error "
             f"{par['rms_before']['position_mm']:.4f} → {par['rms_after']['position_mm']:.4f} mm.</p>",
-            *_outlier_line(par.get("outliers")),
+            *_outlier_line(par),
             _table(["parameter", "value", "σ", "unit"], rows),
             *_uncertainty_lines(par.get("uncertainty")),
             *(
@@ -604,14 +604,24 @@ def _parametric_section(m: dict[str, Any], out_dir: Path) -> list[str]:
     return parts
 
 
-def _outlier_line(outliers: dict[str, Any] | None) -> list[str]:
-    """What the stage left far off: the pairs down-weighted as outliers (none in an older model)."""
-    if outliers is None:
-        return []
-    return [
-        f"<p>Outliers: {outliers['pairs']} pairs lie more than {outliers['beyond_mm']:.4f} mm (five robust "
-        "standard deviations) off what the stage leaves; they were down-weighted.</p>"
-    ]
+def _outlier_line(par: dict[str, Any]) -> list[str]:
+    """What the stage left far off: the training pairs dropped before it was fitted again, and those it
+    down-weighted (neither in an older model)."""
+    lines = []
+    dropped = par.get("dropped")
+    if dropped is not None:
+        lines.append(
+            f"<p>Dropped: {dropped['pairs']} training pairs lay more than {dropped['beyond_mm']:.4f} mm (five robust "
+            "standard deviations) off what the stage left; the referencing, the stage and the nets were fitted "
+            "again without them.</p>"
+        )
+    outliers = par.get("outliers")
+    if outliers is not None:
+        lines.append(
+            f"<p>Outliers: {outliers['pairs']} pairs lie more than {outliers['beyond_mm']:.4f} mm (five robust "
+            "standard deviations) off what the stage leaves; they were down-weighted.</p>"
+        )
+    return lines
 
 
 def _uncertainty_lines(uncertainty: dict | None) -> list[str]:

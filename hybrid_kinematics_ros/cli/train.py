@@ -104,6 +104,13 @@ def _stage_args(p: argparse.ArgumentParser) -> None:
         default=True,
         help="identify the elasto-geometric stage before the nets (default on; --no-parametric: nets on the URDF)",
     )
+    p.add_argument(
+        "--drop-outliers",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="leave out the training pairs the stage leaves beyond five robust standard deviations and fit again "
+        "without them (default on; --no-drop-outliers: keep them, down-weighted)",
+    )
     stage = p.add_argument_group(
         "the parametric stage's capacity",
         "each is chosen by cross-validation over contiguous blocks of the training pairs unless given here; "
@@ -248,6 +255,7 @@ RECIPE_FLAGS = (
     "condition",
     "offer_conditions",
     "shared_target",
+    "drop_outliers",
 )
 
 
@@ -276,6 +284,7 @@ def recipe_from_args(args: argparse.Namespace, preset: train.Preset, chain: Chai
         ),
         offered=None if args.offer_conditions else (),
         shared_targets=tuple(tuple(names.split(",")) for names in args.shared_target or ()),
+        drop_outliers=args.drop_outliers,
     )
 
 

@@ -8,13 +8,16 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.evaluate import target_errors
-from hybrid_kinematics_ros.calibration.fit import identify_stations, reference_all
+from hybrid_kinematics_ros.calibration.fit import fit, identify_stations, reference_all, split
+from hybrid_kinematics_ros.calibration.recipe import Recipe
 from hybrid_kinematics_ros.model.referencing import to_base_frame
 from hybrid_kinematics_ros.simulation.portfolio import CENTIMETRES_OFF, TRACKER_FAR, CellSpec, build_cell
 
 CAPACITY = {"elastic": "bending", "harmonics": 0, "map_step": 0.0}  # capacity is not what these tests choose
 EVERY = 20  # one pair in this many has a broken beam
+PRESET = replace(train.PRESETS["fast"], arch="mlp:32x2:silu", max_epochs=5, ensemble=1)
 
 
 @pytest.fixture(scope="module")
@@ -53,3 +56,25 @@ def test_broken_beams_are_found_on_what_the_stage_leaves_and_do_not_move_it(cell
     assert np.isin(bad, found).mean() >= 0.9  # hidden under centimetres of model error, found under the stage's
     assert np.isin(found, bad).mean() >= 0.8
     assert broken_mm < 1.1 * clean_mm
+
+
+def test_train_drops_the_stages_outliers_and_fits_again_without_them(cell, tmp_path):
+    """Broken beams make capacity selection choose a poorer stage; dropped, the stage is chosen and fitted as
+    on the clean pairs, and the nets learn without them too."""
+    pairs, bad = broken(cell.train)
+    chain = cell.config.chain
+    runs = {}
+    for name, data, drop in (("clean", cell.train, True), ("kept", pairs, False), ("dropped", pairs, True)):
+        tr, va, _ = split(data, 0, (0.1, 0.0), blocks=None)
+        recipe = Recipe(PRESET, 1.0, drop_outliers=drop)
+        runs[name] = fit(chain, tr, va, cell.test, tmp_path / name, recipe)[1]
+    kept, dropped = runs["kept"], runs["dropped"]
+    assert "dropped" not in kept["parametric"] and kept["data"]["train"] == len(tr)
+    left_out = dropped["parametric"]["dropped"]["pairs"]
+    in_training = np.isin(pairs.stamps[bad], tr.stamps).sum()
+    assert in_training <= left_out < 1.5 * in_training
+    assert dropped["data"]["train"] == len(tr) - left_out  # the nets learn without them
+    assert dropped["parametric"]["outliers"]["pairs"] < 0.2 * left_out  # what is left is tight
+    stage = {name: m["metrics"]["test"]["parametric"]["position_mm_mean"] for name, m in runs.items()}
+    assert stage["dropped"] < stage["kept"]
+    assert stage["dropped"] < 1.05 * stage["clean"]
