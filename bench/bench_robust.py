@@ -66,7 +66,7 @@ def row(name, config, train, test, floor, bad) -> list:
     rigid = next(iter(reference_all(config.chain, [train]).values()))
     kept, _, _ = evaluate_cell(config, [train], [test], True, 30, None, drop_outliers=False)
     errors, manifest, _ = evaluate_cell(config, [train], [test], True, 30, None)
-    outliers = manifest["parametric"].get("dropped", {"pairs": 0, "beyond_mm": float("nan")})
+    outliers = manifest["parametric"].get("dropped", manifest["parametric"]["outliers"])  # the first fit's
     found = "—"
     if bad is not None:  # which pairs the stage names: identified again on every training pair
         _, result = identify_stations(config.chain, [train], reference_all(config.chain, [train]))
