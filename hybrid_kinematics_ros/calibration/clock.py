@@ -73,100 +73,131 @@ def estimate_clock(
        which puts the tracker positions into the base frame.
     3. There, the position mismatch (a linear trend removed in windows of ``window_s``, which takes out
        the nominal FK's slowly varying error) is minimised near the coarse offset.
-    4. :func:`_refine_clock` solves for offset and skew jointly with a model of the FK's error; the frame
+    4. :class:`_Refinement` solves for offset and skew jointly with a model of the FK's error; the frame
        is fitted again with the refined clock and the refinement repeated. The skew is estimated on
        recordings of ``skew_min_span_s`` or more only: over a shorter one the FK error model's misfit looks
        like a skew of a real clock's size, and moves the offset as much as that skew would.
 
     Tracker positions are averaged over one joint period first, against the noise.
     """
-    tj = (rec.joint_stamps - rec.joint_stamps[0]) * NS
-    tp = (rec.pose_stamps - rec.joint_stamps[0]) * NS
-    per_window = max(3, round(window_s / max(float(np.median(np.diff(tj))), 1e-6))) if len(tj) > 1 else 3
-    if len(tj) < 2 * per_window or len(tp) < 20:
-        raise CalibrationError("too few samples to estimate the clock offset; record longer or give it explicitly")
-    frames = fk.joint_frames(chain, rec.q)
-    tip = frames[:, -1]
-    if np.ptp(tip[:, :3, 3], axis=0).max() < 1e-3:
-        raise CalibrationError("the robot does not move: the clock offset cannot be estimated; give it explicitly")
-    smooth = max(1, round(np.median(np.diff(tj)) / max(np.median(np.diff(tp)), 1e-9)))
-    positions, times = rec.positions, tp
-    if smooth > 1 and len(tp) > 2 * smooth:
-        kernel = np.ones(smooth) / smooth
-        step = max(1, smooth // 3)  # the averages change smoothly: keep about three a joint period, for speed
-        # one column at a time, thinned at once: the full averages of 2 minutes at 3 kHz are 12 MB a column
-        positions = np.column_stack(
-            [np.convolve(positions[:, i], kernel, mode="valid")[::step].copy() for i in range(3)]
-        )
-        times = np.convolve(times, kernel, mode="valid")[::step].copy()
-    max_gap = 5.0 * float(np.median(np.diff(times)))  # beam breaks: interpolating across them is no data
-
-    def at(query: np.ndarray, pos: np.ndarray = positions) -> tuple[np.ndarray, np.ndarray]:
-        valid = _bridged(query, times, max_gap)
-        return np.column_stack([np.interp(query, times, pos[:, i]) for i in range(3)]), valid
-
-    # 1. the speed profiles
-    # (on at most the middle two minutes: enough to land within the next stage's ±10 ms, whatever the drift)
-    middle = np.flatnonzero(np.abs(tj - 0.5 * (tj[0] + tj[-1])) <= 60.0)
-    t_mid = tj[middle]
-    v_fk = np.linalg.norm(np.gradient(tip[middle, :3, 3], t_mid, axis=0), axis=1)
-
-    def speed_mismatch(offset: float) -> float:
-        moved, valid = at(t_mid + offset)
-        valid = valid & np.r_[valid[1:], False] & np.r_[False, valid[:-1]]  # gradients next to a gap are no data
-        if valid.mean() < 0.5:
-            return np.inf
-        v = np.linalg.norm(np.gradient(moved, t_mid, axis=0), axis=1)
-        return float(np.mean((v - v_fk)[valid] ** 2))
-
-    grid = np.arange(-max_offset_s, max_offset_s + 1e-12, 0.002)
-    costs = np.array([speed_mismatch(o) for o in grid])
-    if not np.isfinite(costs).any():
-        raise CalibrationError("the joint and tracker streams do not overlap in time")
-    clock = Clock(float(grid[int(np.argmin(costs))]), 0.0, 0)
-
-    # 2. the tracker frame, then 3. the position mismatch in the base frame near the coarse offset
-    base, target = _to_base_frame(tip, tj, clock, positions, at)
-    p_target = p_tip_all(tip, target)
-    blocks = len(tj) // per_window
-    used = blocks * per_window
-    t_blocks = tj[:used].reshape(blocks, per_window)
-    t_centred = t_blocks - t_blocks.mean(axis=1, keepdims=True)
-    t_norm = np.sum(t_centred**2, axis=1, keepdims=True)
-
-    def mismatch(offset: float) -> float:
-        moved, valid = at(tj[:used] + offset, base)
-        if valid.mean() < 0.5:
-            return 1e9  # (m²) no overlap: worse than any real mismatch, and finite for the minimiser
-        e = (moved - p_target[:used]).reshape(blocks, per_window, 3)
-        e = e - e.mean(axis=1, keepdims=True)
-        slope = np.einsum("bw,bwk->bk", t_centred, e) / t_norm
-        residual = e - t_centred[..., None] * slope[:, None, :]
-        ok = valid.reshape(blocks, per_window).all(axis=1)
-        return float(np.mean(residual[ok] ** 2))
-
-    near = clock.offset_s + np.arange(-0.01, 0.01 + 1e-12, 0.001)
-    best = float(near[int(np.argmin([mismatch(o) for o in near]))])
-    coarse = float(minimize_scalar(mismatch, bounds=(best - 0.0015, best + 0.0015), method="bounded").x)
-    clock = Clock(coarse, 0.0, 0)
-    # 4. offset and skew with the FK error model; the frame once more with the better clock
-    cache: dict = {}
-    fit_skew = tj[-1] - tj[0] >= skew_min_span_s
+    streams = _Streams.of(chain, rec, window_s)
+    clock = Clock(streams.speed_offset(max_offset_s), 0.0, 0)
+    base, target = _to_base_frame(streams, clock)
+    clock = Clock(streams.position_offset(base, target, clock.offset_s), 0.0, 0)
+    refine = _Refinement(streams, skew=streams.tj[-1] - streams.tj[0] >= skew_min_span_s)
     for _ in range(2):
-        clock = _refine_clock(chain, tj, rec.q, frames, target, times, base, clock, max_gap, cache=cache, skew=fit_skew)
-        base, target = _to_base_frame(tip, tj, clock, positions, at)
-    clock = _refine_clock(chain, tj, rec.q, frames, target, times, base, clock, max_gap, cache=cache, skew=fit_skew)
+        clock = refine(target, base, clock)
+        base, target = _to_base_frame(streams, clock)
+    clock = refine(target, base, clock)
     return Clock(clock.offset_s, clock.skew, int(rec.joint_stamps[0]))
 
 
-def _to_base_frame(tip: np.ndarray, tj: np.ndarray, clock: Clock, positions: np.ndarray, at) -> tuple:
+@dataclass(frozen=True)
+class _Streams:
+    """Both streams on the robot's time axis (s from its first joint state): the joints with their FK
+    frames, and the tracker positions averaged over one joint period (``times``, ``positions``). A query
+    between two tracker samples more than ``max_gap`` apart (a beam break) is no data."""
+
+    chain: Chain
+    tj: np.ndarray
+    q: np.ndarray
+    frames: np.ndarray
+    times: np.ndarray
+    positions: np.ndarray
+    max_gap: float
+    per_window: int  # joint states in one window of the position mismatch
+
+    @classmethod
+    def of(cls, chain: Chain, rec: RawRecording, window_s: float) -> _Streams:
+        tj = (rec.joint_stamps - rec.joint_stamps[0]) * NS
+        tp = (rec.pose_stamps - rec.joint_stamps[0]) * NS
+        per_window = max(3, round(window_s / max(float(np.median(np.diff(tj))), 1e-6))) if len(tj) > 1 else 3
+        if len(tj) < 2 * per_window or len(tp) < 20:
+            raise CalibrationError("too few samples to estimate the clock offset; record longer or give it explicitly")
+        frames = fk.joint_frames(chain, rec.q)
+        if np.ptp(frames[:, -1, :3, 3], axis=0).max() < 1e-3:
+            raise CalibrationError("the robot does not move: the clock offset cannot be estimated; give it explicitly")
+        smooth = max(1, round(np.median(np.diff(tj)) / max(np.median(np.diff(tp)), 1e-9)))
+        positions, times = rec.positions, tp
+        if smooth > 1 and len(tp) > 2 * smooth:
+            kernel = np.ones(smooth) / smooth
+            step = max(1, smooth // 3)  # the averages change smoothly: keep about three a joint period, for speed
+            # one column at a time, thinned at once: the full averages of 2 minutes at 3 kHz are 12 MB a column
+            positions = np.column_stack(
+                [np.convolve(positions[:, i], kernel, mode="valid")[::step].copy() for i in range(3)]
+            )
+            times = np.convolve(times, kernel, mode="valid")[::step].copy()
+        max_gap = 5.0 * float(np.median(np.diff(times)))  # beam breaks: interpolating across them is no data
+        return cls(chain, tj, rec.q, frames, times, positions, max_gap, per_window)
+
+    @property
+    def tip(self) -> np.ndarray:
+        return self.frames[:, -1]
+
+    def at(self, query: np.ndarray, positions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The (averaged) tracker positions, or ``positions`` on the same times, at robot times ``query``,
+        and where they are data."""
+        pos = self.positions if positions is None else positions
+        valid = _bridged(query, self.times, self.max_gap)
+        return np.column_stack([np.interp(query, self.times, pos[:, i]) for i in range(3)]), valid
+
+    def speed_offset(self, max_offset_s: float) -> float:
+        """Step 1: the offset (s) on a 2 ms grid within ``±max_offset_s`` that matches the tip speeds best,
+        on at most the middle two minutes (enough to land within the next step's ±10 ms, whatever the drift)."""
+        tj = self.tj
+        middle = np.flatnonzero(np.abs(tj - 0.5 * (tj[0] + tj[-1])) <= 60.0)
+        t_mid = tj[middle]
+        v_fk = np.linalg.norm(np.gradient(self.tip[middle, :3, 3], t_mid, axis=0), axis=1)
+
+        def speed_mismatch(offset: float) -> float:
+            moved, valid = self.at(t_mid + offset)
+            valid = valid & np.r_[valid[1:], False] & np.r_[False, valid[:-1]]  # gradients next to a gap: no data
+            if valid.mean() < 0.5:
+                return np.inf
+            v = np.linalg.norm(np.gradient(moved, t_mid, axis=0), axis=1)
+            return float(np.mean((v - v_fk)[valid] ** 2))
+
+        grid = np.arange(-max_offset_s, max_offset_s + 1e-12, 0.002)
+        costs = np.array([speed_mismatch(o) for o in grid])
+        if not np.isfinite(costs).any():
+            raise CalibrationError("the joint and tracker streams do not overlap in time")
+        return float(grid[int(np.argmin(costs))])
+
+    def position_offset(self, base: np.ndarray, target: np.ndarray, near_s: float) -> float:
+        """Step 3: the offset (s) within 10 ms of ``near_s`` where the tracker positions in the base frame
+        (``base``) match the FK's target positions best, a linear trend removed in each window."""
+        p_target = p_tip_all(self.tip, target)
+        blocks = len(self.tj) // self.per_window
+        used = blocks * self.per_window
+        t_blocks = self.tj[:used].reshape(blocks, self.per_window)
+        t_centred = t_blocks - t_blocks.mean(axis=1, keepdims=True)
+        t_norm = np.sum(t_centred**2, axis=1, keepdims=True)
+
+        def mismatch(offset: float) -> float:
+            moved, valid = self.at(self.tj[:used] + offset, base)
+            if valid.mean() < 0.5:
+                return 1e9  # (m²) no overlap: worse than any real mismatch, and finite for the minimiser
+            e = (moved - p_target[:used]).reshape(blocks, self.per_window, 3)
+            e = e - e.mean(axis=1, keepdims=True)
+            slope = np.einsum("bw,bwk->bk", t_centred, e) / t_norm
+            residual = e - t_centred[..., None] * slope[:, None, :]
+            ok = valid.reshape(blocks, self.per_window).all(axis=1)
+            return float(np.mean(residual[ok] ** 2))
+
+        near = near_s + np.arange(-0.01, 0.01 + 1e-12, 0.001)
+        best = float(near[int(np.argmin([mismatch(o) for o in near]))])
+        return float(minimize_scalar(mismatch, bounds=(best - 0.0015, best + 0.0015), method="bounded").x)
+
+
+def _to_base_frame(streams: _Streams, clock: Clock) -> tuple[np.ndarray, np.ndarray]:
     """Tracker positions in the base frame and the target's offset on the flange, for a trial clock.
 
     ``p_tip + R_tip t = R p_tracker + c`` is linear in the tracker frame ``(R, c)`` and the target's
     offset ``t`` on the flange; ``R`` is solved for unconstrained, projected onto the rotations, and ``c``
     and ``t`` solved again for it. Position-only data is enough.
     """
-    moved, valid = at(tj + clock.offset_s + clock.skew * tj)
+    tip, tj = streams.tip, streams.tj
+    moved, valid = streams.at(tj + clock.offset_s + clock.skew * tj)
     idx = np.flatnonzero(valid)
     idx = idx[:: max(1, len(idx) // 5000)]
     if len(idx) < 20:
@@ -188,7 +219,7 @@ def _to_base_frame(tip: np.ndarray, tj: np.ndarray, clock: Clock, positions: np.
     rot = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
     rest = np.concatenate([np.tile(np.eye(3), (m, 1, 1)), -r_tip], axis=2).reshape(-1, 6)
     c_t = np.linalg.lstsq(rest, (p_tip - moved[idx] @ rot.T).reshape(-1), rcond=None)[0]
-    return positions @ rot.T + c_t[:3], c_t[3:]
+    return streams.positions @ rot.T + c_t[:3], c_t[3:]
 
 
 def p_tip_all(tip: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -230,26 +261,16 @@ def _bridged(query: np.ndarray, times: np.ndarray, max_gap: float) -> np.ndarray
     return inside & (times[after] - times[after - 1] <= max_gap)
 
 
-def _refine_clock(
-    chain: Chain,
-    tj: np.ndarray,
-    q: np.ndarray,
-    frames: np.ndarray,
-    target: np.ndarray,
-    times: np.ndarray,
-    positions: np.ndarray,
-    clock: Clock,
-    max_gap: float,
-    rounds: int = 3,
-    window_s: float = 20.0,
-    cache: dict | None = None,
-    skew: bool = True,
-) -> Clock:
-    """Joint least squares of offset, skew and a model of the nominal FK's error (:func:`error_features`).
+REFINE_ROUNDS = 3  # Gauss-Newton steps of the clock; each window's basis is computed once
+REFINE_WINDOW_S = 20.0  # the span of one FK error model
+
+
+class _Refinement:
+    """Step 4, joint least squares of offset, skew and a model of the nominal FK's error (:func:`error_features`).
 
     ``p_tracker(t + o(t)) − p_fk(t) ≈ F(q) β + v(t) (δ + σ (t − t̄))``: the model error depends on the
     configuration only, the timing error on the velocity, and vanishes while the robot stands still.
-    ``β`` is fitted per window of ``window_s``: over a long recording one first-order model cannot
+    ``β`` is fitted per window of ``REFINE_WINDOW_S``: over a long recording one first-order model cannot
     follow the error across the whole workspace, and what it misses leaks into the clock (after ten minutes,
     with one global fit, most of the timing error allowed). ``δ`` and ``σ`` are shared; they come from
     the velocity and mismatch residuals after each window's own fit (Frisch-Waugh-Lovell).
@@ -259,48 +280,64 @@ def _refine_clock(
     mismatch needs no projection of its own, ``(P r₁)ᵀ m = r₁ᵀ m`` for the projected columns ``r₁``.
     (Every window's features and bases at once would take gigabytes on an hour-long recording.)
     """
-    tip = frames[:, -1]
-    p_fk = p_tip_all(tip, target)
-    cache = cache if cache is not None else {}
-    window = np.floor((tj - tj[0]) / window_s).astype(int)
-    n_windows = window[-1] + 1
-    if n_windows > 1 and np.sum(window == n_windows - 1) < 0.5 * np.sum(window == 0):
-        window[window == n_windows - 1] = n_windows - 2  # a short last window joins the one before
-    t_mid = 0.5 * (tj[0] + tj[-1])
-    fit_skew = skew
-    offset, skew = clock.offset_s + clock.skew * t_mid, clock.skew  # at t_mid: offset and skew uncorrelated
-    # samples usable within ±5 ms of the starting clock: a fixed set, so each window's basis is computed once
-    start = tj + offset + skew * (tj - t_mid)
-    valid = np.logical_and.reduce([_bridged(start + d, times, max_gap) for d in (-0.005, 0.0, 0.005)])
-    # the velocity of the target is linear in its offset on the flange: v = v_tip + Σ_k v_(R e_k) target_k
-    weights = np.r_[1.0, target]
-    n_features = error_features(chain, q[:1], frames[:1]).shape[2]
-    for _ in range(rounds):
-        query = tj + offset + skew * (tj - t_mid)
-        normal, rhs_total = np.zeros((2, 2)), np.zeros(2)
-        for w in np.unique(window):
-            idx = np.flatnonzero(valid & (window == w))
-            if 3 * len(idx) <= 2 * n_features:
-                continue  # too few equations to fit this window's model
-            moved = np.column_stack([np.interp(query[idx], times, positions[:, i]) for i in range(3)])
-            parts = _projected_velocity(chain, tj, q, frames, idx, t_mid, (w, idx.tobytes()), cache)
-            r = parts @ weights  # (3 n, 2): velocity and velocity · (t − t̄), off the window's model
-            normal += r.T @ r
-            rhs_total += r.T @ (moved - p_fk[idx]).reshape(-1)
+
+    def __init__(self, streams: _Streams, skew: bool) -> None:
+        self.s = streams
+        self.fit_skew = skew
+        self.cache: dict = {}  # each window's projected velocity columns, reused by every call
+
+    def __call__(self, target: np.ndarray, positions: np.ndarray, clock: Clock) -> Clock:
+        """The clock refined from ``clock``, with the tracker ``positions`` in the base frame and the
+        target at ``target`` on the flange."""
+        s = self.s
+        tj = s.tj
+        p_fk = p_tip_all(s.tip, target)
+        window = self._windows()
+        t_mid = 0.5 * (tj[0] + tj[-1])
+        offset, skew = clock.offset_s + clock.skew * t_mid, clock.skew  # at t_mid: offset and skew uncorrelated
+        # samples usable within ±5 ms of the starting clock: a fixed set, so each window's basis is computed once
+        start = tj + offset + skew * (tj - t_mid)
+        valid = np.logical_and.reduce([_bridged(start + d, s.times, s.max_gap) for d in (-0.005, 0.0, 0.005)])
+        # the velocity of the target is linear in its offset on the flange: v = v_tip + Σ_k v_(R e_k) target_k
+        weights = np.r_[1.0, target]
+        n_features = error_features(s.chain, s.q[:1], s.frames[:1]).shape[2]
+        for _ in range(REFINE_ROUNDS):
+            query = tj + offset + skew * (tj - t_mid)
+            normal, rhs_total = np.zeros((2, 2)), np.zeros(2)
+            for w in np.unique(window):
+                idx = np.flatnonzero(valid & (window == w))
+                if 3 * len(idx) <= 2 * n_features:
+                    continue  # too few equations to fit this window's model
+                moved = np.column_stack([np.interp(query[idx], s.times, positions[:, i]) for i in range(3)])
+                parts = _projected_velocity(s, idx, t_mid, (w, idx.tobytes()), self.cache)
+                r = parts @ weights  # (3 n, 2): velocity and velocity · (t − t̄), off the window's model
+                normal += r.T @ r
+                rhs_total += r.T @ (moved - p_fk[idx]).reshape(-1)
+            step = self._step(normal, rhs_total)
+            # p_tracker(t + o) = p_true(t + o − true o): the step is the excess of the trial clock
+            offset, skew = offset - step[0], skew - step[1]
+        return Clock(offset - skew * t_mid, skew, 0)
+
+    def _windows(self) -> np.ndarray:
+        """Each joint state's window; a short last window joins the one before."""
+        tj = self.s.tj
+        window = np.floor((tj - tj[0]) / REFINE_WINDOW_S).astype(int)
+        n_windows = window[-1] + 1
+        if n_windows > 1 and np.sum(window == n_windows - 1) < 0.5 * np.sum(window == 0):
+            window[window == n_windows - 1] = n_windows - 2
+        return window
+
+    def _step(self, normal: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+        """The (offset, skew) step from the normal equations; no skew when it is not fitted or the motion
+        stays in one place."""
         if normal[0, 0] <= 0.0:
             raise CalibrationError("too few samples to estimate the clock offset; record longer or give it explicitly")
-        if not fit_skew or normal[1, 1] * normal[0, 0] - normal[0, 1] ** 2 <= 1e-12 * normal[1, 1] * normal[0, 0]:
-            step = np.array([rhs_total[0] / normal[0, 0], 0.0])  # motion in one place only: no skew
-        else:
-            step = np.linalg.solve(normal, rhs_total)
-        # p_tracker(t + o) = p_true(t + o − true o): the step is the excess of the trial clock
-        offset, skew = offset - step[0], skew - step[1]
-    return Clock(offset - skew * t_mid, skew, 0)
+        if not self.fit_skew or normal[1, 1] * normal[0, 0] - normal[0, 1] ** 2 <= 1e-12 * normal[1, 1] * normal[0, 0]:
+            return np.array([rhs[0] / normal[0, 0], 0.0])
+        return np.linalg.solve(normal, rhs)
 
 
-def _projected_velocity(
-    chain: Chain, tj: np.ndarray, q: np.ndarray, frames: np.ndarray, idx: np.ndarray, t_mid: float, key, cache: dict
-) -> np.ndarray:
+def _projected_velocity(streams: _Streams, idx: np.ndarray, t_mid: float, key: tuple, cache: dict) -> np.ndarray:
     """``(3 n, 2, 4)``: the parts of the target's velocity (tip, and the flange's three axes) and the same
     times ``t − t̄``, projected off the span of one window's FK error features, cached by ``key``.
 
@@ -312,6 +349,7 @@ def _projected_velocity(
     """
     if key not in cache:
         # the gradient at a window's samples needs their neighbours: it is taken on the whole series, lazily
+        tj, frames = streams.tj, streams.frames
         if "velocity" not in cache:
             tip = frames[:, -1]
             cache["velocity"] = np.stack(
@@ -321,7 +359,7 @@ def _projected_velocity(
         v = cache["velocity"][idx]
         dt = (tj[idx] - t_mid)[:, None, None]
         columns = np.stack([v, v * dt], axis=2).reshape(-1, 2, 4)  # (3 n, 2, 4)
-        design = error_features(chain, q[idx], frames[idx]).reshape(3 * len(idx), -1)
+        design = error_features(streams.chain, streams.q[idx], frames[idx]).reshape(3 * len(idx), -1)
         u, s, _ = svd(design, full_matrices=False, lapack_driver="gesdd")
         del design
         u = u[:, s > 1e-13 * s[0]]

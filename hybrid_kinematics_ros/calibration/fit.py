@@ -297,21 +297,7 @@ def fit(
     # eager nets here; the saved TorchScript is checked against them. "analytic" is the rigid-only model
     errors = _test_errors(model, raw[2])
     manifest["metrics"] = {"test": evaluate(model, sets[2], errors) if errors else evaluate(model, sets[2])}
-    floor = measurement_floor(_by_frame(raw), chain, rigid_refs)
-    manifest["floor"] = None if floor is None else floor.manifest()
-    tracker = pooled_floor(raw[0])
-    if tracker is not None:
-        manifest["tracker_floor"] = floor_summary(tracker)
-    held_out = manifest["metrics"]["test"]["hybrid"].get("position_mm_mean")
-    if floor is not None and held_out is not None:
-        log(floor.line(held_out))
-    elif floor is None:
-        log("no measurement floor: no two poses repeat the same joints (within 1 mrad); repeat a few to know it")
-    if tracker is not None and held_out is not None:
-        log(tracker_line(tracker, held_out))
-    curve = manifest.get("capacity", {}).get("learning_curve")
-    if curve is not None:
-        log(capacity_module.curve_line(curve, None if floor is None else floor.position_mm))
+    _floors(chain, raw, rigid_refs, manifest, log)
     guard = None if errors is None else worse_than_rigid(errors["hybrid"][0], errors["analytic"][0])
     manifest["data"] = {
         **(data_summary or {}),
@@ -330,6 +316,28 @@ def fit(
             "do not serve it: check the referencing notes in its report and measure more varied poses"
         )
     return HybridModel.load(out), manifest
+
+
+def _floors(
+    chain: Chain, raw: Sets, rigid_refs: dict[str, Referencing], manifest: dict[str, Any], log: Callable[[str], None]
+) -> None:
+    """The floors of this data (from its repeated joints, and the tracker's own where the pairs carry it) into
+    ``manifest``, each told against the held-out error, and what the learning curve says more poses would do."""
+    floor = measurement_floor(_by_frame(raw), chain, rigid_refs)
+    manifest["floor"] = None if floor is None else floor.manifest()
+    tracker = pooled_floor(raw[0])
+    if tracker is not None:
+        manifest["tracker_floor"] = floor_summary(tracker)
+    held_out = manifest["metrics"]["test"]["hybrid"].get("position_mm_mean")
+    if floor is not None and held_out is not None:
+        log(floor.line(held_out))
+    elif floor is None:
+        log("no measurement floor: no two poses repeat the same joints (within 1 mrad); repeat a few to know it")
+    if tracker is not None and held_out is not None:
+        log(tracker_line(tracker, held_out))
+    curve = manifest.get("capacity", {}).get("learning_curve")
+    if curve is not None:
+        log(capacity_module.curve_line(curve, None if floor is None else floor.position_mm))
 
 
 def _stage(
