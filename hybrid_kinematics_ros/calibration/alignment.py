@@ -84,11 +84,35 @@ def align(
     """
     o = options or AlignOptions()
     w = window or Window()
+    rec, rejected, position_only = clean(_in_chain_order(rec, chain), w)
+    if clock is None and o.offset_s is not None:
+        clock = Clock(o.offset_s, o.skew_ppm * 1e-6, int(rec.joint_stamps[0]))
+    elif clock is None:
+        clock = estimate_clock(chain, rec, o.max_offset_s)
+    t_query = clock.to_tracker(rec.joint_stamps)  # joint stamps in the tracker's clock
+    b, a, keep = _brackets(rec, t_query, o, w, rejected)
+    if not keep.any():
+        if window is not None:
+            empty = _no_pairs(chain, frame_id or rec.pose_frame, position_only)
+            return AlignResult(empty, float(clock.offset_at(rec.joint_stamps[:1])[0]), +rejected, clock.skew_ppm)
+        raise CalibrationError(f"no joint state could be paired with a tracker pose: rejected {dict(+rejected)}")
+    T = _interpolated(rec, b[keep], a[keep], t_query[keep], position_only)
+    frame = frame_id or rec.pose_frame
+    pairs = Pairs(rec.q[keep], T, rec.joint_stamps[keep], chain.joint_names, frame, position_only=position_only)
+    if o.still_min_s > 0:
+        starts = (w.joint_lo, w.joint_hi) if window is not None else None
+        pairs = static_pairs(pairs, still_mask(rec.q, rec.joint_stamps, o)[keep], o, starts)
+    offset = float(clock.offset_at(rec.joint_stamps[:1])[0])
+    return AlignResult(pairs, offset, +rejected, float(clock.skew_ppm))
+
+
+def _in_chain_order(rec: RawRecording, chain: Chain) -> RawRecording:
+    """``rec`` with its joints in the chain's order; a recording of other joints is an error."""
     names = tuple(rec.joint_names)
     if set(names) != set(chain.joint_names):
         raise CalibrationError(f"the recording has joints {list(names)}, the robot {list(chain.joint_names)}")
     order = [names.index(n) for n in chain.joint_names]
-    rec = RawRecording(
+    return RawRecording(
         rec.joint_stamps,
         chain.joint_names,
         rec.q[:, order],
@@ -99,12 +123,13 @@ def align(
         rec.truncated,
         rec.counts,
     )
-    rec, rejected, position_only = clean(rec, w)
-    if clock is None and o.offset_s is not None:
-        clock = Clock(o.offset_s, o.skew_ppm * 1e-6, int(rec.joint_stamps[0]))
-    elif clock is None:
-        clock = estimate_clock(chain, rec, o.max_offset_s)
-    t_query = clock.to_tracker(rec.joint_stamps)  # joint stamps in the tracker's clock
+
+
+def _brackets(
+    rec: RawRecording, t_query: np.ndarray, o: AlignOptions, w: Window, rejected: Counter
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The tracker samples before and after each joint stamp (``t_query``, in the tracker's clock), and
+    which joint stamps pair; the others are counted in ``rejected`` by reason (only those in the window)."""
     # the bracketing samples: before <= t < after, or both at t when a sample falls exactly on it
     after = np.searchsorted(rec.pose_stamps, t_query, side="left")
     last = len(rec.pose_stamps) - 1
@@ -113,7 +138,7 @@ def align(
     outside = (before < 0) | (after >= len(rec.pose_stamps))
     mine = (rec.joint_stamps >= w.joint_lo) & (rec.joint_stamps < w.joint_hi)  # what this call counts
     rejected["outside_tracker_stream"] += int((outside & mine).sum())
-    b, a = np.clip(before, 0, len(rec.pose_stamps) - 1), np.clip(after, 0, len(rec.pose_stamps) - 1)
+    b, a = np.clip(before, 0, last), np.clip(after, 0, last)
     gap = (rec.pose_stamps[a] - rec.pose_stamps[b]) * NS
     long_gap = ~outside & (gap > o.max_gap_s)
     rejected["tracker_gap"] += int((long_gap & mine).sum())
@@ -123,34 +148,25 @@ def align(
     keep = ~outside & ~long_gap & ~fast
     if o.still_min_s <= 0:
         keep &= mine  # (static mode: context samples complete still windows across the window's edges)
-    if not keep.any():
-        if window is not None:
-            empty = _no_pairs(chain, frame_id or rec.pose_frame, position_only)
-            return AlignResult(empty, float(clock.offset_at(rec.joint_stamps[:1])[0]), +rejected, clock.skew_ppm)
-        raise CalibrationError(f"no joint state could be paired with a tracker pose: rejected {dict(+rejected)}")
-    b, a, tq = b[keep], a[keep], t_query[keep]
+    return b, a, keep
+
+
+def _interpolated(rec: RawRecording, b: np.ndarray, a: np.ndarray, tq: np.ndarray, position_only: bool) -> np.ndarray:
+    """``(N, 4, 4)``: the tracker poses at ``tq`` between samples ``b`` and ``a``: positions linearly,
+    orientations by Slerp (identity placeholders for position-only data, as ``read_pairs`` makes them)."""
     span = (rec.pose_stamps[a] - rec.pose_stamps[b]).astype(float)
     w = np.where(span > 0, (tq - rec.pose_stamps[b]) / np.where(span > 0, span, 1.0), 0.0)
     position = (1 - w)[:, None] * rec.positions[b] + w[:, None] * rec.positions[a]
     if position_only:
-        quat = np.tile([0.0, 0.0, 0.0, 1.0], (len(position), 1))  # identity placeholders, as read_pairs makes them
-    else:
-        # the samples around the pairs only (two minutes of 3 kHz poses cost Slerp ~100 MB): each pair's
-        # bracket, and the sample before it, which Slerp interpolates from when a stamp falls on a sample
-        used = np.unique(np.r_[np.maximum(b - 1, 0), b, a])
-        if len(used) < 2:
-            used = np.unique(np.r_[used, min(int(used[0]) + 1, len(rec.pose_stamps) - 1)])
-        t0 = rec.pose_stamps[0]
-        slerp = Slerp((rec.pose_stamps[used] - t0) * NS, Rotation.from_quat(rec.quats[used]))
-        quat = slerp((tq - t0) * NS).as_quat()
-    T = matrix_from_pose(position, quat)
-    frame = frame_id or rec.pose_frame
-    pairs = Pairs(rec.q[keep], T, rec.joint_stamps[keep], chain.joint_names, frame, position_only=position_only)
-    if o.still_min_s > 0:
-        starts = (w.joint_lo, w.joint_hi) if window is not None else None
-        pairs = static_pairs(pairs, still_mask(rec.q, rec.joint_stamps, o)[keep], o, starts)
-    offset = float(clock.offset_at(rec.joint_stamps[:1])[0])
-    return AlignResult(pairs, offset, +rejected, float(clock.skew_ppm))
+        return matrix_from_pose(position, np.tile([0.0, 0.0, 0.0, 1.0], (len(position), 1)))
+    # the samples around the pairs only (two minutes of 3 kHz poses cost Slerp ~100 MB): each pair's
+    # bracket, and the sample before it, which Slerp interpolates from when a stamp falls on a sample
+    used = np.unique(np.r_[np.maximum(b - 1, 0), b, a])
+    if len(used) < 2:
+        used = np.unique(np.r_[used, min(int(used[0]) + 1, len(rec.pose_stamps) - 1)])
+    t0 = rec.pose_stamps[0]
+    slerp = Slerp((rec.pose_stamps[used] - t0) * NS, Rotation.from_quat(rec.quats[used]))
+    return matrix_from_pose(position, slerp((tq - t0) * NS).as_quat())
 
 
 def clean(rec: RawRecording, window: Window | None = None) -> tuple[RawRecording, Counter, bool]:
