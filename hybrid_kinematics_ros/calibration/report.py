@@ -356,28 +356,50 @@ img { max-width: 100%; } .note { color: #a33; }
 def _summary_section(s: dict[str, Any]) -> list[str]:
     """The block a report opens with (:func:`calibration.summary.summarise`): verdict first, then what it
     stands on. Every figure is one of the sections' below; this block only picks and orders them."""
-    esc = html.escape
-    verdict = s["verdict"]
-    data = s["data"]
+    hybrid_mm = s["errors"].get("hybrid", {}).get("position_mm_mean")
+    parts = [
+        *_verdict_lines(s["verdict"]),
+        _data_line(s),
+        _errors_table(s["errors"]),
+        _iso_line(s["iso9283"]),
+        _floor_line(s.get("floor"), hybrid_mm),
+        *_tracker_floor_line(s.get("tracker_floor"), hybrid_mm),
+    ]
+    if s.get("learning_curve"):
+        floor_mm = (s.get("floor") or {}).get("position_mm")
+        line = capacity_module.curve_line(s["learning_curve"], floor_mm)
+        parts.append(f"<p><b>More poses or a richer model?</b> {html.escape(line[0].upper() + line[1:])}.</p>")
+    capacity = "; ".join(s["capacity"]) or "nothing chosen (no parametric stage, no nets)"
+    parts.append(f"<p><b>Capacity chosen from the data</b> {html.escape(capacity)}.</p>")
+    parts += _working_range_lines(s["working_range"], s["data"]["poses"])
+    return ["<section id='summary'><h2>Summary</h2>", *parts, "</section>"]
+
+
+def _verdict_lines(verdict: dict[str, Any] | None) -> list[str]:
+    """PASS or FAIL against the tolerance and what it is computed on, or how to ask for one."""
     if verdict is None:
-        parts = [
+        return [
             "<p id='verdict' class='none'>No tolerance given: pass <code>--tolerance-mm</code> "
             "(and <code>--tolerance-deg</code>) for a PASS or FAIL verdict.</p>"
         ]
-    else:
-        on = "position" + (" and orientation" if verdict.get("orientation_checked") else "")
-        skipped = (
-            " The data has no orientation, so --tolerance-deg was not checked."
-            if verdict.get("orientation_checked") is False
-            else ""
-        )
-        parts = [
-            f"<p id='verdict' class='{'pass' if verdict['passed'] else 'fail'}'>{esc(verdict['line'])}</p>",
-            f"<p class='basis'>The verdict is computed on the hybrid model's {on} errors at the measured target, "
-            f"over all {verdict['poses']} poses of the test data: it passes when at least "
-            f"{100 * verdict['share_required']:g} % of them lie within the tolerance. Test poses should be held "
-            f"out of training.{skipped}</p>",
-        ]
+    on = "position" + (" and orientation" if verdict.get("orientation_checked") else "")
+    skipped = (
+        " The data has no orientation, so --tolerance-deg was not checked."
+        if verdict.get("orientation_checked") is False
+        else ""
+    )
+    return [
+        f"<p id='verdict' class='{'pass' if verdict['passed'] else 'fail'}'>{html.escape(verdict['line'])}</p>",
+        f"<p class='basis'>The verdict is computed on the hybrid model's {on} errors at the measured target, "
+        f"over all {verdict['poses']} poses of the test data: it passes when at least "
+        f"{100 * verdict['share_required']:g} % of them lie within the tolerance. Test poses should be held "
+        f"out of training.{skipped}</p>",
+    ]
+
+
+def _data_line(s: dict[str, Any]) -> str:
+    """The robot, and the test data: how many poses, from where, measured where and when."""
+    esc, data = html.escape, s["data"]
     stations = [f for f in data["stations"] if f != s["chain"][0]]
     where = (
         f"{len(stations)} tracker station{'s' if len(stations) > 1 else ''} ({esc(', '.join(stations))})"
@@ -389,11 +411,15 @@ def _summary_section(s: dict[str, Any]) -> list[str]:
         if data["from"]
         else "no calendar dates in the stamps (simulated or relative time)"
     )
-    parts.append(
+    return (
         f"<p><b>Robot</b> {esc(s['robot'])} ({esc(s['chain'][0])} → {esc(s['chain'][1])}). "
         f"<b>Data</b> {data['poses']} test poses from {esc(', '.join(data['bags']))}, measured {where}; {when}.</p>"
     )
-    models = list(s["errors"])
+
+
+def _errors_table(errors: dict[str, dict[str, Any]]) -> str:
+    """Before and after: each model's position and orientation mean, p95 and max."""
+    models = list(errors)
     head = [
         "error",
         *(("before: " if m == "analytic" else "after: " if m == "hybrid" else "") + MODEL_LABELS[m] for m in models),
@@ -402,45 +428,38 @@ def _summary_section(s: dict[str, Any]) -> list[str]:
     for quantity, unit in (("position", "mm"), ("orientation", "deg")):
         for stat in ("mean", "p95", "max"):
             key = f"{quantity}_{unit}_{stat}"
-            if any(key in s["errors"][m] for m in models):
-                rows.append([f"{quantity} {stat} ({unit})", *(s["errors"][m].get(key, "n/a") for m in models)])
-    parts.append(_table(head, rows))
-    iso = s["iso9283"]
-    parts.append(
-        "<p><b>ISO 9283</b> "
-        + (
-            f"over {iso['poses']} poses measured {'/'.join(map(str, iso['repeats']))} times: pose accuracy AP up to "
-            f"{iso['AP_analytic_mm_max']:.3g} mm before, {iso['AP_hybrid_mm_max']:.3g} mm after; "
-            f"repeatability RP up to {iso['RP_mm_max']:.3g} mm.</p>"
-            if iso
-            else "AP and RP: the test data repeats no pose.</p>"
-        )
+            if any(key in errors[m] for m in models):
+                rows.append([f"{quantity} {stat} ({unit})", *(errors[m].get(key, "n/a") for m in models)])
+    return _table(head, rows)
+
+
+def _iso_line(iso: dict[str, Any] | None) -> str:
+    """ISO 9283's pose accuracy and repeatability, where the test data repeats poses."""
+    if not iso:
+        return "<p><b>ISO 9283</b> AP and RP: the test data repeats no pose.</p>"
+    return (
+        f"<p><b>ISO 9283</b> over {iso['poses']} poses measured {'/'.join(map(str, iso['repeats']))} times: pose "
+        f"accuracy AP up to {iso['AP_analytic_mm_max']:.3g} mm before, {iso['AP_hybrid_mm_max']:.3g} mm after; "
+        f"repeatability RP up to {iso['RP_mm_max']:.3g} mm.</p>"
     )
-    hybrid_mm = s["errors"].get("hybrid", {}).get("position_mm_mean")
-    parts += [_floor_line(s.get("floor"), hybrid_mm), *_tracker_floor_line(s.get("tracker_floor"), hybrid_mm)]
-    if s.get("learning_curve"):
-        floor_mm = (s.get("floor") or {}).get("position_mm")
-        line = capacity_module.curve_line(s["learning_curve"], floor_mm)
-        parts.append(f"<p><b>More poses or a richer model?</b> {esc(line[0].upper() + line[1:])}.</p>")
-    capacity = "; ".join(s["capacity"]) or "nothing chosen (no parametric stage, no nets)"
-    parts.append(f"<p><b>Capacity chosen from the data</b> {esc(capacity)}.</p>")
-    wr = s["working_range"]
+
+
+def _working_range_lines(wr: dict[str, Any], poses: int) -> list[str]:
+    """The joint range (and conditions) the calibration holds in, and how many test poses lie inside it."""
     joints = wr["joints"]
-    parts.append(
+    parts = [
         "<p><b>Working range</b> the calibration holds in (the training data's joint range"
         + ("" if wr["recorded"] else "; not recorded in model.json, so the joint limits")
-        + f"): {wr['inside']} of {data['poses']} test poses lie inside it.</p>"
-    )
-    parts.append(
+        + f"): {wr['inside']} of {poses} test poses lie inside it.</p>",
         _table(
             ["joint", *(f"{j['joint']} ({j['unit']})" for j in joints)],
             [["from", *(round(j["lower"], 1) for j in joints)], ["to", *(round(j["upper"], 1) for j in joints)]],
-        )
-    )
+        ),
+    ]
     if wr["conditions"]:
         text = ", ".join(f"{n} {c['lower']:.4g} to {c['upper']:.4g}" for n, c in wr["conditions"].items())
-        parts.append(f"<p>Conditions the nets were trained over: {esc(text)}.</p>")
-    return ["<section id='summary'><h2>Summary</h2>", *parts, "</section>"]
+        parts.append(f"<p>Conditions the nets were trained over: {html.escape(text)}.</p>")
+    return parts
 
 
 def write_report(
