@@ -11,6 +11,7 @@ import argparse
 import csv
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
@@ -18,6 +19,7 @@ import yaml
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.plan import (
     CyclicPrior,
+    Plan,
     PlanOptions,
     TrackerView,
     draw_configurations,
@@ -124,6 +126,33 @@ def prior_from(path: Path, chain: Chain) -> CyclicPrior:
 
 def run(args: argparse.Namespace) -> int:
     chain = chain_from_args(args)
+    _check(args)
+    candidates, header_and_rows, lower, upper = _candidates(args, chain)
+    cyclic = None if args.prior_model is None else prior_from(args.prior_model, chain)
+    options = _options(args, cyclic)
+    try:
+        result = plan(chain, candidates, options, _view(args), lower, upper)
+    except CalibrationError as exc:
+        where = f"{args.candidates}: " if args.candidates else ""
+        raise CalibrationError(where + str(exc)) from None
+    args.out.mkdir(parents=True, exist_ok=True)
+    if args.candidates:
+        with (args.out / "poses.csv").open("w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(header_and_rows[0])
+            writer.writerows(header_and_rows[1 + int(r)] for r in result.rows)
+    else:
+        write_csv(args.out / "poses.csv", list(chain.joint_names), result.q)
+    message = trajectory_message(chain.joint_names, result.q, travel_seconds(result.q, options))
+    (args.out / "trajectory.yaml").write_text(yaml.safe_dump(message, sort_keys=False))
+    summary = result.summary()
+    (args.out / "plan.json").write_text(json.dumps(summary, indent=2) + "\n")
+    _say(args.out, result, summary, cyclic)
+    return 0
+
+
+def _check(args: argparse.Namespace) -> None:
+    """Flags that contradict each other or are out of range, before anything is read."""
     if args.candidates and args.joint_range:
         raise DataError("--candidates and --joint-range: the pool is the working range; give one of them")
     if args.cone_deg is not None and not args.tracker_xyz:
@@ -131,26 +160,44 @@ def run(args: argparse.Namespace) -> int:
     for name, default in (("min_distance_m", 0.0), ("max_distance_m", float("inf"))):
         if getattr(args, name) != default and not args.tracker_xyz:
             raise DataError(f"--{name.replace('_', '-')} needs --tracker-xyz: the distance is to the tracker")
-    if args.candidates:
-        _, candidates = read_csv(args.candidates, chain.joint_names)
-        with args.candidates.open(newline="") as f:
-            raw = list(csv.reader(f))
-        if not len(candidates):
-            raise DataError(f"{args.candidates}: no rows under the header")
-        lower = upper = None
-    else:
+    for name in ("noise_mm", "noise_deg", "floor_mm", "floor_deg", "coverage_weight", "seconds_per_pose"):
+        if getattr(args, name) < 0:
+            raise DataError(f"--{name.replace('_', '-')} {getattr(args, name)}: must not be negative")
+    if args.joint_speed <= 0:
+        raise DataError(f"--joint-speed {args.joint_speed}: must be positive (rad/s)")
+
+
+def _candidates(
+    args: argparse.Namespace, chain: Chain
+) -> tuple[np.ndarray, list[list[str]] | None, np.ndarray | None, np.ndarray | None]:
+    """The pool to choose from: the rows of ``--candidates`` (with that file's header and rows as read, so
+    the chosen ones are written back unchanged), or configurations drawn from the working range (with it)."""
+    if not args.candidates:
         lower, upper = working_range(chain, args.joint_range)
-        candidates = draw_configurations(lower, upper, DRAWN, args.seed)
-    payload = payload_from_args(args)
-    cyclic = None if args.prior_model is None else prior_from(args.prior_model, chain)
-    view = TrackerView(
+        return draw_configurations(lower, upper, DRAWN, args.seed), None, lower, upper
+    _, candidates = read_csv(args.candidates, chain.joint_names)
+    with args.candidates.open(newline="") as f:
+        raw = list(csv.reader(f))
+    if not len(candidates):
+        raise DataError(f"{args.candidates}: no rows under the header")
+    return candidates, raw, None, None
+
+
+def _view(args: argparse.Namespace) -> TrackerView:
+    """Where the tracker stands and what it sees, as the flags give it."""
+    return TrackerView(
         position=None if args.tracker_xyz is None else np.asarray(args.tracker_xyz),
         cone_deg=args.cone_deg,
         min_distance=args.min_distance_m,
         max_distance=args.max_distance_m,
         box=None if args.box is None else np.asarray(args.box).reshape(2, 3),
     )
-    options = PlanOptions(
+
+
+def _options(args: argparse.Namespace, cyclic: CyclicPrior | None) -> PlanOptions:
+    """The plan's options from the flags (SI units inside)."""
+    payload = payload_from_args(args)
+    return PlanOptions(
         count=args.count,
         target=None if args.target is None else np.asarray(args.target),
         position_noise_m=1e-3 * args.noise_mm,
@@ -167,31 +214,13 @@ def run(args: argparse.Namespace) -> int:
         gravity=gravity_from_args(args),
         cyclic=cyclic,
     )
-    for name in ("noise_mm", "noise_deg", "floor_mm", "floor_deg", "coverage_weight", "seconds_per_pose"):
-        if getattr(args, name) < 0:
-            raise DataError(f"--{name.replace('_', '-')} {getattr(args, name)}: must not be negative")
-    if args.joint_speed <= 0:
-        raise DataError(f"--joint-speed {args.joint_speed}: must be positive (rad/s)")
-    try:
-        result = plan(chain, candidates, options, view, lower, upper)
-    except CalibrationError as exc:
-        where = f"{args.candidates}: " if args.candidates else ""
-        raise CalibrationError(where + str(exc)) from None
-    args.out.mkdir(parents=True, exist_ok=True)
-    if args.candidates:
-        with (args.out / "poses.csv").open("w", newline="") as f:
-            writer = csv.writer(f)
-            writer.writerow(raw[0])
-            writer.writerows(raw[1 + int(r)] for r in result.rows)
-    else:
-        write_csv(args.out / "poses.csv", list(chain.joint_names), result.q)
-    message = trajectory_message(chain.joint_names, result.q, travel_seconds(result.q, options))
-    (args.out / "trajectory.yaml").write_text(yaml.safe_dump(message, sort_keys=False))
-    summary = result.summary()
-    (args.out / "plan.json").write_text(json.dumps(summary, indent=2) + "\n")
+
+
+def _say(out: Path, result: Plan, summary: dict[str, Any], cyclic: CyclicPrior | None) -> None:
+    """The plan's summary on stdout: its size and time, the predicted error and what it stands on."""
     predicted = result.predicted
     print(
-        f"planned {len(result.rows)} poses into {args.out}: about {summary['measuring_time_h']} h of measuring; "
+        f"planned {len(result.rows)} poses into {out}: about {summary['measuring_time_h']} h of measuring; "
         f"predicted mean position error of the parametric stage {predicted['position_mean_mm']:.4f} mm "
         f"(parameters {predicted['parameters_part_mm']:.4f} mm, floor {predicted['floor_mm']:g} mm, "
         f"tracker noise {predicted['tracker_noise_mm']:.4f} mm); {result.parameters} identifiable parameters"
@@ -212,4 +241,3 @@ def run(args: argparse.Namespace) -> int:
     print("not checked: " + "; ".join(result.checks["not_checked"]))
     for row in result.curve:
         print(f"  {row['poses']:5d} poses: {row['position_mean_mm']:.4f} mm, {row['measuring_time_h']} h")
-    return 0
