@@ -525,54 +525,22 @@ def _fit(
     axis = job.axis if p.turn else None
     mean, scale = net.target_mean.numpy(), net.target_scale.numpy()
     y_std = (to_joint1_frame(job.y_train, job.q_train[:, 0], axis) - mean) / scale
-    q_train = torch.tensor(job.q_train)
-    y_train = torch.tensor(y_std, dtype=torch.float32)
+    data = (torch.tensor(job.q_train), torch.tensor(y_std, dtype=torch.float32))
     q_val = torch.tensor(job.q_val)
     selection = _Selection(job.y_val)
     if p.optimizer == "adam":
         opt: torch.optim.Optimizer = torch.optim.Adam(net.parameters(), lr=p.lr)
     else:
         opt = torch.optim.Adagrad(net.parameters(), lr=p.lr)
-    n = len(q_train)
+    n = len(job.q_train)
     batch = min(p.batch, n)
     gen = torch.Generator().manual_seed(job.seed)
-    state = None
-    history: list[dict] = []
-    start = time.perf_counter()
-    stale = 0
-    total_steps = p.max_epochs * (n // batch)
-    done_steps = 0
-    time_limited: bool | None = None
+    schedule = _Schedule(p.lr if p.cosine else None, p.max_epochs * (n // batch), job.max_seconds, resume)
+    state, history, stale = None, [], 0
     unit, factor = UNIT[job.kind]
     out_of_time = False
     for epoch in range(1, p.max_epochs + 1):
-        perm = torch.randperm(n, generator=gen)
-        total, steps = 0.0, 0
-        for s in range(0, n - batch + 1, batch):
-            elapsed = time.perf_counter() - start
-            if elapsed >= job.max_seconds:
-                out_of_time = True
-                break
-            if p.cosine:
-                # By steps, so that a run is the same on a loaded machine, unless the steps will not fit
-                # the time budget: then by time as well. Decided once, when 5 % of the budget has gone
-                # (the first steps' pace, start-up included, says nothing).
-                if time_limited is None and elapsed >= 0.05 * job.max_seconds:
-                    time_limited = elapsed / max(done_steps, 1) * total_steps > job.max_seconds
-                progress = done_steps / total_steps
-                if time_limited:
-                    progress = max(progress, elapsed / job.max_seconds)
-                progress = resume + (1.0 - resume) * progress
-                for group in opt.param_groups:
-                    group["lr"] = p.lr * 0.5 * (1.0 + math.cos(math.pi * progress))
-            idx = perm[s : s + batch]
-            loss = torch.linalg.vector_norm(net.standardised(q_train[idx]) - y_train[idx], dim=1).mean()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            total += loss.item()
-            steps += 1
-            done_steps += 1
+        total, steps, out_of_time = _epoch(net, opt, schedule, data, torch.randperm(n, generator=gen), batch)
         if steps == 0:
             break
         val, improved = selection.update(_predict(net, q_val))
@@ -584,7 +552,7 @@ def _fit(
         entry = {
             "kind": job.kind,
             "epoch": epoch,
-            "seconds": round(time.perf_counter() - start, 2),
+            "seconds": round(schedule.elapsed(), 2),
             "loss": total / steps,
             f"val_{unit}": val * factor,
             f"best_val_{unit}": selection.best * factor,
@@ -600,6 +568,67 @@ def _fit(
         last = {k: v.clone() for k, v in net.state_dict().items()}
         return _Fitted(last, False, selection.crossed, selection.chosen, history, out_of_time)
     return _Fitted(state, True, selection.crossed, selection.chosen, history, out_of_time)
+
+
+class _Schedule:
+    """The learning rate along one cosine schedule (``lr`` its start; None: the optimiser's own rate
+    throughout) and the time budget of ``max_seconds``.
+
+    The schedule runs by steps, so that a run is the same on a loaded machine, unless the steps will not fit
+    the time budget: then by time as well. That is decided once, when 5 % of the budget has gone (the first
+    steps' pace, start-up included, says nothing). ``resume``: the share already run by an earlier fit."""
+
+    def __init__(self, lr: float | None, total_steps: int, max_seconds: float, resume: float) -> None:
+        self.lr, self.total_steps, self.max_seconds, self.resume = lr, total_steps, max_seconds, resume
+        self.done_steps = 0
+        self.time_limited: bool | None = None
+        self.start = time.perf_counter()
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.start
+
+    def rate(self, elapsed: float) -> float | None:
+        """The learning rate of the next step, ``elapsed`` seconds into the budget."""
+        if self.lr is None:
+            return None
+        if self.time_limited is None and elapsed >= 0.05 * self.max_seconds:
+            self.time_limited = elapsed / max(self.done_steps, 1) * self.total_steps > self.max_seconds
+        progress = self.done_steps / self.total_steps
+        if self.time_limited:
+            progress = max(progress, elapsed / self.max_seconds)
+        progress = self.resume + (1.0 - self.resume) * progress
+        return self.lr * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+
+def _epoch(
+    net: ResidualNet,
+    opt: torch.optim.Optimizer,
+    schedule: _Schedule,
+    data: tuple[torch.Tensor, torch.Tensor],
+    perm: torch.Tensor,
+    batch: int,
+) -> tuple[float, int, bool]:
+    """One pass over the training pairs ``data`` (joints, standardised targets) in batches, in ``perm``'s
+    order: the summed batch losses, the steps taken, and whether the time budget ran out."""
+    q_train, y_train = data
+    total, steps = 0.0, 0
+    for s in range(0, len(q_train) - batch + 1, batch):
+        elapsed = schedule.elapsed()
+        if elapsed >= schedule.max_seconds:
+            return total, steps, True
+        rate = schedule.rate(elapsed)
+        if rate is not None:
+            for group in opt.param_groups:
+                group["lr"] = rate
+        idx = perm[s : s + batch]
+        loss = torch.linalg.vector_norm(net.standardised(q_train[idx]) - y_train[idx], dim=1).mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        total += loss.item()
+        steps += 1
+        schedule.done_steps += 1
+    return total, steps, False
 
 
 MEMBER_SEED_STRIDE = 1000  # member i trains from seed + i * this: apart from the other net's seed (+1)
