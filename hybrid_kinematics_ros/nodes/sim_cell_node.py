@@ -15,6 +15,8 @@ from __future__ import annotations
 import sys
 import threading
 import time
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import rclpy
@@ -24,7 +26,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from sensor_msgs.msg import JointState
 
-from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
+from hybrid_kinematics_ros.kinematics.robot_config import RobotConfig, load_robot_config
 from hybrid_kinematics_ros.kinematics.se3 import pose_from_matrix
 from hybrid_kinematics_ros.nodes.runtime import StartupError, read_only_parameter, run_node
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
@@ -33,6 +35,46 @@ from hybrid_kinematics_ros.simulation.trajectory import JointStep, random_waypoi
 
 BLOCK_S = 0.01
 LATENESS_SAMPLES = 2_000_000
+
+
+def _tracker_frames(declare: Callable[..., Any]) -> dict[str, dict[str, list[float]]]:
+    """The tracker's placement and the target's mount from the node's parameters (zero: the config's)."""
+    return {
+        "base_to_tracker": {
+            "xyz": declare("base_to_tracker_xyz", [0.0, 0.0, 0.0], "tracker frame in the robot base (m)"),
+            "rpy": declare("base_to_tracker_rpy", [0.0, 0.0, 0.0], "its roll, pitch, yaw (rad)"),
+        },
+        "flange_to_target": {
+            "xyz": declare("flange_to_target_xyz", [0.0, 0.0, 0.0], "tracker target on the flange (m)"),
+            "rpy": declare("flange_to_target_rpy", [0.0, 0.0, 0.0], "its roll, pitch, yaw (rad)"),
+        },
+    }
+
+
+def _slip(value: list[float], dof: int) -> JointStep | None:
+    """The ``slip`` parameter ``[joint index, rad, after s]`` as a joint step (None at 0 rad)."""
+    if len(value) != 3 or not float(value[0]).is_integer():
+        raise StartupError(f"parameter slip: {list(value)} is not [joint index, rad, after s]")
+    slip = JointStep(int(value[0]), float(value[1]), float(value[2])) if value[1] else None
+    if slip is not None and not (0 <= slip.joint < dof and np.isfinite(slip.rad) and slip.after_s >= 0):
+        raise StartupError(f"parameter slip: {list(value)}: give a joint index below {dof}, rad, s >= 0")
+    return slip
+
+
+def _waypoints(cfg: RobotConfig, pattern: str, count: int, rng: np.random.Generator) -> np.ndarray:
+    """The waypoints of the ``pattern``: ``count`` random ones, or the corners of a cube about a centre pose."""
+    if pattern != "cube":
+        return random_waypoints(cfg.chain, count, rng)
+    centre = 0.5 * (cfg.chain.lower + cfg.chain.upper)
+    if cfg.name == "ur10":
+        centre = np.clip(np.array([0.0, -1.2, 1.4, -1.8, -1.5, 0.0])[: cfg.chain.dof], cfg.chain.lower, cfg.chain.upper)
+    from hybrid_kinematics_ros.ik.cube import cube_waypoints  # IK loads torch: only for this pattern
+    from hybrid_kinematics_ros.ik.errors import IKError
+
+    try:
+        return cube_waypoints(cfg.chain, centre)
+    except IKError as exc:
+        raise StartupError(f"parameter pattern cube: {exc}") from exc
 
 
 class SimCellNode(Node):
@@ -60,55 +102,24 @@ class SimCellNode(Node):
             "wait_for_subscribers_s", 10.0, "wait up to this long for a subscriber on both topics before publishing"
         )
 
-        frames = {
-            "base_to_tracker": {
-                "xyz": declare("base_to_tracker_xyz", [0.0, 0.0, 0.0], "tracker frame in the robot base (m)"),
-                "rpy": declare("base_to_tracker_rpy", [0.0, 0.0, 0.0], "its roll, pitch, yaw (rad)"),
-            },
-            "flange_to_target": {
-                "xyz": declare("flange_to_target_xyz", [0.0, 0.0, 0.0], "tracker target on the flange (m)"),
-                "rpy": declare("flange_to_target_rpy", [0.0, 0.0, 0.0], "its roll, pitch, yaw (rad)"),
-            },
-        }
+        frames = _tracker_frames(declare)
         self.plain_reflector = declare(
             "plain_reflector", False, "the target gives no orientation: publish zero quaternions"
         )
         self.encoder_noise = declare("encoder_noise_rad", 0.0, "joint encoder noise, standard deviation (rad)")
         self.encoder_step = declare("encoder_resolution_rad", 0.0, "joint encoder quantisation step (rad); 0: none")
-
         slip = declare(
             "slip", [0.0, 0.0, 0.0], "joint index, rad, after s: that joint slips then, its encoder does not see it"
         )
-        if len(slip) != 3 or not float(slip[0]).is_integer():
-            raise StartupError(f"parameter slip: {list(slip)} is not [joint index, rad, after s]")
-        self.slip = JointStep(int(slip[0]), float(slip[1]), float(slip[2])) if slip[1] else None
         cfg = load_robot_config(robot)
-        if self.slip is not None and not (
-            0 <= self.slip.joint < cfg.chain.dof and np.isfinite(self.slip.rad) and self.slip.after_s >= 0
-        ):
-            raise StartupError(f"parameter slip: {list(slip)}: give a joint index below {cfg.chain.dof}, rad, s >= 0")
+        self.slip = _slip(slip, cfg.chain.dof)
         self.cell = VirtualCell.from_config(cfg, noise=noise)
         if any(np.any(np.asarray(v, dtype=float) != 0.0) for f in frames.values() for v in f.values()):
             tracker = Tracker.from_config({**cfg.tracker, **frames}, noise=noise)
             self.cell = VirtualCell(cfg, self.cell.robot, tracker)
         self.names = list(cfg.chain.joint_names)
         self.rng = np.random.default_rng(seed)
-        if pattern == "cube":
-            centre = 0.5 * (cfg.chain.lower + cfg.chain.upper)
-            centre = (
-                np.clip(np.array([0.0, -1.2, 1.4, -1.8, -1.5, 0.0])[: cfg.chain.dof], cfg.chain.lower, cfg.chain.upper)
-                if cfg.name == "ur10"
-                else centre
-            )
-            from hybrid_kinematics_ros.ik.cube import cube_waypoints  # IK loads torch: only for this pattern
-            from hybrid_kinematics_ros.ik.errors import IKError
-
-            try:
-                points = cube_waypoints(cfg.chain, centre)
-            except IKError as exc:
-                raise StartupError(f"parameter pattern cube: {exc}") from exc
-        else:
-            points = random_waypoints(cfg.chain, int(waypoints), self.rng)
+        points = _waypoints(cfg, pattern, int(waypoints), self.rng)
         self.trajectory = through(points, speed, dwell)
         qos = QoSProfile(depth=1000)
         self.joint_pub = self.create_publisher(JointState, "/joint_states", qos)
