@@ -503,24 +503,7 @@ class IKSolver:
         closed, near = exact_and_near
         tried = [q0]
         tol_m, tol_rad = self.inner_tol
-        # the branches' copies shifted by 2π next: another problem for the nets (an elbow stretched a few
-        # micrometres beyond one copy's reach can lie within another's), nearest the seed first
-        branches = np.vstack([closed, near])
-        copies = turns(branches, self.lower, self.upper)
-        copies = copies[np.argsort(np.linalg.norm(copies - req.seed, axis=1), kind="stable")]
-        if nearest_miss is not None:
-            # beyond the URDF model's reach, the copies of the branch that came nearest first: where no copy of
-            # the seed's reaches, the nets' reach on another copy of that branch is what differs (an RX160's
-            # stretched elbow)
-            mine = turns(nearest_miss.q[None], self.lower, self.upper)
-            copies = np.vstack([mine[np.argsort(np.linalg.norm(mine - req.seed, axis=1), kind="stable")], copies])
-        unique: list[np.ndarray] = [*branches, *restarted]  # the copies tried before the valley search too
-        kept = []
-        for q in copies:
-            if seeding.is_new_branch(q, unique):
-                unique.append(q)
-                kept.append(q)
-        copies = kept
+        copies = self._branch_copies(req, np.vstack([closed, near]), nearest_miss, restarted)
         table = self.seeds.nearest(req.target, 2 * seeding.TABLE_RESTARTS)
         # (start, whether LM on the hybrid model follows a fixed point that stalls beyond the branch's reach: on
         # a copy, the nets' reach is what differs, and the hybrid Jacobian is what finds it)
@@ -582,6 +565,27 @@ class IKSolver:
         best.stats["branches"] = len(tried)
         best.seconds = time.perf_counter() - req.start
         return self._singular(best)
+
+    def _branch_copies(
+        self, req: SolveRequest, branches: np.ndarray, nearest_miss: IKResult | None, restarted: list[np.ndarray]
+    ) -> list[np.ndarray]:
+        """The ``branches``' copies shifted by 2π, nearest the seed first, each new branch once: another problem
+        for the nets (an elbow stretched a few micrometres beyond one copy's reach can lie within another's).
+        Beyond the URDF model's reach, the copies of the branch that came nearest (``nearest_miss``) go first:
+        where no copy of the seed's reaches, the nets' reach on another copy of that branch is what differs (an
+        RX160's stretched elbow). The branches and the ``restarted`` configurations were tried already."""
+        copies = turns(branches, self.lower, self.upper)
+        copies = copies[np.argsort(np.linalg.norm(copies - req.seed, axis=1), kind="stable")]
+        if nearest_miss is not None:
+            mine = turns(nearest_miss.q[None], self.lower, self.upper)
+            copies = np.vstack([mine[np.argsort(np.linalg.norm(mine - req.seed, axis=1), kind="stable")], copies])
+        unique: list[np.ndarray] = [*branches, *restarted]
+        kept = []
+        for q in copies:
+            if seeding.is_new_branch(q, unique):
+                unique.append(q)
+                kept.append(q)
+        return kept
 
     def _restarts(
         self,
@@ -1106,45 +1110,62 @@ class IKSolver:
         given = seed is not None
         target, seed = self.check(target, seed)
         origin = seed if given else None  # where the robot comes from, if the caller said (4.)
-        found: list[np.ndarray] = []
-        o = self.options
-        tol_m, tol_rad = 1e-3 * o.position_tolerance_mm, np.radians(o.orientation_tolerance_deg)
         end = float("inf") if deadline is None else deadline
         req = SolveRequest(target, seed, origin, analytic, start, end)
-        search_end = start + SEARCH_SHARE * (end - start)
+        found, search = self._many_starts(req, extra_seeds or [])
+        found = self._searched(req, search, found, start + SEARCH_SHARE * (end - start))
+        found.sort(key=lambda q: float(np.linalg.norm(q - seed)))
+        return self._refined_many(req, found[:max_solutions])
+
+    def _many_starts(self, req: SolveRequest, extra_seeds: list[np.ndarray]) -> tuple[list, list]:
+        """:meth:`solve_many`'s solutions found already (the closed forms' exact branches, when the hybrid
+        model refines them), and the starts the URDF model's LM searches from."""
+        target, seed = req.target, req.seed
         branches = list(self.branches(target, seed))  # every branch at once: the seeds below only add the rest
         # a branch at a singularity has no closed-form answer: the spread of seeds searches for it too
         singular = self.closed_form is not None and self.closed_form.singular(target)
         # every exact solution is a checked branch (within the limits, nearest the seed); without one, a target
         # just beyond the URDF model's reach has its branches' nearest points: no seed search finds more
         starts = [] if singular else branches or list(self._beyond_reach(target, seed, np.empty((0, len(seed)))))
-        complete = bool(starts)
-        corrected = not analytic and self.model.is_corrected
-        search = [*branches, seed, *(extra_seeds or []), *(() if branches and not singular else self.seeds.spread)]
-        if complete and corrected:  # the hybrid fixed points start from the branches as they are
-            search = []
+        if starts and not req.analytic and self.model.is_corrected:  # hybrid fixed points start from them as they are
+            found: list[np.ndarray] = []
             for q in starts:
                 if not any(seeding.same_solution(q, f, self.model.chain.revolute) for f in found):
                     found.append(q)
-        elif complete:  # the URDF model's own answers: LM polishes each to the inner tolerance, in a step or none
-            search = starts
+            return found, []
+        if starts:  # the URDF model's own answers: LM polishes each to the inner tolerance, in a step or none
+            return [], starts
+        return [], [*branches, seed, *extra_seeds, *(() if branches and not singular else self.seeds.spread)]
+
+    def _searched(
+        self, req: SolveRequest, search: list[np.ndarray], found: list[np.ndarray], search_end: float
+    ) -> list[np.ndarray]:
+        """``found`` and the distinct solutions of the URDF model's LM from each of ``search``, until
+        ``search_end``."""
+        o = self.options
+        tol_m, tol_rad = 1e-3 * o.position_tolerance_mm, np.radians(o.orientation_tolerance_deg)
         for s in search:
             now = time.perf_counter()
             if now > search_end:
                 break
             seed_deadline = min(now + o.timeout_s, search_end)
             q, ep, er, _ = lm_solve(
-                self.analytic_fk_jac, target, s, self.limits, *self.inner_tol, o.max_iterations, seed_deadline
+                self.analytic_fk_jac, req.target, s, self.limits, *self.inner_tol, o.max_iterations, seed_deadline
             )
             if ep > tol_m or er > tol_rad:
                 continue
-            q = seeding.nearest_equivalent(q, seed, self.limits)
+            q = seeding.nearest_equivalent(q, req.seed, self.limits)
             if not any(seeding.same_solution(q, f, self.model.chain.revolute) for f in found):
                 found.append(q)
-        found.sort(key=lambda q: float(np.linalg.norm(q - seed)))
-        found = found[:max_solutions]
-        arrivals = [self._arrival(origin, q0) for q0 in found]
-        fixed = {}  # the fixed points side by side, where every start moves with the same approach directions
+        return found
+
+    def _refined_many(self, req: SolveRequest, found: list[np.ndarray]) -> list[IKResult]:
+        """Each of ``found`` refined through the hybrid model (the fixed points side by side where every start
+        moves with the same approach directions), those that succeed, until the request's deadline."""
+        target, end = req.target, req.deadline
+        corrected = not req.analytic and self.model.is_corrected
+        arrivals = [self._arrival(req.origin, q0) for q0 in found]
+        fixed = {}
         batch = corrected and self.closed_form is not None and all(a is None for a in arrivals)
         if batch and time.perf_counter() <= end:
             fixed = dict(enumerate(self.fixed_points(target, found, end)))
