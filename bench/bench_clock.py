@@ -17,7 +17,7 @@ import numpy as np
 
 from bench.report import table, write_section
 from hybrid_kinematics_ros.calibration.alignment import align
-from hybrid_kinematics_ros.simulation.recording import PLACED, simulated_recording
+from hybrid_kinematics_ros.simulation.recording import PLACED, RecordingSpec, simulated_recording
 
 OFFSET_S = 0.0123
 SEEDS = (1, 2, 3)
@@ -27,7 +27,7 @@ def offset_row(label: str, frames: dict | None, seconds: float = 30.0) -> list:
     """Offset errors of three recordings (seeds), each found with the skew left at zero (too short for one)."""
     errors, times = [], []
     for seed in SEEDS:
-        sim = simulated_recording(offset_s=OFFSET_S, seconds=seconds, seed=seed, frames=frames)
+        sim = simulated_recording(RecordingSpec(offset_s=OFFSET_S, seconds=seconds, seed=seed, frames=frames))
         start = time.perf_counter()
         result = align(sim.cfg.chain, sim.recording)
         times.append(time.perf_counter() - start)
@@ -38,14 +38,10 @@ def offset_row(label: str, frames: dict | None, seconds: float = 30.0) -> list:
 
 def drift_row(drift_ppm: float = 20.0, seconds: float = 600.0) -> list:
     """Offset and skew over a long recording whose tracker clock drifts (the tracker at 500 Hz to keep it quick)."""
-    sim = simulated_recording(
-        offset_s=OFFSET_S,
-        seconds=seconds,
-        drift_ppm=drift_ppm,
-        frames=PLACED,
-        waypoints=200,
-        tracker_hz=500.0,
+    spec = RecordingSpec(
+        offset_s=OFFSET_S, seconds=seconds, drift_ppm=drift_ppm, frames=PLACED, waypoints=200, tracker_hz=500.0
     )
+    sim = simulated_recording(spec)
     start = time.perf_counter()
     result = align(sim.cfg.chain, sim.recording)
     took = time.perf_counter() - start

@@ -42,7 +42,7 @@ from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
-from hybrid_kinematics_ros.simulation.recording import PLACED, simulated_recording
+from hybrid_kinematics_ros.simulation.recording import PLACED, RecordingSpec, simulated_recording
 from hybrid_kinematics_ros.simulation.sampling import sample_joints
 from hybrid_kinematics_ros.simulation.tracker import Tracker
 from hybrid_kinematics_ros.simulation.trajectory import JointStep
@@ -363,9 +363,10 @@ def _check(cell: VirtualCell, station: Tracker, slip: float, shift: float, draw:
 
 def _monitored(model: HybridModel, step: JointStep | None, seed: int) -> list:
     """The monitor's statuses over a simulated stream, with their robot-clock time (s)."""
-    rec = simulated_recording(
+    spec = RecordingSpec(
         seconds=STREAM_S, speed=1.0, waypoints=200, tracker_hz=1000.0, frames=PLACED, step=step, seed=seed
-    ).recording
+    )
+    rec = simulated_recording(spec).recording
     monitor = DriftMonitor(model)
     joints, poses = rec.joint_stamps, rec.pose_stamps
     out, k = [], 0

@@ -36,49 +36,54 @@ class SimulatedRecording:
     recording: RawRecording
 
 
-def simulated_recording(
-    offset_s: float = 0.0123,
-    seconds: float = 30.0,
-    noise: bool = True,
-    gap: tuple[float, float] | None = None,
-    speed: float = 0.25,
-    seed: int = 1,
-    frames: dict | None = None,
-    drift_ppm: float = 0.0,
-    waypoints: int = 30,
-    tracker_hz: float = 3000.0,
-    encoder: tuple[float, float] | None = None,
-    robot: str = "ur10",
-    step: JointStep | None = None,
-    dwell_s: float = 0.3,
-) -> SimulatedRecording:
-    """The simulated cell moving through ``waypoints`` random waypoints at ``speed`` rad/s for ``seconds``.
+@dataclass(frozen=True)
+class RecordingSpec:
+    """What the simulated cell records: ``waypoints`` random waypoints (from ``seed``) at ``speed`` rad/s for
+    ``seconds``, with ``dwell_s`` still at each.
 
     The tracker's stamps are ``t + offset_s + drift_ppm·1e-6·t`` (t in s of the robot clock from the start);
-    it starts 0.1 s before the joints and ends 0.1 s after. ``gap``: a beam break, from and to (s), with no
-    tracker poses. ``frames``: the tracker's placement and the target's mount (as ``PLACED``; None: the
-    config's). ``encoder``: the joint readings' (noise sigma, quantisation step) in rad. ``step``: a joint that
-    slips during the recording (the tracker sees it, the joint readings do not). ``dwell_s``: the still time at
-    each waypoint."""
-    cfg = load_robot_config(robot)
-    cell = VirtualCell.from_config(cfg, noise=noise)
-    if frames is not None:
-        cell = VirtualCell(cfg, cell.robot, Tracker.from_config({**cfg.tracker, **frames}, noise=noise))
-    rng = np.random.default_rng(seed)
-    traj = through(random_waypoints(cfg.chain, waypoints, rng), speed, dwell_s)
-    tj = np.arange(0.0, seconds, 1 / JOINT_HZ)
-    tp = np.arange(-0.1, seconds + 0.1, 1 / tracker_hz)
-    if gap is not None:
-        tp = tp[(tp < gap[0]) | (tp >= gap[1])]
-    p, quat = pose_from_matrix(cell.measure(traj(tp) if step is None else step.reached(traj(tp), tp), rng))
+    it starts 0.1 s before the joints and ends 0.1 s after, at ``tracker_hz``. ``gap``: a beam break, from
+    and to (s), with no tracker poses. ``frames``: the tracker's placement and the target's mount (as
+    ``PLACED``; None: the config's). ``encoder``: the joint readings' (noise sigma, quantisation step) in
+    rad. ``step``: a joint that slips during the recording (the tracker sees it, the joint readings do not)."""
+
+    offset_s: float = 0.0123
+    seconds: float = 30.0
+    noise: bool = True
+    gap: tuple[float, float] | None = None
+    speed: float = 0.25
+    seed: int = 1
+    frames: dict | None = None
+    drift_ppm: float = 0.0
+    waypoints: int = 30
+    tracker_hz: float = 3000.0
+    encoder: tuple[float, float] | None = None
+    robot: str = "ur10"
+    step: JointStep | None = None
+    dwell_s: float = 0.3
+
+
+def simulated_recording(spec: RecordingSpec) -> SimulatedRecording:
+    """The simulated cell's raw recording as ``spec`` describes it, with the cell and the joints' path."""
+    cfg = load_robot_config(spec.robot)
+    cell = VirtualCell.from_config(cfg, noise=spec.noise)
+    if spec.frames is not None:
+        cell = VirtualCell(cfg, cell.robot, Tracker.from_config({**cfg.tracker, **spec.frames}, noise=spec.noise))
+    rng = np.random.default_rng(spec.seed)
+    traj = through(random_waypoints(cfg.chain, spec.waypoints, rng), spec.speed, spec.dwell_s)
+    tj = np.arange(0.0, spec.seconds, 1 / JOINT_HZ)
+    tp = np.arange(-0.1, spec.seconds + 0.1, 1 / spec.tracker_hz)
+    if spec.gap is not None:
+        tp = tp[(tp < spec.gap[0]) | (tp >= spec.gap[1])]
+    p, quat = pose_from_matrix(cell.measure(traj(tp) if spec.step is None else spec.step.reached(traj(tp), tp), rng))
     q = traj(tj)
-    if encoder is not None:
-        q = np.round((q + rng.normal(0.0, encoder[0], q.shape)) / encoder[1]) * encoder[1]
+    if spec.encoder is not None:
+        q = np.round((q + rng.normal(0.0, spec.encoder[0], q.shape)) / spec.encoder[1]) * spec.encoder[1]
     rec = RawRecording(
         START_NS + np.round(tj * 1e9).astype(np.int64),
         cfg.chain.joint_names,
         q,
-        START_NS + np.round((tp + offset_s + drift_ppm * 1e-6 * tp) * 1e9).astype(np.int64),
+        START_NS + np.round((tp + spec.offset_s + spec.drift_ppm * 1e-6 * tp) * 1e9).astype(np.int64),
         "tracker",
         p,
         quat,

@@ -12,14 +12,14 @@ from hybrid_kinematics_ros.calibration.clock import estimate_offset
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.io.raw_bag import RawRecording
 from hybrid_kinematics_ros.kinematics import se3
-from hybrid_kinematics_ros.simulation.recording import PLACED, START_NS, simulated_recording
+from hybrid_kinematics_ros.simulation.recording import PLACED, START_NS, RecordingSpec, simulated_recording
 
 T0 = START_NS
 
 
 def recording(**kwargs):
     """(config, cell, trajectory, raw recording) of :func:`simulated_recording`."""
-    sim = simulated_recording(**kwargs)
+    sim = simulated_recording(RecordingSpec(**kwargs))
     return sim.cfg, sim.cell, sim.trajectory, sim.recording
 
 

@@ -7,7 +7,7 @@ import pytest
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.monitor import DriftMonitor, MonitorOptions
-from hybrid_kinematics_ros.simulation.recording import PLACED, simulated_recording
+from hybrid_kinematics_ros.simulation.recording import PLACED, RecordingSpec, simulated_recording
 from hybrid_kinematics_ros.simulation.trajectory import JointStep
 
 OPTIONS = MonitorOptions(reference_poses=10, window=40)
@@ -17,9 +17,10 @@ STEP_AFTER_S = 40.0
 def stream(monitor: DriftMonitor, step: JointStep | None = None, seconds: float = 90.0) -> list[tuple[float, object]]:
     """The simulated cell's raw streams fed in stamp order (the tracker's clock 12.3 ms ahead); the statuses
     of the completed still poses with their time (s) on the robot's clock."""
-    rec = simulated_recording(
+    spec = RecordingSpec(
         seconds=seconds, noise=False, speed=3.0, waypoints=40, tracker_hz=1000.0, frames=PLACED, step=step, seed=3
-    ).recording
+    )
+    rec = simulated_recording(spec).recording
     events = sorted(
         [(int(s), 1, i) for i, s in enumerate(rec.joint_stamps)]
         + [(int(s), 0, i) for i, s in enumerate(rec.pose_stamps)]
