@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -138,24 +139,33 @@ def fit_scale(q: np.ndarray, error: np.ndarray, revolute: np.ndarray) -> Scale:
     return Scale(w, float(fitted.min()), float(fitted.max()))
 
 
+@dataclass(frozen=True)
+class Validation:
+    """The validation pairs as the bounds see them: configurations ``q (N, n)``, their ``excess (N, n)``
+    beyond the trained range, and the hybrid model's and the stage alone's errors there (each: position m,
+    orientation rad or None for position-only data)."""
+
+    q: np.ndarray
+    excess: np.ndarray
+    hybrid: tuple[np.ndarray, np.ndarray | None]
+    stage: tuple[np.ndarray, np.ndarray | None]
+
+
 def calibrate(
     lin: Linearisation,
     ridge: np.ndarray,
     revolute: np.ndarray,
     training: tuple[np.ndarray, np.ndarray, np.ndarray | None],
-    validation_q: np.ndarray,
-    validation_excess: np.ndarray,
-    position_error: np.ndarray,
-    orientation_error: np.ndarray | None,
-    stage_error: tuple[np.ndarray, np.ndarray | None],
+    validation: Validation,
     level: float = LEVEL,
 ) -> Bounds:
     """The bounds, from the linearised stage problem over the training pairs (``lin`` with its ``ridge``,
     for the rates), the stage's errors on them (``training``: configurations, position m, orientation rad or
-    None; for the scale) and the hybrid model's validation errors (m, rad; None: position only) at their
-    configurations ``validation_q (N, n)`` and excess ``(N, n)`` beyond the trained range. ``stage_error``:
-    the stage alone's validation errors (position m, orientation rad or None), for its own quantile (the
-    ``bound`` range policy compares the two)."""
+    None; for the scale) and the errors on the ``validation`` pairs: the hybrid model's for the bound's size,
+    the stage alone's for its own quantile (the ``bound`` range policy compares the two)."""
+    validation_q, validation_excess = validation.q, validation.excess
+    position_error, orientation_error = validation.hybrid
+    stage_error = validation.stage
     on_data, slabs = extrapolation_errors(lin, ridge, revolute)
     n = len(revolute)
     kinds = {"position": (0, position_error, stage_error[0])}

@@ -657,17 +657,14 @@ def calibrate_bounds(
     stage_mm, stage_deg = target_errors(train_pairs, model.fk(train_pairs.q, nets=False, conditions=conditions))
     stage = (train_pairs.q, 1e-3 * stage_mm, None if train_pairs.position_only else np.radians(stage_deg))
     ridge = capacity_module.harmonic_ridge(lin, float(options.get("harmonic_prior", HARMONIC_PRIOR)))
-    return bounds_module.calibrate(
-        lin,
-        ridge,
-        chain.revolute,
-        stage,
+    position_only = val_pairs.position_only
+    validation = bounds_module.Validation(
         val_pairs.q,
         excess(val_pairs.q, model.trained_lower, model.trained_upper, chain.revolute),
-        1e-3 * pos_mm,
-        None if val_pairs.position_only else np.radians(rot_deg),
-        (1e-3 * alone_mm, None if val_pairs.position_only else np.radians(alone_deg)),
+        (1e-3 * pos_mm, None if position_only else np.radians(rot_deg)),
+        (1e-3 * alone_mm, None if position_only else np.radians(alone_deg)),
     )
+    return bounds_module.calibrate(lin, ridge, chain.revolute, stage, validation)
 
 
 def _net_inputs(pairs: Pairs, conditions: Sequence[str]) -> np.ndarray:
