@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.calibration import capacity as capacity_module
 from hybrid_kinematics_ros.calibration.evaluate import evaluate, measured_targets, plot_distributions, pose_errors_of
-from hybrid_kinematics_ros.calibration.summary import MODELS, summarise
+from hybrid_kinematics_ros.calibration.summary import MODELS, NO_TOLERANCE, TestData, Tolerance, summarise
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics.elastic import JointMap
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -466,23 +466,21 @@ def write_report(
     model: HybridModel,
     pairs: Pairs,
     out_dir: Path,
-    bags: list[str],
+    source: TestData,
     curve: list[dict[str, Any]] | None = None,
-    stations: list[str] | None = None,
-    tolerance_mm: float | None = None,
-    tolerance_deg: float | None = None,
+    tolerance: Tolerance = NO_TOLERANCE,
 ) -> tuple[Path, dict[str, Any]]:
     """Write ``index.html`` and its PNGs into ``out_dir``; return the page's path and the summary's figures
     (:func:`calibration.summary.summarise`, with the verdict a caller may print or act on).
 
-    ``stations``: the frames the test data was measured in (the summary names them); ``tolerance_mm`` and
-    ``tolerance_deg``: the user's tolerance, which the summary's verdict line judges the hybrid model by.
+    ``source``: the test data's bags and the frames it was measured in (the summary names them);
+    ``tolerance``: the user's, which the summary's verdict line judges the hybrid model by.
     """
     out_dir.mkdir(parents=True, exist_ok=True)
     errors = pose_errors_of(model, pairs)  # every model's FK of the test poses, once for the whole page
     report = evaluate(model, pairs, errors)
     iso = iso9283(model, pairs)
-    summary = summarise(model, pairs, report, errors, iso, bags, stations or [], tolerance_mm, tolerance_deg)
+    summary = summarise(model, pairs, report, errors, iso, source, tolerance)
     m = model.manifest
     parts = [
         f"<h1>Accuracy report: {html.escape(summary['robot'])}</h1>",

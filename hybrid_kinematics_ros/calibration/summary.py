@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
 
@@ -178,29 +179,46 @@ def working_range(model: HybridModel) -> dict[str, Any]:
     return {"recorded": "trained_range" in model.manifest, "joints": joints, "conditions": conditions}
 
 
+@dataclass(frozen=True)
+class TestData:
+    """Where the test pairs come from: their ``bags`` and the ``stations`` (frames) they were measured in."""
+
+    bags: Sequence[str]
+    stations: Sequence[str] = ()
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    """The user's tolerance the verdict judges the hybrid model by: ``mm`` (None: no verdict) and ``deg``
+    (None: position alone)."""
+
+    mm: float | None = None
+    deg: float | None = None
+
+
+NO_TOLERANCE = Tolerance()  # no verdict
+
+
 def summarise(
     model: HybridModel,
     pairs: Pairs,
     report: dict[str, Any],
     errors: dict[str, tuple[np.ndarray, np.ndarray]],
     iso: Sequence[dict[str, Any]],
-    bags: Sequence[str],
-    stations: Sequence[str] = (),
-    tolerance_mm: float | None = None,
-    tolerance_deg: float | None = None,
+    source: TestData,
+    tolerance: Tolerance = NO_TOLERANCE,
 ) -> dict[str, Any]:
     """The summary block's figures. ``report``: :func:`evaluate`'s statistics of these ``pairs``;
-    ``errors``: :func:`pose_errors_of`'s per-pose errors (the verdict's input); ``stations``: the frames
-    the test data was measured in."""
+    ``errors``: :func:`pose_errors_of`'s per-pose errors (the verdict's input)."""
     dates = date_range(pairs.stamps)
     hybrid_pos, hybrid_rot = errors["hybrid"]
     return {
         "robot": robot_name(model),
         "chain": [model.chain.base_link, model.chain.tip_link],
         "data": {
-            "bags": list(bags),
+            "bags": list(source.bags),
             "poses": len(pairs),
-            "stations": list(stations),
+            "stations": list(source.stations),
             "from": dates[0] if dates else None,
             "to": dates[1] if dates else None,
         },
@@ -211,5 +229,5 @@ def summarise(
         "tracker_floor": model.manifest.get("tracker_floor"),
         "learning_curve": (model.manifest.get("capacity") or {}).get("learning_curve"),
         "working_range": {**working_range(model), "inside": report["inside_calibrated_range"]},
-        "verdict": None if tolerance_mm is None else verdict(hybrid_pos, hybrid_rot, tolerance_mm, tolerance_deg),
+        "verdict": None if tolerance.mm is None else verdict(hybrid_pos, hybrid_rot, tolerance.mm, tolerance.deg),
     }

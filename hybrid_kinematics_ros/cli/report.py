@@ -9,6 +9,7 @@ from pathlib import Path
 
 from hybrid_kinematics_ros.calibration.fit import load_stations
 from hybrid_kinematics_ros.calibration.report import write_report
+from hybrid_kinematics_ros.calibration.summary import TestData, Tolerance
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.model.referencing import to_base_frame
@@ -52,16 +53,9 @@ def run(args: argparse.Namespace) -> int:
             curve = json.loads(args.curve.read_text())
         except (OSError, json.JSONDecodeError) as exc:
             raise DataError(f"{args.curve}: not a readable curve JSON ({exc})") from None
-    page, summary = write_report(
-        model,
-        pairs,
-        args.out,
-        [str(b) for b in args.bag],
-        curve,
-        stations=[p.frame_id for p in stations],
-        tolerance_mm=args.tolerance_mm,
-        tolerance_deg=args.tolerance_deg,
-    )
+    source = TestData([str(b) for b in args.bag], [p.frame_id for p in stations])
+    tolerance = Tolerance(args.tolerance_mm, args.tolerance_deg)
+    page, summary = write_report(model, pairs, args.out, source, curve, tolerance)
     if summary["verdict"] is not None:
         print(summary["verdict"]["line"])
     print(f"wrote {page}")
