@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import itertools
 import re
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -124,36 +125,45 @@ def _input_layers(body: nn.Module) -> list[nn.Linear]:
     raise CalibrationError(f"cannot take inputs out of a body that starts with {type(first).__name__}")
 
 
+@dataclass(frozen=True)
+class InputSpan:
+    """A net's input columns: each normalised over ``lower`` … ``upper``; the first ``n_joints`` (None: all)
+    are joints, the rest condition channels; ``ignored``: condition columns the net does not read (they
+    normalise to exactly zero)."""
+
+    lower: np.ndarray
+    upper: np.ndarray
+    n_joints: int | None = None
+    ignored: tuple[int, ...] = ()
+
+
 class ResidualNet(nn.Module):
     """Joints ``(B, n)`` rad (any float dtype), then any condition columns, to a residual ``(B, 3)`` float64
-    in m or rad. ``lower``/``upper`` span every input column; ``n_joints`` says how many are joints;
-    ``ignored``: condition columns the net does not read (they normalise to exactly zero)."""
+    in m or rad. ``inputs``: its input columns (:class:`InputSpan`); ``target``: the residuals' mean and scale
+    (m or rad), which the body's output is standardised by."""
 
     def __init__(
         self,
         arch: str,
-        lower: np.ndarray,
-        upper: np.ndarray,
-        target_mean: np.ndarray,
-        target_scale: np.ndarray,
+        inputs: InputSpan,
+        target: tuple[np.ndarray, np.ndarray],
         sincos: bool = True,
         joint1_axis: np.ndarray | None = None,
-        n_joints: int | None = None,
         members: int = 1,
-        ignored: tuple[int, ...] = (),
     ) -> None:
         super().__init__()
+        lower, upper, ignored = np.asarray(inputs.lower), np.asarray(inputs.upper), inputs.ignored
         n_in = len(lower)
-        n = n_in if n_joints is None else n_joints
+        n = n_in if inputs.n_joints is None else inputs.n_joints
         self.n_joints = n
         if any(not n <= c < n_in for c in ignored):
             raise CalibrationError(f"ignored input columns {list(ignored)}: only condition columns ({n}-{n_in - 1})")
-        span = np.maximum(np.asarray(upper) - np.asarray(lower), 1e-9)
+        span = np.maximum(upper - lower, 1e-9)
         span[list(ignored)] = np.inf  # (x - centre) / inf = 0: the column cannot change the output
-        self.register_buffer("center", torch.tensor(0.5 * (np.asarray(upper) + np.asarray(lower)), dtype=torch.float64))
+        self.register_buffer("center", torch.tensor(0.5 * (upper + lower), dtype=torch.float64))
         self.register_buffer("half_span", torch.tensor(0.5 * span, dtype=torch.float64))
-        self.register_buffer("target_mean", torch.tensor(target_mean, dtype=torch.float64))
-        self.register_buffer("target_scale", torch.tensor(target_scale, dtype=torch.float64))
+        self.register_buffer("target_mean", torch.tensor(target[0], dtype=torch.float64))
+        self.register_buffer("target_scale", torch.tensor(target[1], dtype=torch.float64))
         axis = np.zeros(3) if joint1_axis is None else np.asarray(joint1_axis, dtype=float)
         self.register_buffer("axis", torch.tensor(axis, dtype=torch.float64))
         self.sincos = sincos

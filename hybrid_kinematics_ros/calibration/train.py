@@ -22,7 +22,7 @@ import torch
 from scipy import stats
 
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.calibration.nets import ResidualNet
+from hybrid_kinematics_ros.calibration.nets import InputSpan, ResidualNet
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.chain import Chain
 from hybrid_kinematics_ros.kinematics.elastic import ElasticChain
@@ -118,18 +118,8 @@ def build_net(job: NetJob) -> ResidualNet:
     local = to_joint1_frame(job.y_train, job.q_train[:, 0], axis)
     mean = local.mean(axis=0)
     scale = float(np.sqrt(np.mean(np.sum((local - mean) ** 2, axis=1)) / 3.0)) or 1.0
-    return ResidualNet(
-        p.arch,
-        job.lower,
-        job.upper,
-        mean,
-        np.full(3, scale),
-        sincos=p.sincos,
-        joint1_axis=axis,
-        n_joints=job.n_joints,
-        members=p.members,
-        ignored=() if job.take_offered else job.offered,
-    )
+    inputs = InputSpan(job.lower, job.upper, job.n_joints, () if job.take_offered else job.offered)
+    return ResidualNet(p.arch, inputs, (mean, np.full(3, scale)), p.sincos, axis, p.members)
 
 
 GATE_CHUNKS = 10  # the validation pairs' chunks the nets' gate takes its noise from (one a block, by default)

@@ -13,7 +13,7 @@ from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.evaluate import evaluate
 from hybrid_kinematics_ros.calibration.fit import fit, split
-from hybrid_kinematics_ros.calibration.nets import ResidualNet
+from hybrid_kinematics_ros.calibration.nets import InputSpan, ResidualNet
 from hybrid_kinematics_ros.calibration.report import _capacity_section
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from test.conftest import EXPANSION_PER_K, THERMAL_STAGE, thermal_pairs
@@ -87,7 +87,7 @@ def test_a_column_no_net_reads_can_leave_its_input():
     x = np.column_stack([np.random.default_rng(1).uniform(-3, 3, (50, 6)), np.full(50, 22.0), np.full(50, 0.3)])
     zero, one = np.zeros(3), np.ones(3)
     for members in (1, 3):
-        net = ResidualNet("mlp:16x2:silu", lower, upper, zero, one, n_joints=6, members=members, ignored=(6,))
+        net = ResidualNet("mlp:16x2:silu", InputSpan(lower, upper, 6, (6,)), (zero, one), members=members)
         before = net(torch.tensor(x)).detach()
         net.drop_inputs((6,))
         narrow = torch.tensor(np.delete(x, 6, axis=1))
@@ -96,7 +96,7 @@ def test_a_column_no_net_reads_can_leave_its_input():
     with pytest.raises(CalibrationError, match="only condition columns the net ignores"):
         net.drop_inputs((6,))  # the other condition column is read
     with pytest.raises(CalibrationError, match="only condition columns"):
-        ResidualNet("mlp:16x2:silu", lower, upper, np.zeros(3), np.ones(3), n_joints=6, ignored=(2,))
+        ResidualNet("mlp:16x2:silu", InputSpan(lower, upper, 6, (2,)), (np.zeros(3), np.ones(3)))
 
 
 def test_fit_offers_the_channels_the_pairs_carry(ur10, tmp_path):

@@ -9,7 +9,7 @@ import time
 import numpy as np
 import torch
 
-from hybrid_kinematics_ros.calibration.nets import ResidualNet
+from hybrid_kinematics_ros.calibration.nets import InputSpan, ResidualNet
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -20,7 +20,9 @@ def test_solve_many_holds_a_total_budget():
     never binds: only the request's deadline can end the search early."""
     chain = load_robot_config("ur10").chain
     torch.manual_seed(0)
-    net = torch.jit.script(ResidualNet("mlp:512x4", chain.lower, chain.upper, np.zeros(3), np.full(3, 0.02)))
+    net = torch.jit.script(
+        ResidualNet("mlp:512x4", InputSpan(chain.lower, chain.upper), (np.zeros(3), np.full(3, 0.02)))
+    )
     solver = IKSolver(HybridModel(chain, {"position": net}), IKOptions(timeout_s=10.0))
     q = np.array([0.3, -1.0, 1.2, -0.5, 0.7, 0.2])
     target = solver.model.fk_single(q)
@@ -39,14 +41,14 @@ def test_solve_many_holds_a_total_budget():
 
 WARM_SCRIPT = """
 import numba, numpy as np, torch
-from hybrid_kinematics_ros.calibration.nets import ResidualNet
+from hybrid_kinematics_ros.calibration.nets import InputSpan, ResidualNet
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver
 from hybrid_kinematics_ros.ik import lm_kernel, round_kernel
 from hybrid_kinematics_ros.kinematics import fk_kernel, robot_config
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 chain = robot_config.load_robot_config("ur10").chain
 torch.manual_seed(0)
-net = torch.jit.script(ResidualNet("mlp:32x2", chain.lower, chain.upper, np.zeros(3), np.full(3, 2e-4)))
+net = torch.jit.script(ResidualNet("mlp:32x2", InputSpan(chain.lower, chain.upper), (np.zeros(3), np.full(3, 2e-4))))
 solver = IKSolver(HybridModel(chain, {"position": net})).warm_up()
 kernels = [getattr(m, n) for m in (lm_kernel, round_kernel, fk_kernel) for n in dir(m)]
 kernels = [k for k in kernels if isinstance(k, numba.core.registry.CPUDispatcher)]

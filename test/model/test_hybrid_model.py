@@ -113,7 +113,9 @@ def test_joint1_frame_turn_is_inverted_exactly():
     axis = np.array([0.0, 0.6, 0.8])
     r = np.random.default_rng(1).normal(size=(10, 3))
     q1 = np.random.default_rng(2).uniform(-3, 3, 10)
-    net = nets.ResidualNet("mlp:4x1", -np.ones(6), np.ones(6), np.zeros(3), np.ones(3), joint1_axis=axis)
+    net = nets.ResidualNet(
+        "mlp:4x1", nets.InputSpan(-np.ones(6), np.ones(6)), (np.zeros(3), np.ones(3)), joint1_axis=axis
+    )
     q = torch.zeros(10, 6, dtype=torch.float64)
     q[:, 0] = torch.tensor(q1)
     local = to_joint1_frame(r, q1, axis)
@@ -125,7 +127,7 @@ def test_joint1_frame_turn_is_inverted_exactly():
 
 @pytest.mark.parametrize("arch", ["D1", "D4", "D4w", "D4W", "Rw", "Rd", "mlp:32x3:relu"])
 def test_paper_architectures_build_script_and_run(arch, tmp_path):
-    net = nets.ResidualNet(arch, -np.ones(6), np.ones(6), np.zeros(3), np.ones(3), sincos=False)
+    net = nets.ResidualNet(arch, nets.InputSpan(-np.ones(6), np.ones(6)), (np.zeros(3), np.ones(3)), sincos=False)
     net.eval()
     scripted = torch.jit.script(net)
     scripted.save(str(tmp_path / "n.pt"))
@@ -142,7 +144,7 @@ def test_the_compiled_nets_jacobian_is_autograds(act, turn):
     lower, upper = np.array([-3.0, -2.0, -2.5, -3.0, -2.0, -3.0, 10.0]), np.array([3.0, 1.0, 2.5, 3.0, 2.0, 3.0, 40.0])
     axis = np.array([0.0, 0.0, 1.0]) if turn else None
     scale = np.array([2e-3, 1e-3, 3e-3])
-    net = nets.ResidualNet(f"mlp:32x3:{act}", lower, upper, np.full(3, 1e-4), scale, True, axis, 6)
+    net = nets.ResidualNet(f"mlp:32x3:{act}", nets.InputSpan(lower, upper, 6), (np.full(3, 1e-4), scale), True, axis)
     net.eval()
     fast = FastResidual.from_module(torch.jit.script(net))
     for q in np.random.default_rng(3).uniform(lower, upper, (5, 7)):
@@ -159,7 +161,9 @@ def test_a_batch_through_the_compiled_net_is_its_rows_and_torchscripts(members):
     torch.manual_seed(1)
     lower, upper = np.array([-3.0, -2.0, -2.5, -3.0, -2.0, -3.0]), np.array([3.0, 1.0, 2.5, 3.0, 2.0, 3.0])
     scale = np.array([2e-3, 1e-3, 3e-3])
-    net = nets.ResidualNet("mlp:64x3:silu", lower, upper, np.full(3, 1e-4), scale, True, members=members)
+    net = nets.ResidualNet(
+        "mlp:64x3:silu", nets.InputSpan(lower, upper), (np.full(3, 1e-4), scale), True, members=members
+    )
     net.eval()
     fast = FastResidual.from_module(torch.jit.script(net))
     assert fast is not None and fast.members == members
