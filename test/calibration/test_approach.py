@@ -103,7 +103,9 @@ def test_the_data_choose_the_directions_as_inputs(ur10, tmp_path):
     for name, half in (("play", (3e-4, 2e-4, 2e-4)), ("none", ())):
         cell = build_cell(CellSpec(name, poses=1200, test_poses=100, half_backlash_rad=half))
         tr, va, _ = split(cell.train, 0, (0.1, 0.0))
-        model, manifest = fit(ur10.chain, tr, va, va, tmp_path / name, Recipe(preset, 1.0))
+        # the other settings fixed: only the directions' choice is under test
+        recipe = Recipe(preset, 1.0, capacity={"elastic": "bending", "harmonics": 0, "map_step": 0.0})
+        model, manifest = fit(ur10.chain, tr, va, va, tmp_path / name, recipe)
         decision = next(d for d in manifest["capacity"]["decisions"] if d["setting"] == "approach")
         assert [c["candidate"] for c in decision["candidates"]] == [False, True]
         chosen[name] = (decision["chosen"], model.approach_index is not None)
