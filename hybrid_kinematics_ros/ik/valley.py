@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
+from typing import NamedTuple
 
 import numpy as np
 
@@ -322,22 +323,26 @@ def valley_starts(
     singular = [(q, v) for q, (v, sigma) in zip(rows, weak, strict=True) if sigma <= NEAR_SINGULAR]
     if not singular:
         return None
-    return _search(model, target, singular, rows[0], limits, deadline, tol)
+    return _search(_Valley(model, target, limits, deadline, tol), singular, rows[0])
 
 
-def _search(
-    model: HybridModel,
-    target: np.ndarray,
-    singular: list[tuple[np.ndarray, np.ndarray]],
-    near: np.ndarray,
-    limits: Limits,
-    deadline: float,
-    tol: float,
-) -> Iterator[np.ndarray]:
+class _Valley(NamedTuple):
+    """What every step of one valley search shares: the model, the target, the joint limits, the deadline
+    (``time.perf_counter()`` time) and the error a root is found to (m or rad)."""
+
+    model: HybridModel
+    target: np.ndarray
+    limits: Limits
+    deadline: float
+    tol: float
+
+
+def _search(s: _Valley, singular: list[tuple[np.ndarray, np.ndarray]], near: np.ndarray) -> Iterator[np.ndarray]:
     """:func:`valley_starts`' generator: ``singular`` holds the rows near a singularity with their weak
     motions; a row on a valley traced already starts none of its own, and a row past the limits (a closed-form
     branch there) the valley it enters them on (:func:`enter`), if any. A valley whose traced points' errors
     along the lost direction change sign nowhere is searched after the others (module docstring, 4.)."""
+    model, target, limits, deadline, _ = s
     traced: list[np.ndarray] = []
     later: list[tuple[tuple[np.ndarray, np.ndarray, bool], tuple[np.ndarray, np.ndarray], tuple]] = []
     lower, upper, _ = limits
@@ -360,11 +365,11 @@ def _search(
         at = (error6_batch(target, T), J)
         raw = _neighbours(path[0], *at, path[2], limits[2])
         if raw[-1].any():
-            yield from _starts_along(model, target, path, near, limits, deadline, tol, at, raw)
+            yield from _starts_along(s, path, near, at, raw)
         else:
             later.append((path, at, raw))
     for path, at, raw in later:
-        yield from _starts_along(model, target, path, near, limits, deadline, tol, at, raw)
+        yield from _starts_along(s, path, near, at, raw)
 
 
 def _neighbours(
@@ -386,13 +391,9 @@ def _neighbours(
 
 
 def _starts_along(
-    model: HybridModel,
-    target: np.ndarray,
+    s: _Valley,
     path: tuple[np.ndarray, np.ndarray, bool],
     near: np.ndarray,
-    limits: Limits,
-    deadline: float,
-    tol: float,
     at: tuple[np.ndarray, np.ndarray],
     raw: tuple[np.ndarray, ...],
 ) -> Iterator[np.ndarray]:
@@ -404,6 +405,7 @@ def _starts_along(
     its two points settled alone: where they still bracket a root, that root's start. Only when the caller asks
     for more are all the points settled (a chord step of a valley's 20-40 points costs a batched hybrid FK)
     and the other crossings and the double roots searched."""
+    model, target, limits, deadline, _ = s
     revolute = limits[2]
     points, motions, _ = path
     if time.perf_counter() > deadline:
@@ -419,26 +421,23 @@ def _starts_along(
         pair = _neighbours(Q2, e2, J2, False, revolute)
         if (along(e2, J2, joint[ends])[1] < SETTLED).all() and pair[-1][0]:
             _, _, qb, jb, ra, rb, _ = pair
-            yield project(_roots(model, target, Q2[:1], qb, ra, rb, jb, limits, deadline, tol)[0], *limits)
+            yield project(_roots(s, Q2[:1], qb, ra, rb, jb)[0], *limits)
         else:
             first = None  # settled, the pair brackets nothing: the whole valley's search may find it again
-    yield from _all_starts(model, target, path, joint, near, limits, deadline, tol, at, first)
+    yield from _all_starts(s, path, joint, near, at, first)
 
 
 def _all_starts(
-    model: HybridModel,
-    target: np.ndarray,
+    s: _Valley,
     path: tuple[np.ndarray, np.ndarray, bool],
     joint: np.ndarray,
     near: np.ndarray,
-    limits: Limits,
-    deadline: float,
-    tol: float,
     at: tuple[np.ndarray, np.ndarray],
     searched: int | None,
 ) -> Iterator[np.ndarray]:
     """:func:`_starts_along` over the whole valley, every point settled: the crossings nearest ``near`` first
     but the pair ``searched`` already (its index among the neighbours), then the double roots."""
+    model, target, limits, deadline, _ = s
     revolute = limits[2]
     points, _, closed = path
     if time.perf_counter() > deadline:
@@ -482,9 +481,7 @@ def _all_starts(
         # usually holds the solution), the others together when the caller asks for them
         for part in (cross[:1], cross[1:]):
             if len(part):
-                yield from _roots(
-                    model, target, Q[a[part]], qb[part], ra[part], rb[part], jb[part], limits, deadline, tol
-                )
+                yield from _roots(s, Q[a[part]], qb[part], ra[part], rb[part], jb[part])
 
     roots = refined()
     for kind, k in candidates:
@@ -531,20 +528,10 @@ def _touch(
     return Q[np.argmin(np.abs(r))]
 
 
-def _roots(
-    model: HybridModel,
-    target: np.ndarray,
-    qa: np.ndarray,
-    qb: np.ndarray,
-    ra: np.ndarray,
-    rb: np.ndarray,
-    j: np.ndarray,
-    limits: Limits,
-    deadline: float,
-    tol: float,
-) -> np.ndarray:
+def _roots(s: _Valley, qa: np.ndarray, qb: np.ndarray, ra: np.ndarray, rb: np.ndarray, j: np.ndarray) -> np.ndarray:
     """Regula falsi (Illinois) on ``r(t)`` between settled points of opposite sign, every bracket ``(K,)`` at
-    once, each until the error along and across its valley is within ``tol`` (m or rad)."""
+    once, each until the error along and across its valley is within the search's ``tol`` (m or rad)."""
+    model, target, limits, deadline, tol = s
     qa, qb, ra, rb = qa.copy(), qb.copy(), ra.copy(), rb.copy()
     q = np.where((np.abs(ra) < np.abs(rb))[:, None], qa, qb)
     side = np.zeros(len(q))
