@@ -261,7 +261,6 @@ def fit_joint_map(
     target: np.ndarray | None = None,
     step: float = 0.01,
     smoothness: float = MAP_SMOOTHNESS,
-    ridge: float = MAP_RIDGE,
     orientation_length: float = ORIENTATION_LENGTH,
 ) -> JointMap:
     """The joint error map that best explains what ``model`` leaves of the pairs, linearised at ``model``
@@ -276,7 +275,7 @@ def fit_joint_map(
     joint_map = JointMap(lower, step, np.zeros((n, width)))
     res = pose_residuals(model, q, T, position_only, target, orientation_length)
     rows = _joint_rows(model, q, position_only, target, orientation_length)  # (N, w, n)
-    values = solve_joint_map(map_design(joint_map, q, rows), res.ravel(), len(q), n, width, smoothness, ridge)
+    values = solve_joint_map(map_design(joint_map, q, rows), res.ravel(), len(q), n, width, smoothness, MAP_RIDGE)
     return JointMap(lower, step, values)
 
 
