@@ -217,7 +217,7 @@ def test_train_runs_an_earlier_models_recipe_and_refuses_a_mix(tmp_path):
     assert main(["simulate", "--robot", "ur10", "--samples", "600", "--out", str(bag), "--seed", "4"]) == 0
     given = ["--max-epochs", "3", "--arch-position", "mlp:16x2", "--arch-orientation", "mlp:16x2", "--members", "1"]
     stage = ["--elastic", "geometry", "--harmonics", "0", "--map-step", "0", "--no-approach", "--seed", "2"]
-    stage += ["--orientation-length", "1.0"]  # every capacity setting given: nothing to cross-validate
+    stage += ["--orientation-length", "1.0", "--no-drop-outliers"]  # every capacity setting given: nothing to choose
     first = cli("train", "--bag", str(bag), "--robot", "ur10", "--out", str(tmp_path / "a"), *given, *stage)
     assert first.returncode == 0, first.stderr
     again = cli(
@@ -226,7 +226,7 @@ def test_train_runs_an_earlier_models_recipe_and_refuses_a_mix(tmp_path):
     assert again.returncode == 0, again.stderr
     recipes = [json.loads((tmp_path / m / "model.json").read_text())["recipe"] for m in ("a", "b")]
     assert recipes[0] == recipes[1]
-    assert recipes[0]["seed"] == 2 and recipes[0]["capacity"]["harmonics"] == 0
+    assert recipes[0]["seed"] == 2 and recipes[0]["capacity"]["harmonics"] == 0 and not recipes[0]["drop_outliers"]
     assert recipes[0]["arch"] == {"position": "mlp:16x2", "orientation": "mlp:16x2"}
 
     mixed = cli(
