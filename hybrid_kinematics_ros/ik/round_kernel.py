@@ -1,4 +1,4 @@
-"""The arithmetic of one round of the closed forms' fixed point (``IKSolver._fixed_point_rounds``), compiled.
+"""One round of the closed forms' fixed point (:mod:`~hybrid_kinematics_ros.ik.fixed_point`), its arithmetic compiled.
 
 A round takes the hybrid pose at its configuration, its error to the target, the compensated target and the
 closed forms' branch nearest it: a UR10 solve makes five rounds, and in numpy each of these steps costs a
@@ -75,7 +75,7 @@ def nearest_copy(q, seed, lower, upper):
 @numba.njit(cache=True, nogil=True)
 def chord_step(q, e, generators, revolute, post, axes, lower, upper):
     """``q (6,)`` moved by Newton's chord step for the error ``e (6,)`` on the URDF model's Jacobian at ``q``,
-    clipped into ``[lower, upper]`` (``IKSolver._newton_step``): the 6×6 system by ``lm_kernel.solve``; an empty
+    clipped into ``[lower, upper]`` (``FixedPoint.newton_step``): the 6×6 system by ``lm_kernel.solve``; an empty
     array where a pivot is exactly zero (a singular Jacobian, where ``numpy.linalg.solve`` raises)."""
     jac = fk_kernel.tip_pose_and_jacobian(q, generators, revolute, post, axes)[1]
     step = e.copy()
