@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.calibration import capacity as capacity_module
 from hybrid_kinematics_ros.calibration.evaluate import evaluate, measured_targets, plot_distributions, pose_errors_of
-from hybrid_kinematics_ros.calibration.summary import MODELS, NO_TOLERANCE, TestData, Tolerance, summarise
+from hybrid_kinematics_ros.calibration.summary import MODELS, NO_TOLERANCE, DataSource, Tolerance, summarise
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics.elastic import JointMap
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -466,7 +466,7 @@ def write_report(
     model: HybridModel,
     pairs: Pairs,
     out_dir: Path,
-    source: TestData,
+    source: DataSource,
     curve: list[dict[str, Any]] | None = None,
     tolerance: Tolerance = NO_TOLERANCE,
 ) -> tuple[Path, dict[str, Any]]:

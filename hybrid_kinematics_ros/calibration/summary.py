@@ -180,7 +180,7 @@ def working_range(model: HybridModel) -> dict[str, Any]:
 
 
 @dataclass(frozen=True)
-class TestData:
+class DataSource:
     """Where the test pairs come from: their ``bags`` and the ``stations`` (frames) they were measured in."""
 
     bags: Sequence[str]
@@ -205,7 +205,7 @@ def summarise(
     report: dict[str, Any],
     errors: dict[str, tuple[np.ndarray, np.ndarray]],
     iso: Sequence[dict[str, Any]],
-    source: TestData,
+    source: DataSource,
     tolerance: Tolerance = NO_TOLERANCE,
 ) -> dict[str, Any]:
     """The summary block's figures. ``report``: :func:`evaluate`'s statistics of these ``pairs``;

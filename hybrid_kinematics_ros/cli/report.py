@@ -9,7 +9,7 @@ from pathlib import Path
 
 from hybrid_kinematics_ros.calibration.fit import load_stations
 from hybrid_kinematics_ros.calibration.report import write_report
-from hybrid_kinematics_ros.calibration.summary import TestData, Tolerance
+from hybrid_kinematics_ros.calibration.summary import DataSource, Tolerance
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.model.referencing import to_base_frame
@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
             curve = json.loads(args.curve.read_text())
         except (OSError, json.JSONDecodeError) as exc:
             raise DataError(f"{args.curve}: not a readable curve JSON ({exc})") from None
-    source = TestData([str(b) for b in args.bag], [p.frame_id for p in stations])
+    source = DataSource([str(b) for b in args.bag], [p.frame_id for p in stations])
     tolerance = Tolerance(args.tolerance_mm, args.tolerance_deg)
     page, summary = write_report(model, pairs, args.out, source, curve, tolerance)
     if summary["verdict"] is not None:

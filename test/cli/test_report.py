@@ -14,7 +14,7 @@ from PIL import Image
 
 from hybrid_kinematics_ros.calibration.fit import load_pairs
 from hybrid_kinematics_ros.calibration.report import _capacity_section, _summary_section, iso9283, write_report
-from hybrid_kinematics_ros.calibration.summary import TestData, Tolerance, capacity_lines, verdict
+from hybrid_kinematics_ros.calibration.summary import DataSource, Tolerance, capacity_lines, verdict
 from hybrid_kinematics_ros.io.pairs import Pairs, write_pairs
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from test.browser import Browser
@@ -76,7 +76,7 @@ def test_report_renders_in_chromium(trained, test_bag, tmp_path):
     # the same test data judged against 1 µm, written in-process (the CLI's path is checked above)
     tight = tmp_path / "tight"
     pairs = load_pairs([test_bag[0]], trained[1].chain, referencings=trained[1].referencings)
-    source = TestData([str(test_bag[0])], ["base_link"])
+    source = DataSource([str(test_bag[0])], ["base_link"])
     _, summary = write_report(trained[1], pairs, tight, source, tolerance=Tolerance(TIGHT_MM))
     assert not summary["verdict"]["passed"]
     browser = shutil.which("chromium")
