@@ -349,7 +349,11 @@ def _stage(
     log: Callable[[str], None],
 ) -> Stage:
     """The stage the nets learn on: identified when the recipe says so and better than the rigid-only model
-    on the validation pairs, else the URDF chain with its own referencing. Records it in ``manifest``."""
+    on the validation pairs, else the URDF chain with its own referencing. Records it in ``manifest``.
+
+    With ``recipe.drop_outliers``, the training pairs the first fit leaves far off (its outliers) are left out
+    and the referencing, the capacity and the stage fitted again without them, once; the stage carries the
+    pairs it kept, which the nets then learn from."""
     rigid = Stage(ElasticChain.rigid(chain), rigid_refs)
     if not recipe.parametric:
         return rigid
