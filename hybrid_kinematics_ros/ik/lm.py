@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 
@@ -79,7 +80,7 @@ def project(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, revolute: np.nd
 
 
 class ChainFkJac:
-    """A chain's URDF pose and Jacobian of one configuration, as :func:`lm_solve`'s ``fk_jac``, which then runs
+    """A chain's URDF pose and Jacobian of one configuration, as :class:`LM`'s ``fk_jac``, which then runs
     its compiled loop (``ik/lm_kernel.py``) on the chain's kernel operands."""
 
     def __init__(self, chain: Chain) -> None:
@@ -94,73 +95,85 @@ class ChainFkJac:
 LM_CHUNK = 16
 
 
-def lm_solve(
-    fk_jac: FkJac,
-    target: np.ndarray,
-    seed: np.ndarray,
-    limits: Limits,
-    tol_m: float,
-    tol_rad: float,
-    max_iterations: int,
-    deadline: float,
-    damping: float = 1e-3,
-    stop_crawl: bool = False,
-) -> tuple[np.ndarray, float, float, int]:
-    """Levenberg-Marquardt on the pose error, projected onto the joint limits.
+class LM(NamedTuple):
+    """Levenberg-Marquardt on the pose error through ``fk_jac``, projected onto ``limits``
+    ``(lower, upper, revolute)``: it stops within ``tol`` (m, rad) or after ``max_iterations``, and gives up
+    early when it stalls far from the target, or when the cost settles on a floor above the tolerance (within a
+    millimetre, a few steps that each gain under 2 %). ``damping`` is the starting λ: small when the seed is
+    known to be close (Gauss-Newton steps at once). A variant is ``lm._replace(max_iterations=...)``."""
 
-    ``limits`` is ``(lower, upper, revolute)``. Returns the joints, the position (m) and rotation (rad)
-    errors, and the iterations used. Gives up early when it stalls far from the target, or when the cost
-    settles on a floor above the tolerance (within a millimetre, a few steps that each gain under 2 %).
-    ``damping`` is the starting λ: small when the seed is known to be close (Gauss-Newton steps at once).
-    ``stop_crawl``: also give up on a crawl (CRAWL_WINDOW), when other seeds are cheaper than waiting.
-    """
-    if isinstance(fk_jac, ChainFkJac):  # the same loop compiled, LM_CHUNK iterations a call: the deadline between
-        lower, upper, revolute = (np.ascontiguousarray(a) for a in limits)  # calls (a past one runs none)
+    fk_jac: FkJac
+    limits: Limits
+    tol: tuple[float, float]
+    max_iterations: int
+    damping: float = 1e-3
+
+    def solve(
+        self, target: np.ndarray, seed: np.ndarray, deadline: float, stop_crawl: bool = False
+    ) -> tuple[np.ndarray, float, float, int]:
+        """The joints from ``seed``, the position (m) and rotation (rad) errors, and the iterations used; none
+        after ``deadline`` (``time.perf_counter``). ``stop_crawl``: also give up on a crawl (CRAWL_WINDOW), when
+        other seeds are cheaper than waiting."""
+        if isinstance(self.fk_jac, ChainFkJac):
+            return self._compiled(target, seed, deadline, stop_crawl)
+        return self._python(target, seed, deadline, stop_crawl)
+
+    def _compiled(
+        self, target: np.ndarray, seed: np.ndarray, deadline: float, stop_crawl: bool
+    ) -> tuple[np.ndarray, float, float, int]:
+        """The same loop compiled, LM_CHUNK iterations a call: the deadline between calls (a past one runs none)."""
+        lower, upper, revolute = (np.ascontiguousarray(a) for a in self.limits)
         q = np.array(seed, dtype=float)
-        state = np.array([damping, 0.0, 0.0, 0.0, 0.0, 0.0])
+        state = np.array([self.damping, 0.0, 0.0, 0.0, 0.0, 0.0])
         target = np.ascontiguousarray(target, dtype=float)
+        (tol_m, tol_rad), max_iterations = self.tol, self.max_iterations
         steps = 0 if time.perf_counter() > deadline else LM_CHUNK
         while True:
             e = lm_kernel.lm_steps(
                 target, q, state, steps, lower, upper, revolute, tol_m, tol_rad, max_iterations, stop_crawl,
-                _CONSTANTS, *fk_jac.operands,
+                _CONSTANTS, *self.fk_jac.operands,
             )  # fmt: skip
             if state[5] == lm_kernel.DONE or time.perf_counter() > deadline:
                 return q, math.sqrt(e[:3] @ e[:3]), math.sqrt(e[3:] @ e[3:]), int(state[1])
             steps = LM_CHUNK
-    lower, upper, revolute = limits
-    q = project(seed, lower, upper, revolute)
-    T, J = fk_jac(q)
-    e = se3.error6(target, T)
-    cost = e @ e
-    lam = damping
-    iterations = slow = 0
-    window_cost = cost
-    while iterations < max_iterations:
-        if np.sqrt(e[:3] @ e[:3]) <= tol_m and np.sqrt(e[3:] @ e[3:]) <= tol_rad:
-            break
-        if time.perf_counter() > deadline or (iterations >= STALL_ITERATIONS and cost > STALL_COST):
-            break
-        if stop_crawl and iterations and iterations % CRAWL_WINDOW == 0:
-            if cost < STALL_COST and cost * CRAWL_GAIN > window_cost:
+
+    def _python(
+        self, target: np.ndarray, seed: np.ndarray, deadline: float, stop_crawl: bool
+    ) -> tuple[np.ndarray, float, float, int]:
+        lower, upper, revolute = self.limits
+        tol_m, tol_rad = self.tol
+        q = project(seed, lower, upper, revolute)
+        T, J = self.fk_jac(q)
+        e = se3.error6(target, T)
+        cost = e @ e
+        lam = self.damping
+        iterations = slow = 0
+        window_cost = cost
+        while iterations < self.max_iterations:
+            if np.sqrt(e[:3] @ e[:3]) <= tol_m and np.sqrt(e[3:] @ e[3:]) <= tol_rad:
                 break
-            window_cost = cost
-        iterations += 1
-        jtj = J.T @ J
-        step = np.linalg.solve(jtj + lam * (np.diag(np.diag(jtj)) + 1e-9 * np.eye(len(q))), J.T @ e)
-        q_new = project(q + step, lower, upper, revolute)
-        T_new, J_new = fk_jac(q_new)
-        e_new = se3.error6(target, T_new)
-        cost_new = e_new @ e_new
-        if cost_new < cost:
-            # a floor, not a solution: the target lies beyond this model's reach here, or in a local minimum
-            slow = slow + 1 if cost_new > FLOOR_RATIO * cost and cost_new < STALL_COST else 0
-            q, T, J, e, cost = q_new, T_new, J_new, e_new, cost_new
-            lam = max(lam / LAMBDA_DOWN, LAMBDA_MIN)
-            if slow >= FLOOR_STEPS:
+            if time.perf_counter() > deadline or (iterations >= STALL_ITERATIONS and cost > STALL_COST):
                 break
-        else:
-            lam = lam * LAMBDA_UP
-            if lam >= LAMBDA_MAX:
-                break
-    return q, float(np.sqrt(e[:3] @ e[:3])), float(np.sqrt(e[3:] @ e[3:])), iterations
+            if stop_crawl and iterations and iterations % CRAWL_WINDOW == 0:
+                if cost < STALL_COST and cost * CRAWL_GAIN > window_cost:
+                    break
+                window_cost = cost
+            iterations += 1
+            jtj = J.T @ J
+            step = np.linalg.solve(jtj + lam * (np.diag(np.diag(jtj)) + 1e-9 * np.eye(len(q))), J.T @ e)
+            q_new = project(q + step, lower, upper, revolute)
+            T_new, J_new = self.fk_jac(q_new)
+            e_new = se3.error6(target, T_new)
+            cost_new = e_new @ e_new
+            if cost_new < cost:
+                # a floor, not a solution: the target lies beyond this model's reach here, or in a local minimum
+                slow = slow + 1 if cost_new > FLOOR_RATIO * cost and cost_new < STALL_COST else 0
+                q, T, J, e, cost = q_new, T_new, J_new, e_new, cost_new
+                lam = max(lam / LAMBDA_DOWN, LAMBDA_MIN)
+                if slow >= FLOOR_STEPS:
+                    break
+            else:
+                lam = lam * LAMBDA_UP
+                if lam >= LAMBDA_MAX:
+                    break
+        return q, float(np.sqrt(e[:3] @ e[:3])), float(np.sqrt(e[3:] @ e[3:])), iterations

@@ -1,10 +1,10 @@
-"""Levenberg-Marquardt on the URDF model, compiled: ``lm.lm_solve``'s loop, its rules and constants, in one call.
+"""Levenberg-Marquardt on the URDF model, compiled: ``lm.LM.solve``'s loop, its rules and constants, in one call.
 
 The classical stage, the restarts from the seed table, the polish of least-squares answers and the URDF pass
 of a trajectory all run LM on the URDF model, often from dozens of seeds within one request's budget (hundreds
 next to a joint limit with the wrist straight). In numpy an iteration is mostly the overhead of small calls;
 compiled, a fraction of it. numba has no clock, so the loop runs ``steps`` iterations at most per call and
-returns its state; ``lm.lm_solve`` checks the deadline between calls.
+returns its state; ``lm.LM.solve`` checks the deadline between calls.
 """
 
 from __future__ import annotations
@@ -121,7 +121,7 @@ def lm_steps(
     post,
     axes,
 ):
-    """Up to ``steps`` iterations of ``lm.lm_solve`` from ``q (n,)`` (in place, projected into the limits on the
+    """Up to ``steps`` iterations of ``lm.LM.solve`` from ``q (n,)`` (in place, projected into the limits on the
     first call) on the chain's kernel operands. ``state (6,)``: λ, iterations, slow steps, the crawl window's
     cost, whether started, and (out) RUNNING or DONE. ``constants``: STALL_ITERATIONS, STALL_COST,
     CRAWL_WINDOW, CRAWL_GAIN, FLOOR_RATIO, FLOOR_STEPS, LAMBDA_DOWN, LAMBDA_UP, LAMBDA_MIN, LAMBDA_MAX.

@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from hybrid_kinematics_ros.ik.lm import FkJac, Limits, lm_solve, project
+from hybrid_kinematics_ros.ik.lm import LM, FkJac, Limits, project
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.se3 import error6_batch
 from hybrid_kinematics_ros.model.hybrid import HybridModel
@@ -124,17 +124,8 @@ class HybridRefiner:
         box = (lo, hi, np.zeros(len(q0), dtype=bool))  # clip to the box, never wrap by 2π
         used = 0
         for fk_jac in (self.chord, self.model.fk_and_jacobian_single):
-            q, ep, er, it = lm_solve(
-                fk_jac,
-                target,
-                q0,
-                box,
-                tol_m,
-                tol_rad,
-                CHORD_ITERATIONS,
-                min(time.perf_counter() + BOX_BUDGET_SHARE * self.timeout_s, deadline),
-                damping=GAUSS_NEWTON_DAMPING,
-            )
+            lm = LM(fk_jac, box, (tol_m, tol_rad), CHORD_ITERATIONS, GAUSS_NEWTON_DAMPING)
+            q, ep, er, it = lm.solve(target, q0, min(time.perf_counter() + BOX_BUDGET_SHARE * self.timeout_s, deadline))
             used += it
             if ep <= tol_m and er <= tol_rad:
                 return q, {"nfev": used, "status": 0, "method": "lm", "errors": (1e3 * ep, float(np.degrees(er)))}
@@ -149,25 +140,13 @@ class HybridRefiner:
         singularity). ``chord_first``: the cheaper start of the fallback branches, chord steps (one hybrid FK
         each) with light damping before the hybrid Jacobian. Returns the joints and the errors (m, rad)."""
         tol_m, tol_rad = self.inner_tol
+        hybrid = LM(self.model.fk_and_jacobian_single, self.limits, self.inner_tol, HYBRID_LM_ITERATIONS)
         if not chord_first:
-            q, ep, er, _ = lm_solve(
-                self.model.fk_and_jacobian_single,
-                target,
-                q,
-                self.limits,
-                tol_m,
-                tol_rad,
-                HYBRID_LM_ITERATIONS,
-                deadline,
-            )
+            q, ep, er, _ = hybrid.solve(target, q, deadline)
             return q, ep, er
-        for fk_jac, iterations in (
-            (self.chord, CHORD_ITERATIONS),
-            (self.model.fk_and_jacobian_single, HYBRID_LM_ITERATIONS),
-        ):
-            q, ep, er, _ = lm_solve(
-                fk_jac, target, q, self.limits, tol_m, tol_rad, iterations, deadline, damping=BRANCH_DAMPING
-            )
+        chord = LM(self.chord, self.limits, self.inner_tol, CHORD_ITERATIONS, BRANCH_DAMPING)
+        for lm in (chord, hybrid._replace(damping=BRANCH_DAMPING)):
+            q, ep, er, _ = lm.solve(target, q, deadline)
             if ep <= tol_m and er <= tol_rad:
                 break
         return q, ep, er

@@ -79,7 +79,7 @@ from hybrid_kinematics_ros.ik import seeds as seeding
 from hybrid_kinematics_ros.ik.analytic import AnalyticIK, turns
 from hybrid_kinematics_ros.ik.errors import IKError
 from hybrid_kinematics_ros.ik.fixed_point import FIXED_POINT_ROUNDS, FixedPoint
-from hybrid_kinematics_ros.ik.lm import ChainFkJac, joint_limits, lm_solve
+from hybrid_kinematics_ros.ik.lm import LM, ChainFkJac, joint_limits
 from hybrid_kinematics_ros.ik.refine import HybridRefiner
 from hybrid_kinematics_ros.ik.valley import valley_starts, warm_up
 from hybrid_kinematics_ros.kinematics import approach, se3
@@ -211,12 +211,18 @@ class IKSolver:
             model, self.limits, o.position_tolerance_mm, o.orientation_tolerance_deg, o.refine_width_rad, o.timeout_s
         )
         self.inner_tol = self.refiner.inner_tol
-        self.analytic_fk_jac = ChainFkJac(model.chain)  # lm_solve runs compiled on it
+        # LM on the URDF model, compiled (ChainFkJac), within the inner tolerances
+        self.urdf_lm = LM(ChainFkJac(model.chain), self.limits, self.inner_tol, o.max_iterations)
         self.seeds = seeding.SeedTable(model, self.lower, self.upper)
         self.closed_form = AnalyticIK.of(model.chain) if o.closed_form else None  # None: iterative only
         self.path = f"closed form ({self.closed_form.family})" if self.closed_form else "iterative"
         self._last_rank: tuple[bytes, bool] | None = None  # see _rank_lost
         self._mid = model.chain.mid_limits()  # the seed of a request without one
+        self._fixed_point = (
+            FixedPoint(model, self.closed_form, self.inner_tol, self.refiner.polish_tol, self.lower, self.upper)
+            if self.closed_form is not None
+            else None
+        )
 
     def warm_up(self) -> IKSolver:
         """Load the compiled kernels (LM, the fixed point's round, the URDF model's pose, the valley trace's step)
@@ -234,10 +240,10 @@ class IKSolver:
         # first valley search's answer late
         for rows in (2, COMPILED_ROWS + 1):
             model.fk(np.tile(self._mid, (rows, 1)))
-        lm_solve(self.analytic_fk_jac, target, self._mid, self.limits, *self.inner_tol, 1, float("inf"))
+        self.urdf_lm._replace(max_iterations=1).solve(target, self._mid, float("inf"))
         if self.closed_form is not None:
             self.solve(target, self._mid)
-            self._fixed().newton_step(self._mid, np.zeros(6))  # a solve may end before its chord steps
+            self._fixed_point.newton_step(self._mid, np.zeros(6))  # a solve may end before its chord steps
             if model.chain.dof == 6:  # and the valley trace's step (valley.warm_up)
                 warm_up(model, self._mid)
         return self
@@ -250,6 +256,8 @@ class IKSolver:
         clone = copy.copy(self)
         clone.model = model
         clone.refiner = self.refiner.with_model(model)
+        if self._fixed_point is not None:
+            clone._fixed_point = replace(self._fixed_point, model=model)
         return clone
 
     def _approaching(self, directions: np.ndarray | None) -> IKSolver:
@@ -302,24 +310,13 @@ class IKSolver:
             e = error6(target, self.model.fk_single(q, analytic=True))
             ep, er = float(np.linalg.norm(e[:3])), float(np.linalg.norm(e[3:]))
             if ep > tol_m or er > tol_rad:
-                q, ep, er, _ = lm_solve(
-                    self.analytic_fk_jac, target, q, self.limits, tol_m, tol_rad, self.options.max_iterations, deadline
-                )
+                q, ep, er, _ = self.urdf_lm.solve(target, q, deadline)
             if ep <= tol_m and er <= tol_rad:
                 if not continuum or not (self._rank_lost(q) or self.closed_form.singular(target)):
                     return q, ep, er, 1
                 # a branch at a singularity has no closed-form answer: its continuum's member nearest the seed
                 # comes from LM, and wins if nearer than the closed forms' nearest
-                q2, ep2, er2, _ = lm_solve(
-                    self.analytic_fk_jac,
-                    target,
-                    seed,
-                    self.limits,
-                    tol_m,
-                    tol_rad,
-                    self.options.max_iterations,
-                    deadline,
-                )
+                q2, ep2, er2, _ = self.urdf_lm.solve(target, seed, deadline)
                 near = ep2 <= tol_m and er2 <= tol_rad and np.linalg.norm(q2 - seed) < np.linalg.norm(q - seed)
                 return (q2, ep2, er2, 2) if near else (q, ep, er, 2)
         best = None
@@ -328,17 +325,8 @@ class IKSolver:
         nearest = iter(self.seeds.nearest(target, restarts))
         while True:
             attempts += 1
-            q, ep, er, _ = lm_solve(
-                self.analytic_fk_jac,
-                target,
-                attempt_seed,
-                self.limits,
-                tol_m,
-                tol_rad,
-                self.options.max_iterations,
-                deadline,
-                stop_crawl=attempts > 1,  # the caller's seed runs its course: it decides the branch
-            )
+            # the caller's seed runs its course: it decides the branch
+            q, ep, er, _ = self.urdf_lm.solve(target, attempt_seed, deadline, stop_crawl=attempts > 1)
             if best is None or ep + er < best[1] + best[2]:
                 best = (q, ep, er)
             if (ep <= tol_m and er <= tol_rad) or time.perf_counter() > deadline:
@@ -490,7 +478,6 @@ class IKSolver:
         ``exact_and_near``: the closed forms' exact branches and those beyond the URDF model's reach."""
         closed, near = exact_and_near
         tried = [q0]
-        tol_m, tol_rad = self.inner_tol
         copies = self._branch_copies(req, np.vstack([closed, near]), nearest_miss, restarted)
         table = self.seeds.nearest(req.target, 2 * seeding.TABLE_RESTARTS)
         # (start, whether LM on the hybrid model follows a fixed point that stalls beyond the branch's reach: on
@@ -528,19 +515,8 @@ class IKSolver:
                 valley = restarts_of(result)
             else:
                 s, copy = next(starts, (None, False))
-                s = self.seeds.random() if s is None else s
-                q0, ep, er, _ = lm_solve(
-                    self.analytic_fk_jac,
-                    req.target,
-                    s,
-                    self.limits,
-                    tol_m,
-                    tol_rad,
-                    self.options.max_iterations,
-                    req.deadline,
-                )
-                stats["attempts"] += 1
-                if ep > seeding.NEAR_M or er > seeding.NEAR_RAD or not seeding.is_new_branch(q0, tried):
+                q0 = self._urdf_branch(req, self.seeds.random() if s is None else s, tried, stats)
+                if q0 is None:
                     continue
                 tried.append(q0)
                 result = self._other_branch(req, q0, stats, copy, valleys)
@@ -553,6 +529,15 @@ class IKSolver:
         best.stats["branches"] = len(tried)
         best.seconds = time.perf_counter() - req.start
         return self._singular(best)
+
+    def _urdf_branch(self, req: SolveRequest, s: np.ndarray, tried: list[np.ndarray], stats: dict) -> np.ndarray | None:
+        """The URDF model's LM answer from ``s``, if it reaches the target and lies on a branch not yet
+        ``tried``; None otherwise."""
+        q, ep, er, _ = self.urdf_lm.solve(req.target, s, req.deadline)
+        stats["attempts"] += 1
+        if ep > seeding.NEAR_M or er > seeding.NEAR_RAD or not seeding.is_new_branch(q, tried):
+            return None
+        return q
 
     def _branch_copies(
         self, req: SolveRequest, branches: np.ndarray, nearest_miss: IKResult | None, restarted: list[np.ndarray]
@@ -746,11 +731,10 @@ class IKSolver:
         # few LM steps on the URDF model from each answer find its nearest point; so do they from the answers
         # past a joint limit, clipped into it (the nearest point within the limits)
         polished = []
+        polish = self.urdf_lm._replace(max_iterations=POLISH_ITERATIONS)
         past_limits = self.closed_form.clipped(target, seed)
         for q in [*self.closed_form.approximations(target, seed, np.inf, np.inf), *past_limits]:
-            q, ep, er, _ = lm_solve(
-                self.analytic_fk_jac, target, q, self.limits, *self.inner_tol, POLISH_ITERATIONS, float("inf")
-            )
+            q, ep, er, _ = polish.solve(target, q, float("inf"))
             if ep < seeding.NEAR_M and er < seeding.NEAR_RAD:
                 polished.append(q)
         return np.array(polished).reshape(-1, self.model.chain.dof)
@@ -857,12 +841,7 @@ class IKSolver:
         """The closed forms' fixed points from each of ``starts`` side by side (:meth:`FixedPoint.many`)."""
         if self.closed_form is None:
             return [(q, None, False) for q in starts]
-        return self._fixed().many(target, starts, deadline, rounds)
-
-    def _fixed(self) -> FixedPoint:
-        """The fixed point through this solver's model (its conditions and approach directions)."""
-        polish = self.refiner.polish_tol
-        return FixedPoint(self.model, self.closed_form, self.inner_tol, polish, self.lower, self.upper)
+        return self._fixed_point.many(target, starts, deadline, rounds)
 
     def _fixed_point_only(
         self, req: SolveRequest, q0: np.ndarray, stats: dict, rounds: int = FIXED_POINT_ROUNDS
@@ -1056,9 +1035,7 @@ class IKSolver:
             if now > search_end:
                 break
             seed_deadline = min(now + o.timeout_s, search_end)
-            q, ep, er, _ = lm_solve(
-                self.analytic_fk_jac, req.target, s, self.limits, *self.inner_tol, o.max_iterations, seed_deadline
-            )
+            q, ep, er, _ = self.urdf_lm.solve(req.target, s, seed_deadline)
             if ep > tol_m or er > tol_rad:
                 continue
             q = seeding.nearest_equivalent(q, req.seed, self.limits)
@@ -1119,19 +1096,12 @@ class IKSolver:
         prev = None if seed is None else np.asarray(seed, dtype=float)
         if prev is None and n and initial is None:  # no seed: the first pose's full solve picks the branch
             prev = self.solve(targets[0]).q
+        path_lm = self.urdf_lm._replace(max_iterations=PATH_ITERATIONS)
         for i, target in enumerate(targets if initial is None else ()):
             target, from_q = self.check(target, prev)
             # the path's own extrapolation saves a step or two; the previous answer if that goes astray
             for start_q in ((2.0 * q[i - 1] - q[i - 2]) if i >= 2 else from_q, from_q):
-                q[i], ep, er, _ = lm_solve(
-                    self.analytic_fk_jac,
-                    target,
-                    start_q,
-                    self.limits,
-                    *self.inner_tol,
-                    PATH_ITERATIONS,
-                    time.perf_counter() + self.options.timeout_s,
-                )
+                q[i], ep, er, _ = path_lm.solve(target, start_q, time.perf_counter() + self.options.timeout_s)
                 if ep < seeding.NEAR_M and er < seeding.NEAR_RAD and np.abs(q[i] - from_q).max() < PATH_JUMP_RAD:
                     break
             prev = q[i]

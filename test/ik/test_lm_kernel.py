@@ -1,4 +1,4 @@
-"""The compiled LM on the URDF model against the Python loop it replaces (``lm.lm_solve`` with any other
+"""The compiled LM on the URDF model against the Python loop it replaces (``lm.LM`` with any other
 ``fk_jac``): the same answers from the same seeds, its rotation error near π against scipy's, and the
 deadline checked between its calls."""
 
@@ -10,7 +10,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hybrid_kinematics_ros.ik import lm_kernel
-from hybrid_kinematics_ros.ik.lm import ChainFkJac, joint_limits, lm_solve
+from hybrid_kinematics_ros.ik.lm import LM, ChainFkJac, joint_limits
 from hybrid_kinematics_ros.kinematics import fk
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
 from hybrid_kinematics_ros.kinematics.se3 import error6
@@ -30,8 +30,8 @@ def test_the_compiled_loop_gives_the_python_loops_answers():
         q = rng.uniform(chain.lower, chain.upper)
         target = fk.fk_single(chain, q)
         seed = q + rng.normal(scale=0.05 if k % 2 else 0.5, size=6)
-        a = lm_solve(compiled, target, seed, limits, 1e-9, 1e-9, 100, np.inf, stop_crawl=bool(k % 3))
-        b = lm_solve(python, target, seed, limits, 1e-9, 1e-9, 100, np.inf, stop_crawl=bool(k % 3))
+        a = LM(compiled, limits, (1e-9, 1e-9), 100).solve(target, seed, np.inf, stop_crawl=bool(k % 3))
+        b = LM(python, limits, (1e-9, 1e-9), 100).solve(target, seed, np.inf, stop_crawl=bool(k % 3))
         solved += a[1] <= 1e-9 and a[2] <= 1e-9
         # rounding differs (our elimination, not LAPACK's): the same run to 1e-9 rad, the same iterations
         same += np.allclose(a[0], b[0], atol=1e-8) and a[3] == b[3] and (a[1] <= 1e-9) == (b[1] <= 1e-9)
@@ -60,7 +60,8 @@ def test_a_past_deadline_runs_no_iteration_and_a_near_one_few():
     target = fk.fk_single(chain, q)
     far = q + 0.8
     limits = joint_limits(chain)
-    _, _, _, iterations = lm_solve(ChainFkJac(chain), target, far, limits, 1e-12, 1e-12, 100, time.perf_counter() - 1)
+    lm = LM(ChainFkJac(chain), limits, (1e-12, 1e-12), 100)
+    _, _, _, iterations = lm.solve(target, far, time.perf_counter() - 1)
     assert iterations == 0
-    _, pos, _, iterations = lm_solve(ChainFkJac(chain), target, far, limits, 1e-12, 1e-12, 100, np.inf)
+    _, pos, _, iterations = lm.solve(target, far, np.inf)
     assert iterations > 0 and pos < 1e-9

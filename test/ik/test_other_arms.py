@@ -47,7 +47,7 @@ def test_crawling_seeds_give_way_at_a_wrist_singularity(talos):
         steps += 1
         return talos.fk_and_jacobian_single(x, analytic=True)
 
-    solver.analytic_fk_jac = counted
+    solver.urdf_lm = solver.urdf_lm._replace(fk_jac=counted)
     r = solver.solve(target)
     assert r.success, r.message
     assert steps < 600, steps  # 1,257 when every crawl ran its 100 iterations
@@ -64,7 +64,8 @@ def test_crawl_rule_spares_linear_convergence():
         return T, np.eye(6)[:, :1] * 1e-9  # a step that moves nothing: progress comes from the sequence
 
     limits = (np.array([-1.0]), np.array([1.0]), np.array([False]))
-    _, ep, _, iterations = lm.lm_solve(halving, target, np.zeros(1), limits, 1e-11, 1e-9, 100, np.inf, stop_crawl=True)
+    crawl = lm.LM(halving, limits, (1e-11, 1e-9), 100)
+    _, ep, _, iterations = crawl.solve(target, np.zeros(1), np.inf, stop_crawl=True)
     assert ep <= 1e-11 and iterations > lm.CRAWL_WINDOW
 
 

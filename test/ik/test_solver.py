@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from hybrid_kinematics_ros.ik.errors import IKError
-from hybrid_kinematics_ros.ik.lm import lm_solve
 from hybrid_kinematics_ros.ik.seeds import VALLEY_STEPS_RAD, valley_seeds
 from hybrid_kinematics_ros.ik.solver import SINGULAR, IKOptions, IKSolver, pose_problem
 from hybrid_kinematics_ros.kinematics import fk, se3
@@ -98,7 +97,8 @@ def test_lm_stops_on_a_floor_beyond_reach():
     target[:3, 3] += 3e-4 * outward / np.linalg.norm(outward)
     for seed in (q + 0.05, q - 0.05):
         deadline = time.perf_counter() + 60
-        _, pos, _, iterations = lm_solve(solver.analytic_fk_jac, target, seed, solver.limits, 1e-9, 1e-9, 100, deadline)
+        tight = solver.urdf_lm._replace(tol=(1e-9, 1e-9), max_iterations=100)
+        _, pos, _, iterations = tight.solve(target, seed, deadline)
         assert pos == pytest.approx(3e-4, rel=1e-3) and iterations < 20
 
 

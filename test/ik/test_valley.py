@@ -14,7 +14,7 @@ import pytest
 from bench.bench_ik_singular import cases
 from hybrid_kinematics_ros.ik import seeds as seeding
 from hybrid_kinematics_ros.ik import valley as valley_module
-from hybrid_kinematics_ros.ik.lm import joint_limits, lm_solve
+from hybrid_kinematics_ros.ik.lm import joint_limits
 from hybrid_kinematics_ros.ik.solver import IKOptions, IKSolver, SolveRequest
 from hybrid_kinematics_ros.ik.valley import (
     NEAR_SINGULAR,
@@ -402,9 +402,7 @@ def test_a_fallback_near_answer_has_its_valley_searched_before_lm(trained):
         if near == 20:
             break
         for start in solver.seeds.nearest(target, 8):  # as the fallback loop's restarts
-            q0, ep, er, _ = lm_solve(
-                solver.analytic_fk_jac, target, start, solver.limits, *solver.inner_tol, 100, np.inf
-            )
+            q0, ep, er, _ = solver.urdf_lm._replace(max_iterations=100).solve(target, start, np.inf)
             if ep < seeding.NEAR_M and er < seeding.NEAR_RAD:
                 break
         else:
