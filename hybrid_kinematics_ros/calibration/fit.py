@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -210,6 +210,24 @@ def split_summary(blocks: int | None, separate_val: bool, separate_test: bool) -
 Sets = tuple[list[Pairs], list[Pairs], list[Pairs]]  # training, validation and test pairs, one Pairs per frame
 
 
+def _silent(_: str) -> None:
+    pass
+
+
+@dataclass(frozen=True)
+class Hooks:
+    """What the caller of :func:`fit` hears while it runs (the nets' ``progress`` records, ``log`` lines) and
+    what it records of its data in the manifest's ``data`` section (``data_summary``: the bags, what was
+    dropped, how the sets were split)."""
+
+    progress: Callable[[dict], None] | None = None
+    log: Callable[[str], None] = _silent
+    data_summary: Mapping[str, Any] = field(default_factory=dict)
+
+
+QUIET = Hooks()  # no progress, no log lines, no data summary
+
+
 @dataclass(frozen=True)
 class Stage:
     """What the nets learn on: the stage (or the URDF chain), the referencings it was fitted with and, when
@@ -255,11 +273,7 @@ def fit(
     test_pairs: Pairs | Sequence[Pairs],
     out: Path,
     recipe: Recipe,
-    *,
-    data_summary: dict[str, Any] | None = None,
-    progress: Callable[[dict], None] | None = None,
-    log: Callable[[str], None] = lambda _: None,
-    parallel: bool = True,
+    hooks: Hooks = QUIET,
 ) -> tuple[HybridModel, dict[str, Any]]:
     """Reference, identify the stage, train both nets side by side, and write the model directory ``out``.
 
@@ -271,6 +285,7 @@ def fit(
     one on the test pairs: if it is worse (:func:`worse_than_rigid`), the model is written and
     :class:`CalibrationError` says not to serve it.
     """
+    log = hooks.log
     raw: Sets = tuple([p] if isinstance(p, Pairs) else list(p) for p in (train_pairs, val_pairs, test_pairs))
     manifest: dict[str, Any] = {"recipe": recipe.manifest()}
     rigid_refs = reference_all(chain, raw[0], recipe.shared_targets, recipe.seed)
@@ -288,7 +303,7 @@ def fit(
     sets = tuple(to_base_frame(p, chain, stage.refs) for p in raw)
     inputs = _inputs(chain, recipe, stage, sets, log)
     start = time.perf_counter()
-    trained = _train_nets(chain, recipe, stage.base, sets[:2], inputs, progress, parallel, log)
+    trained = _train_nets(chain, recipe, stage.base, sets[:2], inputs, hooks)
     manifest["training_seconds"] = round(time.perf_counter() - start, 1)
     manifest |= _model_manifest(chain, sets[0], trained, recipe)
     coverage = thinned(sets[0].q)
@@ -300,7 +315,7 @@ def fit(
     _floors(chain, raw, rigid_refs, manifest, log)
     guard = None if errors is None else worse_than_rigid(errors["hybrid"][0], errors["analytic"][0])
     manifest["data"] = {
-        **(data_summary or {}),
+        **hooks.data_summary,
         **{name: len(p) for name, p in zip(("train", "val", "test"), sets, strict=True)},
         "frame_ids": [p.frame_id for p in raw[0]],
     }
@@ -461,9 +476,7 @@ def _train_nets(
     base: ElasticChain,
     sets: tuple[Pairs, Pairs],
     inputs: Inputs,
-    progress: Callable[[dict], None] | None,
-    parallel: bool,
-    log: Callable[[str], None],
+    hooks: Hooks,
 ) -> Trained:
     """Both nets on what ``base`` leaves of the training pairs, side by side; the inputs without the offered
     channels when no net took them (the node then needs no value for them)."""
@@ -492,14 +505,14 @@ def _train_nets(
         )
         for seed_offset, kind in enumerate(kinds)
     }
-    nets, histories = train.train_pair(jobs, progress=progress, parallel=parallel)
+    nets, histories = train.train_pair(jobs, progress=hooks.progress)
     for kind, history in histories.items():
         if history[-1].get("silenced"):
-            log(f"{kind} net: no better than the stage before it on validation, so it corrects nothing")
+            hooks.log(f"{kind} net: no better than the stage before it on validation, so it corrects nothing")
     if not offered:
         return Trained(nets, histories, inputs)
     taken = [kind for kind, history in histories.items() if history[-1].get("takes_offered")]
-    log(
+    hooks.log(
         f"condition channels offered ({', '.join(offered)}): "
         + (f"taken by the {' and '.join(taken)} net" if taken else "no net is better with them on validation")
     )

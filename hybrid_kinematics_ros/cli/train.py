@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 from hybrid_kinematics_ros.calibration import capacity, train
 from hybrid_kinematics_ros.calibration.errors import CalibrationError
-from hybrid_kinematics_ros.calibration.fit import SPLIT_BLOCKS, fit, load_stations, split, split_summary
+from hybrid_kinematics_ros.calibration.fit import SPLIT_BLOCKS, Hooks, fit, load_stations, split, split_summary
 from hybrid_kinematics_ros.calibration.recipe import CAPACITY_SETTINGS, Recipe
 from hybrid_kinematics_ros.cli.common import (
     add_payload_args,
@@ -317,13 +317,15 @@ def run(args: argparse.Namespace) -> int:
             test_pairs,
             args.out,
             recipe,
-            data_summary={
-                "bags": [str(b) for b in args.bag],
-                "dropped": dict(dropped),
-                "split": split_summary(blocks, bool(args.val_bag), bool(args.test_bag)),
-            },
-            progress=progress,
-            log=progress.write,
+            Hooks(
+                progress=progress,
+                log=progress.write,
+                data_summary={
+                    "bags": [str(b) for b in args.bag],
+                    "dropped": dict(dropped),
+                    "split": split_summary(blocks, bool(args.val_bag), bool(args.test_bag)),
+                },
+            ),
         )
     finally:
         progress.close()
