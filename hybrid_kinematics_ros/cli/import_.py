@@ -99,32 +99,56 @@ POSITION_FLAGS = {
 def spec_dict_from_args(args: argparse.Namespace) -> dict[str, Any]:
     """The spec file's dict (or an empty one) with every given flag written over its key."""
     data: dict[str, Any] = load_spec_dict(args.spec) if args.spec else {}
-
-    def section(name: str) -> dict[str, Any]:
-        value = data.get(name)
-        data[name] = dict(value) if isinstance(value, dict) else {}
-        return data[name]
-
     for flag, key in (("separator", "separator"), ("decimal", "decimal"), ("skip_lines", "skip_lines")):
         if getattr(args, flag) is not None:
-            section("format")[key] = getattr(args, flag)
+            _section(data, "format")[key] = getattr(args, flag)
     if args.frame_id:
         data["frame_id"] = args.frame_id
+    _joint_flags(args, data)
+    for flag, key in POSITION_FLAGS.items():
+        if getattr(args, flag) is not None:
+            _section(data, "position")[key] = getattr(args, flag)
+    _orientation_flags(args, data)
+    _stamp_flags(args, data)
+    for text in args.condition or ():
+        name, column = _pair(text, "--condition")
+        _section(data, "conditions")[name] = column
+    if args.filter:
+        column, value = _pair(args.filter, "--filter")
+        try:
+            equals: str | float = float(value)
+        except ValueError:
+            equals = value
+        data["filter"] = {"column": column, "equals": equals}
+    return data
+
+
+def _section(data: dict[str, Any], name: str) -> dict[str, Any]:
+    """``data[name]`` as a dict of its own (a new, empty one where the spec has none), for flags to write to."""
+    value = data.get(name)
+    data[name] = dict(value) if isinstance(value, dict) else {}
+    return data[name]
+
+
+def _joint_flags(args: argparse.Namespace, data: dict[str, Any]) -> None:
+    """``--joints`` (columns, or ``name=column`` pairs), ``--joint-names`` and ``--joint-unit`` into ``data``."""
     if args.joints:
         items = [c.strip() for c in args.joints.split(",")]
-        joints = section("joints")
+        joints = _section(data, "joints")
         if all("=" in c for c in items):
             joints["columns"] = dict(_pair(c, "--joints") for c in items)
             joints.pop("names", None)
         else:
             joints["columns"] = items
     if args.joint_names:
-        section("joints")["names"] = [c.strip() for c in args.joint_names.split(",")]
+        _section(data, "joints")["names"] = [c.strip() for c in args.joint_names.split(",")]
     if args.joint_unit:
-        section("joints")["unit"] = args.joint_unit
-    for flag, key in POSITION_FLAGS.items():
-        if getattr(args, flag) is not None:
-            section("position")[key] = getattr(args, flag)
+        _section(data, "joints")["unit"] = args.joint_unit
+
+
+def _orientation_flags(args: argparse.Namespace, data: dict[str, Any]) -> None:
+    """The orientation's flags into ``data``: its kind (another kind drops the spec's keys), columns, units and
+    the reflector points (``--point COLUMNS=X,Y,Z``)."""
     orient = data.get("orientation") if isinstance(data.get("orientation"), dict) else {}
     if args.orientation and args.orientation != orient.get("kind"):
         data["orientation"] = {"kind": args.orientation}  # another kind: none of the old keys apply
@@ -139,7 +163,7 @@ def spec_dict_from_args(args: argparse.Namespace) -> dict[str, Any]:
         ("max_point_residual", "max_residual"),
     ):
         if getattr(args, flag) is not None:
-            section("orientation")[key] = getattr(args, flag)
+            _section(data, "orientation")[key] = getattr(args, flag)
     if args.point:
         points = []
         for text in args.point:
@@ -149,30 +173,23 @@ def spec_dict_from_args(args: argparse.Namespace) -> dict[str, Any]:
             except ValueError:
                 raise DataError(f"--point '{text}': the nominal position '{nominal}' is not three numbers") from None
             points.append({"columns": columns, "nominal": xyz})
-        section("orientation")["points"] = points
+        _section(data, "orientation")["points"] = points
+
+
+def _stamp_flags(args: argparse.Namespace, data: dict[str, Any]) -> None:
+    """The time stamps' flags into ``data``: a column and its format, or a period and start (no column)."""
     if args.stamp_column:
         data["stamp"] = {"column": args.stamp_column, "format": args.stamp_format or "seconds"}
     elif args.stamp_format:
-        section("stamp")["format"] = args.stamp_format
+        _section(data, "stamp")["format"] = args.stamp_format
     if args.stamp_period is not None or args.stamp_start is not None:
-        stamp = section("stamp")
+        stamp = _section(data, "stamp")
         stamp.pop("column", None)
         stamp.pop("format", None)
         if args.stamp_period is not None:
             stamp["period_s"] = args.stamp_period
         if args.stamp_start is not None:
             stamp["start"] = args.stamp_start
-    for text in args.condition or ():
-        name, column = _pair(text, "--condition")
-        section("conditions")[name] = column
-    if args.filter:
-        column, value = _pair(args.filter, "--filter")
-        try:
-            equals: str | float = float(value)
-        except ValueError:
-            equals = value
-        data["filter"] = {"column": column, "equals": equals}
-    return data
 
 
 def run(args: argparse.Namespace) -> int:

@@ -17,7 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from hybrid_kinematics_ros.ik.errors import IKError
-from hybrid_kinematics_ros.ik.solver import IKSolver
+from hybrid_kinematics_ros.ik.solver import IKResult, IKSolver
+from hybrid_kinematics_ros.model.hybrid import HybridModel
 
 # A calibration corrects millimetres, which costs the joints milliradians. A corrected point further than
 # this from its planned one has jumped to another IK branch or sits at a singularity, where the robot
@@ -74,22 +75,7 @@ def compensate(
         IKError: a malformed trajectory (shapes, non-finite values, times not increasing).
     """
     model = solver.model
-    q_plan = np.asarray(positions, dtype=float)
-    t = np.asarray(times, dtype=float)
-    n = model.chain.dof
-    if q_plan.ndim != 2 or q_plan.shape[1] != n or len(q_plan) == 0:
-        raise IKError(f"trajectory positions must be (N, {n}) with N >= 1, got {q_plan.shape}")
-    if t.shape != (len(q_plan),):
-        raise IKError(f"{len(q_plan)} points but {t.size} times")
-    for name, arr in (("velocities", velocities), ("accelerations", accelerations)):
-        if arr is not None and np.shape(arr) != q_plan.shape:
-            raise IKError(f"trajectory {name} must be {q_plan.shape} like the positions, got {np.shape(arr)}")
-    if not (np.all(np.isfinite(q_plan)) and np.all(np.isfinite(t))):
-        raise IKError("trajectory has NaN or infinite positions or times")
-    bad = np.flatnonzero(np.diff(t) <= 0)
-    if len(bad):
-        i = int(bad[0]) + 1
-        raise IKError(f"time_from_start must increase: point {i} at {t[i]:.6f} s is not after {t[i - 1]:.6f} s")
+    q_plan, t = _checked(positions, times, (velocities, accelerations), model.chain.dof)
     targets = model.fk(q_plan, analytic=True)
     # the plan is the URDF model's exact IK of its own poses: the hybrid solve starts there (batched Newton
     # chord); a point it does not converge gets a full solve seeded by the previous corrected point
@@ -100,20 +86,9 @@ def compensate(
     inside = np.array([bool(r.in_calibrated_range) for r in results])
     failed, message = -1, "ok"
     for i, r in enumerate(results):
-        if not r.success:
-            if require_calibrated_range and not r.in_calibrated_range:
-                why = f"lies outside the calibrated range ({model.describe_outside(q[i])})"
-            else:
-                why = f"cannot be corrected: {r.message or 'no hybrid IK solution within the tolerance'}"
+        why = _why_not(model, r, (q[i], q_plan[i]), require_calibrated_range, max_joint_correction_rad)
+        if why:
             failed, message = i, f"point {i} {why}"
-            break
-        step = float(np.abs(q[i] - q_plan[i]).max())
-        if step > max_joint_correction_rad:
-            failed, message = (
-                i,
-                f"point {i} needs a joint correction of {step:.3f} rad (more than {max_joint_correction_rad} rad): "
-                "a singularity or another IK branch, which the robot could not follow in the planned time",
-            )
             break
     vel = acc = None
     if velocities is not None:
@@ -125,3 +100,49 @@ def compensate(
     elif vel is not None and len(t) >= 3:
         acc = _derivative(vel, t)
     return Compensation(q, vel, acc, pos, rot, inside, failed, message)
+
+
+def _checked(
+    positions: np.ndarray, times: np.ndarray, rates: tuple[np.ndarray | None, np.ndarray | None], n: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The planned positions ``(N, n)`` and times ``(N,)`` as arrays, or an :class:`IKError` naming what is
+    malformed (with the velocities and accelerations, ``rates``, where given)."""
+    q_plan = np.asarray(positions, dtype=float)
+    t = np.asarray(times, dtype=float)
+    if q_plan.ndim != 2 or q_plan.shape[1] != n or len(q_plan) == 0:
+        raise IKError(f"trajectory positions must be (N, {n}) with N >= 1, got {q_plan.shape}")
+    if t.shape != (len(q_plan),):
+        raise IKError(f"{len(q_plan)} points but {t.size} times")
+    for name, arr in zip(("velocities", "accelerations"), rates, strict=True):
+        if arr is not None and np.shape(arr) != q_plan.shape:
+            raise IKError(f"trajectory {name} must be {q_plan.shape} like the positions, got {np.shape(arr)}")
+    if not (np.all(np.isfinite(q_plan)) and np.all(np.isfinite(t))):
+        raise IKError("trajectory has NaN or infinite positions or times")
+    bad = np.flatnonzero(np.diff(t) <= 0)
+    if len(bad):
+        i = int(bad[0]) + 1
+        raise IKError(f"time_from_start must increase: point {i} at {t[i]:.6f} s is not after {t[i - 1]:.6f} s")
+    return q_plan, t
+
+
+def _why_not(
+    model: HybridModel,
+    result: IKResult,
+    corrected_and_planned: tuple[np.ndarray, np.ndarray],
+    require_calibrated_range: bool,
+    max_rad: float,
+) -> str:
+    """Why a point's corrected configuration cannot be run ("" if it can): no hybrid solution, outside the
+    calibrated range where that is refused, or a correction beyond ``max_rad`` on some joint."""
+    q, planned = corrected_and_planned
+    if not result.success:
+        if require_calibrated_range and not result.in_calibrated_range:
+            return f"lies outside the calibrated range ({model.describe_outside(q)})"
+        return f"cannot be corrected: {result.message or 'no hybrid IK solution within the tolerance'}"
+    step = float(np.abs(q - planned).max())
+    if step > max_rad:
+        return (
+            f"needs a joint correction of {step:.3f} rad (more than {max_rad} rad): "
+            "a singularity or another IK branch, which the robot could not follow in the planned time"
+        )
+    return ""

@@ -273,57 +273,22 @@ def import_table(path: str | Path, spec: ImportSpec, model_joints: Sequence[str]
     path = Path(path)
     names, order = _joint_names(spec, model_joints)
     columns, empty, stamps, _, total, filtered = read_table(path, spec)
-    n = len(stamps)
-    dropped: Counter = Counter()
-    keep = np.ones(n, dtype=bool)
-
-    def drop(mask: np.ndarray, reason: str) -> None:
-        nonlocal keep
-        mask = mask & keep
-        if np.any(mask):
-            dropped[reason] += int(mask.sum())
-        keep &= ~mask
-
-    def stack(cols: Sequence[str]) -> np.ndarray:
-        return np.stack([columns[c] for c in cols], axis=1) if cols else np.zeros((n, 0))
-
-    drop(np.any(empty, axis=1), "empty_field")
-    drop(~np.all(np.isfinite(stack(spec.numeric_columns)), axis=1), "nan")
-    drop(np.all(stack(spec.measured_columns) == 0.0, axis=1), "all_zero_measurement")
-
-    q = stack(spec.joint_columns)[:, order]
+    rows = _Rows(columns, len(stamps))
+    rows.drop(np.any(empty, axis=1), "empty_field")
+    rows.drop(~np.all(np.isfinite(rows.stack(spec.numeric_columns)), axis=1), "nan")
+    rows.drop(np.all(rows.stack(spec.measured_columns) == 0.0, axis=1), "all_zero_measurement")
+    q = rows.stack(spec.joint_columns)[:, order]
     if spec.joint_unit == "deg":
         q = np.radians(q)
-    T = np.tile(np.eye(4), (n, 1, 1))
-    residual = None
-    if spec.points is not None:
-        measured = np.stack([stack(cols) for cols in spec.points.columns], axis=1) * spec.length_unit
-        fitted, residual = se3.fit_rigid(spec.points.nominal, np.where(keep[:, None, None], measured, 0.0))
-        if spec.points.max_residual is not None:
-            drop(residual > spec.points.max_residual, "point_fit_residual")
-        T = fitted
-    else:
-        T[:, :3, 3] = stack(spec.position_columns) * spec.length_unit
-    if spec.orientation == "quaternion":
-        quat = stack(spec.orientation_columns)
-        if spec.quaternion_order == "wxyz":
-            quat = quat[:, [1, 2, 3, 0]]
-        norm = np.linalg.norm(np.where(keep[:, None], quat, 0.0), axis=1)
-        drop(np.abs(norm - 1.0) > spec.quaternion_tolerance, "non_unit_quaternion")
-        quat = np.where(keep[:, None], quat / np.where(norm > 0, norm, 1.0)[:, None], [0.0, 0.0, 0.0, 1.0])
-        T[:, :3, :3] = Rotation.from_quat(quat).as_matrix()
-    elif spec.orientation == "euler":
-        angles = np.where(keep[:, None], stack(spec.orientation_columns), 0.0)
-        rot = Rotation.from_euler(spec.euler_sequence, angles, degrees=spec.angle_unit == "deg")
-        T[:, :3, :3] = rot.as_matrix()
-
+    T, residual = _poses(spec, rows)
     # stamps are the pairs' identity: a second row with the same stamp cannot be told apart from the first
-    _, first = np.unique(np.where(keep, stamps, np.iinfo(np.int64).min), return_index=True)
-    unique = np.zeros(n, dtype=bool)
+    _, first = np.unique(np.where(rows.keep, stamps, np.iinfo(np.int64).min), return_index=True)
+    unique = np.zeros(rows.n, dtype=bool)
     unique[first] = True
-    drop(~unique, "duplicate_stamp")
+    rows.drop(~unique, "duplicate_stamp")
+    keep = rows.keep
     if not np.any(keep):
-        raise DataError(f"{path}: no usable row among {total} (dropped {dict(dropped)}, filtered out {filtered})")
+        raise DataError(f"{path}: no usable row among {total} (dropped {dict(rows.dropped)}, filtered out {filtered})")
     conditions = {name: columns[col][keep] * scale for name, (col, scale) in spec.conditions.items()}
     pairs = Pairs(
         q[keep],
@@ -333,9 +298,57 @@ def import_table(path: str | Path, spec: ImportSpec, model_joints: Sequence[str]
         spec.frame_id,
         position_only=spec.orientation == "none",
         conditions=conditions,
-        floor=_floor(spec, stack, keep, residual),
+        floor=_floor(spec, rows.stack, keep, residual),
     )
-    return ImportResult(pairs, total, filtered, dropped)
+    return ImportResult(pairs, total, filtered, rows.dropped)
+
+
+class _Rows:
+    """An export's rows as they are read: their columns, which rows are kept, and how many were dropped why."""
+
+    def __init__(self, columns: dict[str, np.ndarray], n: int) -> None:
+        self.columns, self.n = columns, n
+        self.keep = np.ones(n, dtype=bool)
+        self.dropped: Counter = Counter()
+
+    def drop(self, mask: np.ndarray, reason: str) -> None:
+        """Drop the kept rows of ``mask``, counted under ``reason``."""
+        mask = mask & self.keep
+        if np.any(mask):
+            self.dropped[reason] += int(mask.sum())
+        self.keep &= ~mask
+
+    def stack(self, cols: Sequence[str]) -> np.ndarray:
+        """The columns ``cols`` side by side, ``(n, len(cols))``."""
+        return np.stack([self.columns[c] for c in cols], axis=1) if cols else np.zeros((self.n, 0))
+
+
+def _poses(spec: ImportSpec, rows: _Rows) -> tuple[np.ndarray, np.ndarray | None]:
+    """The measured poses ``(n, 4, 4)`` (m), from a position and an orientation or from reflector points fitted
+    rigidly, and the point fit's residuals (None without points). Rows whose points fit too poorly, or whose
+    quaternion is not a unit one, are dropped."""
+    T = np.tile(np.eye(4), (rows.n, 1, 1))
+    residual = None
+    if spec.points is not None:
+        measured = np.stack([rows.stack(cols) for cols in spec.points.columns], axis=1) * spec.length_unit
+        T, residual = se3.fit_rigid(spec.points.nominal, np.where(rows.keep[:, None, None], measured, 0.0))
+        if spec.points.max_residual is not None:
+            rows.drop(residual > spec.points.max_residual, "point_fit_residual")
+    else:
+        T[:, :3, 3] = rows.stack(spec.position_columns) * spec.length_unit
+    if spec.orientation == "quaternion":
+        quat = rows.stack(spec.orientation_columns)
+        if spec.quaternion_order == "wxyz":
+            quat = quat[:, [1, 2, 3, 0]]
+        norm = np.linalg.norm(np.where(rows.keep[:, None], quat, 0.0), axis=1)
+        rows.drop(np.abs(norm - 1.0) > spec.quaternion_tolerance, "non_unit_quaternion")
+        quat = np.where(rows.keep[:, None], quat / np.where(norm > 0, norm, 1.0)[:, None], [0.0, 0.0, 0.0, 1.0])
+        T[:, :3, :3] = Rotation.from_quat(quat).as_matrix()
+    elif spec.orientation == "euler":
+        angles = np.where(rows.keep[:, None], rows.stack(spec.orientation_columns), 0.0)
+        rot = Rotation.from_euler(spec.euler_sequence, angles, degrees=spec.angle_unit == "deg")
+        T[:, :3, :3] = rot.as_matrix()
+    return T, residual
 
 
 FLOOR_TRIALS = 4000  # simulated measurements: the floor to about 1 %

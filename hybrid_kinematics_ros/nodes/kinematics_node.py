@@ -34,7 +34,7 @@ from hybrid_kinematics_ros.calibration.errors import CalibrationError
 from hybrid_kinematics_ros.calibration.monitor import DriftMonitor, MonitorOptions, MonitorStatus
 from hybrid_kinematics_ros.ik.compensate import MAX_JOINT_CORRECTION_RAD, compensate
 from hybrid_kinematics_ros.ik.errors import IKError
-from hybrid_kinematics_ros.ik.solver import OTHER_BRANCH, IKOptions, IKSolver
+from hybrid_kinematics_ros.ik.solver import OTHER_BRANCH, IKOptions, IKResult, IKSolver
 from hybrid_kinematics_ros.io.errors import DataError
 from hybrid_kinematics_ros.kinematics import approach
 from hybrid_kinematics_ros.kinematics.approach import ApproachTracker
@@ -72,6 +72,18 @@ from hybrid_kinematics_ros.nodes.stats import RequestStats
 LOAD_ERRORS = (DataError, KinematicsError, ModelError, OSError)
 MAX_SOLUTIONS = 16
 SERVICE_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def _nearest_only(results: list[IKResult], max_solutions: int, options: IKOptions) -> bool:
+    """Whether the answer is the nearest configuration found, out of reach: one solution asked for, none found,
+    and the best beyond the tolerances (not refused for the calibrated range: that answer is no configuration
+    to run)."""
+    if max(1, max_solutions) != 1 or not results or results[0].success or results[0].q is None:
+        return False
+    best = results[0]
+    return best.position_error_mm > options.position_tolerance_mm or (
+        best.orientation_error_deg > options.orientation_tolerance_deg
+    )
 
 
 class KinematicsNode(Node):
@@ -544,62 +556,10 @@ class KinematicsNode(Node):
     ) -> ComputeIK.Response:
         nearest = False  # out of reach: the nearest configuration found is returned, with success false
         try:
-            frames = [model.chain.base_link, *(f for f in model.chain.link_frames if f != model.chain.base_link)]
-            target = matrix_from_msg(request.target, frames)
-            if request.seed.position or request.seed.name:
-                seed = joints_from_msg(request.seed, model.joint_names, "seed")
-            else:
-                seed = self._latest
-            frame = request.target.header.frame_id
-            if frame not in ("", model.chain.base_link):  # a link's pose at the seed (where the robot is)
-                if seed is None:
-                    raise RequestError(
-                        f"a target in frame '{frame}' is relative to where that link is: give a seed, or "
-                        "publish joint states"
-                    )
-                target = model.link_pose(frame, seed, analytic=request.analytic_only) @ target
-            k = max(1, int(request.max_solutions))
-            if k > MAX_SOLUTIONS:
-                raise RequestError(f"max_solutions {k} is above the limit of {MAX_SOLUTIONS}")
-            if k == 1:
-                results = [solver.solve(target, seed, analytic=request.analytic_only)]
-            else:
-                extra = [self._latest] if self._latest is not None and seed is not self._latest else []
-                budget_ms = self.ik_request_budget_ms if self.ik_request_budget_ms > 0 else k * self.ik_timeout_ms
-                deadline = start + budget_ms / 1e3
-                results = solver.solve_many(target, seed, k, extra, analytic=request.analytic_only, deadline=deadline)
-            good = [r for r in results if r.success]
-            # out of reach (not refused for the calibrated range: that answer is no configuration to run)
-            o = solver.options
-            nearest = (
-                k == 1
-                and not good
-                and bool(results)
-                and results[0].q is not None
-                and (
-                    results[0].position_error_mm > o.position_tolerance_mm
-                    or results[0].orientation_error_deg > o.orientation_tolerance_deg
-                )
-            )
-            shown = results[:1] if nearest else good
-            now = self.get_clock().now().to_msg()
-            response.solutions = [joint_state_msg(r.q, model.joint_names, now) for r in shown]
-            response.position_error_mm = [float(r.position_error_mm) for r in shown]
-            response.orientation_error_deg = [float(r.orientation_error_deg) for r in shown]
-            response.in_calibrated_range = [bool(r.in_calibrated_range) for r in shown]
-            if shown and not request.analytic_only:
-                set_bounds(response, model, np.array([r.q for r in shown]))
-            response.success = bool(good)
-            if good:
-                response.message = f"{len(good)} solution(s)" + self._unset_note()
-                if good[0].stats.get("other_branch"):
-                    response.message += f"; {OTHER_BRANCH}"
-            else:
-                response.message = (
-                    results[0].message if results else "no solution found from any seed within the time budget"
-                )
-            if nearest:
-                response.message += "; solutions[0] is the nearest configuration found"
+            target, seed = self._ik_target(request, model)
+            results = self._ik_results(request, target, seed, solver, start)
+            nearest = _nearest_only(results, int(request.max_solutions), solver.options)
+            self._fill_ik(response, request, model, results, nearest)
         except (RequestError, IKError, KinematicsError, ModelError) as exc:
             response.success, response.message = False, str(exc)
         except Exception as exc:  # a bug must cost one answer, never the service
@@ -610,6 +570,68 @@ class KinematicsNode(Node):
         outside = response.in_calibrated_range.count(False) if model.nets else 0
         self.stats.record("ik", time.perf_counter() - start, response.success, outside)
         return response
+
+    def _ik_target(self, request: ComputeIK.Request, model: HybridModel) -> tuple[np.ndarray, np.ndarray | None]:
+        """The request's target in the base frame, and its seed (the latest joint states without one)."""
+        frames = [model.chain.base_link, *(f for f in model.chain.link_frames if f != model.chain.base_link)]
+        target = matrix_from_msg(request.target, frames)
+        if request.seed.position or request.seed.name:
+            seed = joints_from_msg(request.seed, model.joint_names, "seed")
+        else:
+            seed = self._latest
+        frame = request.target.header.frame_id
+        if frame not in ("", model.chain.base_link):  # a link's pose at the seed (where the robot is)
+            if seed is None:
+                raise RequestError(
+                    f"a target in frame '{frame}' is relative to where that link is: give a seed, or "
+                    "publish joint states"
+                )
+            target = model.link_pose(frame, seed, analytic=request.analytic_only) @ target
+        return target, seed
+
+    def _ik_results(
+        self, request: ComputeIK.Request, target: np.ndarray, seed: np.ndarray | None, solver: IKSolver, start: float
+    ) -> list[IKResult]:
+        """One solution, or up to ``max_solutions`` within the request's budget from ``start``."""
+        k = max(1, int(request.max_solutions))
+        if k > MAX_SOLUTIONS:
+            raise RequestError(f"max_solutions {k} is above the limit of {MAX_SOLUTIONS}")
+        if k == 1:
+            return [solver.solve(target, seed, analytic=request.analytic_only)]
+        extra = [self._latest] if self._latest is not None and seed is not self._latest else []
+        budget_ms = self.ik_request_budget_ms if self.ik_request_budget_ms > 0 else k * self.ik_timeout_ms
+        deadline = start + budget_ms / 1e3
+        return solver.solve_many(target, seed, k, extra, analytic=request.analytic_only, deadline=deadline)
+
+    def _fill_ik(
+        self,
+        response: ComputeIK.Response,
+        request: ComputeIK.Request,
+        model: HybridModel,
+        results: list[IKResult],
+        nearest: bool,
+    ) -> None:
+        """The successful ``results`` into ``response`` (or the nearest configuration alone, if ``nearest``)."""
+        good = [r for r in results if r.success]
+        shown = results[:1] if nearest else good
+        now = self.get_clock().now().to_msg()
+        response.solutions = [joint_state_msg(r.q, model.joint_names, now) for r in shown]
+        response.position_error_mm = [float(r.position_error_mm) for r in shown]
+        response.orientation_error_deg = [float(r.orientation_error_deg) for r in shown]
+        response.in_calibrated_range = [bool(r.in_calibrated_range) for r in shown]
+        if shown and not request.analytic_only:
+            set_bounds(response, model, np.array([r.q for r in shown]))
+        response.success = bool(good)
+        if good:
+            response.message = f"{len(good)} solution(s)" + self._unset_note()
+            if good[0].stats.get("other_branch"):
+                response.message += f"; {OTHER_BRANCH}"
+        else:
+            response.message = (
+                results[0].message if results else "no solution found from any seed within the time budget"
+            )
+        if nearest:
+            response.message += "; solutions[0] is the nearest configuration found"
 
     def _on_compensate(
         self, request: CompensateTrajectory.Request, response: CompensateTrajectory.Response
