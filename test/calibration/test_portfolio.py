@@ -6,6 +6,7 @@ The bounds were set from measured figures (in the comments) with about 25 % of h
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -15,7 +16,7 @@ from hybrid_kinematics_ros.calibration import train
 from hybrid_kinematics_ros.calibration.capacity import RESOLUTION
 from hybrid_kinematics_ros.calibration.evaluate import error_stats, target_errors
 from hybrid_kinematics_ros.calibration.fit import fit, identify_stations, reference_all, split
-from hybrid_kinematics_ros.calibration.recipe import Recipe
+from hybrid_kinematics_ros.calibration.recipe import CAPACITY_SETTINGS, Recipe
 from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.kinematics.robot_config import load_robot_config
@@ -31,6 +32,13 @@ GEARS = CellSpec(
 REFLECTOR = CellSpec("UR10: plain reflector", poses=800, test_poses=400, tracker=TRACKER_FAR, plain_reflector=True)
 # a short walk, tested on another that mostly leaves its joint range: what the stage carries, not what it fits
 SHORT = CellSpec("UR10: 300 poses, tracker 3 m away, outliers", poses=300, tracker=TRACKER_FAR, outliers=0.004)
+
+
+@pytest.fixture(scope="module")
+def geared():
+    """The geared cell and its stage with the capacity chosen: the floor test and the rule's test read it."""
+    cell = build_cell(GEARS)
+    return cell, *stage_errors(cell)
 
 
 def stage_errors(cell, **capacity):
@@ -54,9 +62,12 @@ def stage_errors(cell, **capacity):
     ],
     ids=["clean", "gears-tracker-outliers", "reflector"],
 )
-def test_stage_lies_near_the_floor_of_each_cell(spec, bound):
-    cell = build_cell(spec)
-    stats, result = stage_errors(cell)
+def test_stage_lies_near_the_floor_of_each_cell(spec, bound, request):
+    if spec is GEARS:  # shared with the rule's test
+        cell, stats, result = request.getfixturevalue("geared")
+    else:
+        cell = build_cell(spec)
+        stats, result = stage_errors(cell)
     assert stats["position_mm_mean"] <= bound * cell.floor["position_mm_mean"], (stats, cell.floor, result.capacity)
     if not spec.plain_reflector:
         assert stats["orientation_deg_mean"] <= bound * cell.floor["orientation_deg_mean"]  # measured 1.03x, 1.01x
@@ -73,10 +84,10 @@ def test_a_short_walk_gets_the_capacity_that_carries_beyond_it():
     assert stats["orientation_deg_mean"] <= 2.9 * cell.floor["orientation_deg_mean"]  # measured 2.45x
 
 
-def test_capacity_choices_are_recorded_and_follow_the_rule():
+def test_capacity_choices_are_recorded_and_follow_the_rule(geared):
     """Each choice is the simplest candidate within the validation noise (or a micrometre) of the best,
     recorded with every candidate's held-out figures; a cell whose joints have cyclic errors gets harmonics."""
-    _, result = stage_errors(build_cell(GEARS))
+    _, _, result = geared
     decisions = {d["setting"]: d for d in result.capacity["decisions"]}
     assert decisions["harmonics"]["chosen"] > 0
     for decision in decisions.values():
@@ -98,15 +109,20 @@ def test_given_settings_are_kept_and_recorded():
     assert sum(p.kind == "harmonic" for p in result.params) == 2 * 3 * cell.config.chain.dof
 
 
-def test_hybrid_is_no_worse_than_its_stage_and_near_the_floor(tmp_path):
-    """The whole ``fit`` on the geared cell with a fixed step budget: the nets may only help."""
-    cell = build_cell(GEARS)
+def test_hybrid_is_no_worse_than_its_stage_and_near_the_floor(geared, tmp_path):
+    """The whole ``fit`` on the geared cell with a fixed step budget: the nets may only help. The stage takes
+    the capacity chosen on the cell (the tests above test that choice)."""
+    cell, _, chosen = geared
     cfg = cell.config
     tr, va, _ = split(cell.train, 0, (0.1, 0.0))
     preset = replace(train.PRESETS["fast"], max_epochs=800)  # 1 step an epoch at 1,350 pairs: 800 steps
-    recipe = Recipe(preset, 5.0, payload_mass=cfg.payload_mass, payload_com=tuple(cfg.payload_com))
+    capacity = {k: v for k, v in chosen.capacity["chosen"].items() if k in CAPACITY_SETTINGS}
+    recipe = Recipe(
+        preset, 5.0, payload_mass=cfg.payload_mass, payload_com=tuple(cfg.payload_com), capacity=capacity,
+        choose_capacity=False,
+    )  # fmt: skip
     model, manifest = fit(cfg.chain, tr, va, va, tmp_path / "m", recipe)
-    assert "capacity" in manifest and manifest["capacity"]["decisions"]
+    assert manifest["recipe"]["capacity"] == json.loads(json.dumps(capacity))  # the stage's settings, recorded
     base = to_base_frame([cell.test], cfg.chain, model.referencings)
     stage = error_stats(*target_errors(base, model.fk(base.q, nets=False)))
     hybrid = error_stats(*target_errors(base, model.fk(base.q)))
