@@ -4,10 +4,11 @@ singularity class, TRAC-IK's protocol on the URDF model, and the branch count ag
 The "iterative" rows are the same solver with its closed forms switched off (what it was before them). Hybrid
 models are trained here first on a short budget: IK accuracy is measured against the hybrid FK itself.
 
-Usage: python -m bench.bench_ik_singular [--targets N] [--train-minutes M] [--keep-models DIR]
+Usage: python -m bench.bench_ik_singular [--targets N] [--train-minutes M] [--keep-models DIR | --models DIR]
 
 ``--keep-models DIR`` keeps the models trained here (``DIR/ur10``, ``DIR/rx160``) for tracing a miss afterwards:
-a minute's training on a loaded machine gives another model, and the misses move with it.
+a minute's training on a loaded machine gives another model, and the misses move with it. ``--models DIR``
+serves the models kept there instead of training: two versions of the solver, measured on the same models.
 """
 
 from __future__ import annotations
@@ -120,6 +121,7 @@ def main() -> None:
     parser.add_argument("--targets", type=int, default=200, help="per case")
     parser.add_argument("--train-minutes", type=float, default=1.0)
     parser.add_argument("--keep-models", type=Path, default=None, help="train the models into DIR and keep them")
+    parser.add_argument("--models", type=Path, default=None, help="serve the models --keep-models kept in DIR")
     args = parser.parse_args()
     options = IKOptions(timeout_s=BUDGET_S)
     rows, many, counts = [], [], []
@@ -127,7 +129,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         models = args.keep_models or Path(tmp)
         for robot in ("ur10", "rx160"):
-            model = trained_model(robot, models, args.train_minutes)
+            if args.models:
+                model = HybridModel.load(args.models / robot)
+            else:
+                model = trained_model(robot, models, args.train_minutes)
             urdf = HybridModel.analytic_only(model.chain)
             freeze_heap()  # as the node does: no full collection of the loaded models inside a timed solve
             one_blas_thread()  # and BLAS on this thread only (no pool's stall)
