@@ -5,7 +5,9 @@
 
 from __future__ import annotations
 
+import fcntl
 import os
+import shutil
 
 # One BLAS thread per process: on the 2-core machine the suite's processes (nodes, CLI runs, net workers)
 # share the cores, and multithreaded OpenBLAS then makes least squares 10-20× slower (measured on the
@@ -16,6 +18,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 if "PYTEST_XDIST_WORKER" in os.environ:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -136,13 +139,30 @@ def virtual_pairs(ur10):
     return Pairs(q, T, 10**9 + 10**7 * np.arange(SAMPLES), ur10.chain.joint_names, "base_link")
 
 
+def built_once(tmp_path_factory: pytest.TempPathFactory, name: str, build: Callable[[Path], object]) -> Path:
+    """The directory ``name`` that ``build(path)`` fills once per test run: under pytest-xdist the first worker
+    that asks builds it while any other waits, and then every worker reads the same files."""
+    base = tmp_path_factory.getbasetemp()
+    root = base.parent if "PYTEST_XDIST_WORKER" in os.environ else base  # the run's, shared by its workers
+    out, done = root / f"shared-{name}", root / f"shared-{name}.done"
+    with open(root / f"shared-{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        if not done.exists():
+            shutil.rmtree(out, ignore_errors=True)  # what a failed build left
+            build(out)
+            done.touch()
+    return out
+
+
 @pytest.fixture(scope="session")
 def trained(ur10, virtual_pairs, tmp_path_factory):
-    out = tmp_path_factory.mktemp("models") / "small"
+    """The small model (its directory, the model, its manifest) and its test pairs, trained once per run."""
     tr, va, te = split(virtual_pairs, seed=0)
     preset = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=EPOCHS, ensemble=1)
-    model, manifest = fit(ur10.chain, tr, va, te, out, Recipe(preset, BUDGET_MINUTES, parametric=False))
-    return out, model, manifest, te
+    recipe = Recipe(preset, BUDGET_MINUTES, parametric=False)
+    out = built_once(tmp_path_factory, "small", lambda path: fit(ur10.chain, tr, va, te, path, recipe))
+    model = HybridModel.load(out)
+    return out, model, model.manifest, te
 
 
 # A model that knows one radian of the UR10's shoulder: its error bounds grow beyond it.
@@ -167,14 +187,11 @@ def shoulder_model(ur10, tmp_path_factory):
 # A cell whose robot grows with its temperature: models trained with and without that channel.
 EXPANSION_PER_K = 2e-4  # a strong thermal growth of the whole arm about its base, so the test is quick
 THERMAL_PRESET = replace(train.PRESETS["fast"], arch="mlp:64x2:silu", max_epochs=300, ensemble=1)
-# The capacity the selection chooses for these pairs with or without the channel, fixed here: the temperature
-# input is under test, not the capacity (test_portfolio tests that), and the selection is most of a fit's time.
-THERMAL_STAGE = Recipe(
-    THERMAL_PRESET,
-    5.0,
-    capacity={"elastic": "bending", "harmonics": 2, "harmonic_prior": 30.0, "map_step": 0.0},
-    choose_capacity=False,
-)
+# The capacity the selection chooses for the virtual UR10's pairs, fixed where a test is about something else
+# (test_portfolio and test_capacity test the selection): the selection is most of a fit's time.
+UR10_STAGE = {"elastic": "bending", "harmonics": 2, "harmonic_prior": 30.0, "map_step": 0.0}
+# with or without the temperature channel: the channel is under test, not the capacity
+THERMAL_STAGE = Recipe(THERMAL_PRESET, 5.0, capacity=UR10_STAGE, choose_capacity=False)
 
 
 def thermal_pairs(ur10, count: int, seed: int) -> Pairs:

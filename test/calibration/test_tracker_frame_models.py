@@ -21,6 +21,7 @@ from hybrid_kinematics_ros.io.pairs import Pairs
 from hybrid_kinematics_ros.kinematics import se3
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from hybrid_kinematics_ros.simulation.tracker import Tracker
+from test.conftest import UR10_STAGE
 
 TRACKER = {
     "base_to_tracker": {"xyz": [2.0, 0.5, -0.2], "rpy": [0.0, 0.01, 1.0]},
@@ -47,7 +48,10 @@ def trained_in_tracker_frame(request, ur10, tmp_path_factory):
     pairs = Pairs(q, T, np.arange(len(q)), ur10.chain.joint_names, cell.frame_id, position_only=position_only)
     tr, va, te = split(pairs, seed=0)
     out = tmp_path_factory.mktemp("tracker_frame") / request.param
-    recipe = Recipe(PRESET, 5.0, payload_mass=ur10.payload_mass, payload_com=tuple(ur10.payload_com))
+    recipe = Recipe(
+        PRESET, 5.0, payload_mass=ur10.payload_mass, payload_com=tuple(ur10.payload_com), capacity=UR10_STAGE,
+        choose_capacity=False,
+    )  # fmt: skip
     model, _ = fit(ur10.chain, tr, va, te, out, recipe)
     held_out = np.random.default_rng(12).uniform(0.9 * ur10.chain.lower, 0.9 * ur10.chain.upper, (500, 6))
     exact = _cell(ur10, noise=False).measure(held_out, np.random.default_rng(0))

@@ -16,6 +16,7 @@ from hybrid_kinematics_ros.model.hybrid import HybridModel
 from hybrid_kinematics_ros.simulation.cell import VirtualCell
 from hybrid_kinematics_ros.simulation.tracker import Tracker
 from test.cli.inprocess import cli
+from test.conftest import UR10_STAGE
 
 FLANGE = {"xyz": [0.02, -0.03, 0.09], "rpy": [0.1, 0.0, 0.4]}
 STATIONS = {  # frame: (tracker placement, target on the flange)
@@ -23,6 +24,11 @@ STATIONS = {  # frame: (tracker placement, target on the flange)
     "tracker_b": ({"xyz": [-1.8, 1.5, 0.1], "rpy": [0.0, 0.02, -0.7]}, FLANGE),
     "tracker_d": ({"xyz": [0.5, 2.6, -0.3], "rpy": [-0.01, 0.0, 1.1]}, {"xyz": [0.0, 0.06, 0.12], "rpy": [0, 0, 1.0]}),
 }
+
+
+def stage_flags(capacity: dict) -> list[str]:
+    """``train``'s flags that give the stage's ``capacity`` settings."""
+    return [arg for key, value in capacity.items() for arg in (f"--{key.replace('_', '-')}", str(value))]
 
 
 def run(*args):
@@ -58,6 +64,7 @@ def stations_model(ur10, tmp_path_factory):
         *("train", "--bag", *bags, "--robot", "ur10", "--out", str(out), "--shared-target", "tracker_a,tracker_b"),
         *("--max-epochs", "40", "--max-minutes", "5", "--arch-position", "mlp:32x2", "--arch-orientation", "mlp:32x2"),
         *("--approach", "--members", "2"),
+        *stage_flags(UR10_STAGE),  # the capacity is not what these tests are about
     )
     assert result.returncode == 0, result.stderr
     assert "from 3 frames (tracker_a, tracker_b, tracker_d)" in result.stdout
