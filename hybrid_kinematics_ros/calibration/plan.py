@@ -505,21 +505,8 @@ def plan(
     candidates' own)."""
     view = view or TrackerView()
     candidates = np.asarray(candidates, dtype=float)
-    kept, counts = visible(chain, candidates, view, options.target)
-    usable = np.flatnonzero(kept)
-    if options.count < 1:
-        raise CalibrationError(f"--count {options.count}: plan at least one pose")
-    if len(usable) < options.count:
-        steps = ", ".join(f"{k} {v}" for k, v in counts.items())
-        raise CalibrationError(
-            f"--count {options.count}: only {len(usable)} usable candidate configurations ({steps}); "
-            "widen the working range or the tracker's limits, or ask for fewer poses"
-        )
     rng = np.random.default_rng(options.seed)
-    pool = usable
-    if len(pool) > MAX_INFORMATION_CANDIDATES and options.count < MAX_INFORMATION_CANDIDATES:
-        pool = np.sort(rng.choice(usable, MAX_INFORMATION_CANDIDATES, replace=False))
-    counts["considered"] = len(pool)
+    pool, counts = _pool(chain, candidates, options, view, rng)
     q = candidates[pool]
     problem = _information(chain, q, options)
     jac, sigma = problem.jacobian, problem.sigma
@@ -561,6 +548,29 @@ def plan(
         curve=curve,
         cyclic=options.cyclic,
     )
+
+
+def _pool(
+    chain: Chain, candidates: np.ndarray, options: PlanOptions, view: TrackerView, rng: np.random.Generator
+) -> tuple[np.ndarray, dict[str, int]]:
+    """The rows of ``candidates`` the design considers (those the tracker can see, at most
+    MAX_INFORMATION_CANDIDATES of them at random), and how many each check kept; or a :class:`CalibrationError`
+    when fewer than ``options.count`` are usable."""
+    kept, counts = visible(chain, candidates, view, options.target)
+    usable = np.flatnonzero(kept)
+    if options.count < 1:
+        raise CalibrationError(f"--count {options.count}: plan at least one pose")
+    if len(usable) < options.count:
+        steps = ", ".join(f"{k} {v}" for k, v in counts.items())
+        raise CalibrationError(
+            f"--count {options.count}: only {len(usable)} usable candidate configurations ({steps}); "
+            "widen the working range or the tracker's limits, or ask for fewer poses"
+        )
+    pool = usable
+    if len(pool) > MAX_INFORMATION_CANDIDATES and options.count < MAX_INFORMATION_CANDIDATES:
+        pool = np.sort(rng.choice(usable, MAX_INFORMATION_CANDIDATES, replace=False))
+    counts["considered"] = len(pool)
+    return pool, counts
 
 
 def _toured(

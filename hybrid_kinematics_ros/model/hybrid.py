@@ -71,6 +71,33 @@ class HybridModel:
         self.path = path
         self._fast = {kind: FastResidual.from_module(net) for kind, net in self.nets.items()}
         self._pose_cache: tuple | None = None  # (the stage it was built for, _pose_operands)
+        self._init_range(chain)
+        section = self.manifest.get("parametric")
+        self.base = model_from_manifest(chain, section) if section else ElasticChain.rigid(chain)
+        self._rigid_base = self.base.chain if self.base.is_rigid else None  # fk_single's shortcut
+        # fk_rows: generated float code, for the URDF chain and for the model when it is that chain alone
+        self._rows_analytic = unrolled_fk(chain)
+        if self._rigid_base is None or self.nets:
+            self._rows_model = None
+        else:
+            self._rows_model = self._rows_analytic if self._rigid_base is chain else unrolled_fk(self._rigid_base)
+        self._init_referencings()
+        self._init_conditions(chain)
+        self.payload_changed = False  # serving another payload than the nets were trained with (with_payload)
+        self._trained_base = self.base  # the stage under the calibrated payload (what its bounds hold for)
+        section = self.manifest.get("bounds")
+        # bounds of another distance measure are not read: their numbers mean something else; such a model
+        # serves without bounds
+        self.bounds = Bounds.from_manifest(section) if section and section.get("distance") == DISTANCE else None
+        self._range_policy = self._checked_policy(range_policy)
+        # the compiled one-configuration paths load (or, on a fresh checkout, compile) here, not in a first request
+        mid = chain.mid_limits()
+        self.fk_single(mid)
+        self.fk_and_jacobian_single(mid)
+
+    def _init_range(self, chain: Chain) -> None:
+        """The trained joint range (the chain's limits where the manifest has none), and what the range checks
+        read of it."""
         rng = self.manifest.get("trained_range")
         self.trained_lower = np.asarray(rng["lower"], dtype=float) if rng else chain.lower
         self.trained_upper = np.asarray(rng["upper"], dtype=float) if rng else chain.upper
@@ -84,15 +111,9 @@ class HybridModel:
         self._range_lists = (self._range[0].tolist(), self._range[1].tolist())
         self._trained_lists = (self.trained_lower.tolist(), self.trained_upper.tolist())  # error_bounds' exact test
         self._revolute_list = chain.revolute.tolist()
-        section = self.manifest.get("parametric")
-        self.base = model_from_manifest(chain, section) if section else ElasticChain.rigid(chain)
-        self._rigid_base = self.base.chain if self.base.is_rigid else None  # fk_single's shortcut
-        # fk_rows: generated float code, for the URDF chain and for the model when it is that chain alone
-        self._rows_analytic = unrolled_fk(chain)
-        if self._rigid_base is None or self.nets:
-            self._rows_model = None
-        else:
-            self._rows_model = self._rows_analytic if self._rigid_base is chain else unrolled_fk(self._rigid_base)
+
+    def _init_referencings(self) -> None:
+        """Each tracker station's referencing, and the nominal model's own."""
         section = self.manifest.get("referencing") or []
         refs = [Referencing.from_manifest(r) for r in ([section] if isinstance(section, dict) else section)]
         self.referencings = {r.frame_id: r for r in refs}  # one per tracker station
@@ -103,25 +124,18 @@ class HybridModel:
         self.rigid_referencings = (
             {r.frame_id: r for r in map(Referencing.from_manifest, rigid)} if rigid else self.referencings
         )
+
+    def _init_conditions(self, chain: Chain) -> None:
+        """The condition channels the nets take after the joints, their defaults, and where the joints'
+        approach directions sit among them."""
         conditions = self.manifest.get("conditions") or {}
         self.condition_names = tuple(conditions)  # condition channels the nets take after the joints
         self._values = _frozen([float(conditions[c]["default"]) for c in self.condition_names])
-        self.payload_changed = False  # serving another payload than the nets were trained with (with_payload)
-        self._trained_base = self.base  # the stage under the calibrated payload (what its bounds hold for)
         # where the joints' approach directions sit among them, in joint order (None: the nets take none)
         names = approach.channel_names(chain.joint_names)
         self.approach_index = (
             np.array([self.condition_names.index(n) for n in names]) if names[0] in self.condition_names else None
         )
-        section = self.manifest.get("bounds")
-        # bounds of another distance measure are not read: their numbers mean something else; such a model
-        # serves without bounds
-        self.bounds = Bounds.from_manifest(section) if section and section.get("distance") == DISTANCE else None
-        self._range_policy = self._checked_policy(range_policy)
-        # the compiled one-configuration paths load (or, on a fresh checkout, compile) here, not in a first request
-        mid = chain.mid_limits()
-        self.fk_single(mid)
-        self.fk_and_jacobian_single(mid)
 
     @property
     def range_policy(self) -> str:
