@@ -140,6 +140,7 @@ class LM(NamedTuple):
     def _python(
         self, target: np.ndarray, seed: np.ndarray, deadline: float, stop_crawl: bool
     ) -> tuple[np.ndarray, float, float, int]:
+        """The loop in numpy, on any other ``fk_jac`` (the hybrid model's, the chord's)."""
         lower, upper, revolute = self.limits
         tol_m, tol_rad = self.tol
         q = project(seed, lower, upper, revolute)
